@@ -1,0 +1,72 @@
+"""Surface meshes: nm coordinates in (x, y, z), outward normals, export round-trips with provenance."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import trimesh
+
+from nemsim.geometry.mesh import MESH_FORMATS, export_mesh, surface_mesh
+
+
+def _sphere(scene, centre, radius):
+    d, h, w = scene.field_shape
+    z = np.arange(d)[:, None, None] - 1.0
+    y = np.arange(h)[None, :, None] - 1.0
+    x = np.arange(w)[None, None, :] - 1.0
+    phi = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2) - radius
+    return np.clip(phi / scene.d_max_vox, -1, 1).astype(np.float32)
+
+
+@pytest.fixture
+def sphere_mesh(tiny_scene):
+    # an off-centre sphere so a wrong axis order would show
+    meta = {"case_id": 7, "step": 100, "controls": {"flux_cl": 1.5}}
+    return surface_mesh(_sphere(tiny_scene, (5.0, 6.3, 14.0), 3.6), tiny_scene, meta)
+
+
+def test_sphere_coordinates_and_orientation(tiny_scene, sphere_mesh):
+    v = tiny_scene.voxel_nm
+    centre_nm = (np.array([5.0, 6.3, 14.0]) + 0.5) * v
+    r = np.linalg.norm(sphere_mesh.vertices - centre_nm, axis=1)
+    assert np.all(np.abs(r - 3.6 * v) < 0.2 * v)
+    assert sphere_mesh.is_watertight
+    assert sphere_mesh.volume > 0  # outward normals
+    out = np.einsum("ij,ij->i", sphere_mesh.face_normals, sphere_mesh.triangles_center - centre_nm)
+    assert np.all(out > 0)
+    assert sphere_mesh.metadata["units"] == "nm" and sphere_mesh.metadata["case_id"] == 7
+
+
+def test_si_top_plane_height(tiny_scene, make_hole):
+    st = make_hole(tiny_scene, 2.0, 0.0)
+    m = surface_mesh(st[1], tiny_scene)
+    # flat Si top at native z = si_top - 0.5 -> si_top * voxel_nm
+    assert np.median(m.vertices[:, 2]) == pytest.approx(tiny_scene.si_top * tiny_scene.voxel_nm)
+
+
+@pytest.mark.parametrize("fmt", MESH_FORMATS)
+def test_export_round_trip(sphere_mesh, fmt):
+    data = export_mesh(sphere_mesh, fmt)
+    assert isinstance(data, bytes)
+    back = trimesh.load(io.BytesIO(data), file_type=fmt, force="mesh")
+    assert len(back.faces) == len(sphere_mesh.faces)
+    assert back.volume == pytest.approx(sphere_mesh.volume, rel=1e-4)
+    if fmt == "glb":
+        assert back.metadata["case_id"] == 7 and back.metadata["controls"] == {"flux_cl": 1.5}
+    elif fmt == "ply":
+        assert b"comment case_id=7" in data.split(b"end_header")[0]
+    elif fmt == "obj":
+        assert data.decode().startswith("# NEMSim surface mesh") and "# case_id: 7" in data.decode()
+    else:
+        assert data[:6] == b"NEMSim"
+
+
+def test_empty_field_and_bad_format(tiny_scene):
+    m = surface_mesh(np.ones(tiny_scene.field_shape, np.float32), tiny_scene)
+    assert len(m.vertices) == 0
+    with pytest.raises(ValueError, match="glb"):
+        export_mesh(m, "vtk")
+    with pytest.raises(ValueError, match="field shape"):
+        surface_mesh(np.ones((3, 3, 3)), tiny_scene)

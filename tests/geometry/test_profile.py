@@ -1,0 +1,80 @@
+"""Profile metrics on analytic holes (tiny scene): known depth/width within half a voxel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nemsim.geometry.profile import METRIC_NAMES, profile_metrics, profile_metrics_batch
+from nemsim.scenes import SMALL
+
+
+@pytest.mark.parametrize("depth", [0.0, 3.3, 7.0, 12.6])
+def test_cylinder_depth_and_widths(tiny_scene, make_hole, depth):
+    sc = tiny_scene
+    m = profile_metrics(make_hole(sc, 2.0, depth), sc)
+    v = sc.voxel_nm
+    assert set(m) == set(METRIC_NAMES)
+    assert m["etch_depth"] == pytest.approx(depth * v, abs=0.5 * v)
+    if depth >= 1.0:
+        for k in ("top_width", "neck_width", "bottom_width"):
+            assert m[k] == pytest.approx(4.0 * v, abs=0.5 * v), k
+    else:
+        assert m["top_width"] == 0.0 and m["bottom_width"] == 0.0
+    assert m["bowing"] == pytest.approx(0.0, abs=0.5 * v)
+    assert m["mask_loss"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_even_grid_axis_between_voxels(make_hole):
+    # small has an even nx: the axis sits between voxel centres and is interpolated
+    m = profile_metrics(make_hole(SMALL, 3.0, 10.4), SMALL)
+    assert m["etch_depth"] == pytest.approx(10.4 * SMALL.voxel_nm, abs=0.5 * SMALL.voxel_nm)
+    assert m["top_width"] == pytest.approx(6.0 * SMALL.voxel_nm, abs=0.5 * SMALL.voxel_nm)
+
+
+def test_bowing_and_neck(tiny_scene, make_hole):
+    sc = tiny_scene
+    # hole radius 1.5, widened by 1.5 voxels around native z = 12 (Si top at 19.5), depth 14
+    m = profile_metrics(make_hole(sc, 1.5, 14.0, bow=1.5, bow_depth=12.0), sc)
+    v = sc.voxel_nm
+    assert m["top_width"] == pytest.approx(3.0 * v, abs=0.5 * v)
+    assert m["bowing"] == pytest.approx(3.0 * v, abs=0.5 * v)
+    assert m["neck_width"] == pytest.approx(3.0 * v, abs=0.5 * v)
+    assert m["bottom_width"] == pytest.approx(3.0 * v, abs=0.5 * v)
+
+
+def test_mask_loss(tiny_scene, make_hole):
+    sc = tiny_scene
+    m = profile_metrics(make_hole(sc, 2.0, 5.0, mask_top=sc.resist_top - 0.5 - 2.7), sc)
+    assert m["mask_loss"] == pytest.approx(2.7 * sc.voxel_nm, abs=1e-3)
+    st = make_hole(sc, 2.0, 5.0)
+    st[0] = 1.0  # mask gone entirely
+    m = profile_metrics(st, sc)
+    assert m["mask_loss"] == pytest.approx((sc.resist_top - sc.si_top) * sc.voxel_nm)
+
+
+def test_etched_through(tiny_scene, make_hole):
+    sc = tiny_scene
+    st = make_hole(sc, 2.0, 5.0)
+    st[1] = np.where(st[1] < 0, 1.0, st[1])  # no Si left anywhere: depth = full Si thickness
+    st[1, :, 0, 0] = -1.0  # ... except a column far from the axis
+    m = profile_metrics(st, sc)
+    assert m["etch_depth"] == pytest.approx(sc.si_top * sc.voxel_nm)
+
+
+def test_batch_matches_single_and_torch(tiny_scene, make_hole):
+    import torch
+
+    sc = tiny_scene
+    states = np.stack([make_hole(sc, 2.0, d) for d in (0.0, 2.0, 5.5, 9.0)])
+    batch = profile_metrics_batch(states, sc)
+    for i, s in enumerate(states):
+        single = profile_metrics(torch.from_numpy(s), sc)
+        for k in METRIC_NAMES:
+            assert batch[k][i] == pytest.approx(single[k]), k
+    assert np.all(np.diff(batch["etch_depth"]) > 0)
+
+
+def test_bad_shape(tiny_scene):
+    with pytest.raises(ValueError, match="state shape"):
+        profile_metrics(np.zeros((2, 3, 3, 3)), tiny_scene)
