@@ -1,0 +1,306 @@
+"""Process-control vocabulary, transforms, normalization, OOD coordinate and the LHS design.
+
+The 14 controls in the order of the paper's control-space table (tab:supp_control_space):
+fluxes of Ar+, Cl+, Cl2+, Cl (mol m^-2 s^-1, log-sampled), cosine-power exponents of Cl, Cl+, Cl2+, Ar+
+(bounded integers) and the mean / standard deviation of the Cl+, Cl2+, Ar+ energy distributions (eV, linear).
+The paper's equation eq:supp_angle_controls lists the angles in another order; the table (with indices) is
+authoritative.
+
+Representation ([supp_representation]):
+  * transform  eq:supp_control_transformation  u~ = log10(u + eps_u) for fluxes (eps_u = 1e-12), else u;
+  * normalize  eq:supp_control_normalization   u = 2 (u~ - u~min) / (u~max - u~min) - 1 with the fixed bounds of
+    the table (eq:supp_flux_control_bounds), no clipping;
+  * OOD unit coordinate eq:supp_ood_unit_coordinate  q = (u~ - u~min) / (u~max - u~min) = (u + 1) / 2.
+
+Design ([supp_data_generation], eq:supp_lhs_design, eq:supp_control_mapping): Xi = LHS(500, 14), seed 42,
+mapped column-wise to physical units.
+
+Choices where the paper is silent:
+  * Sampler: the classic scrambled LHS of ``scipy.stats.qmc.LatinHypercube(d=14, seed=42).random(500)`` (one
+    uniformly placed point per stratum, independent column permutations, driven by
+    ``numpy.random.default_rng(42)``), re-implemented here in numpy so it does not depend on scipy's seed
+    keyword (scipy >= 1.15 spawns a child generator when given ``rng=42`` and so draws a different design).
+    Of the candidates we tried (scipy seed=/rng=, scramble on/off, pyDOE with np.random.seed(42), a
+    default_rng classic LHS) only this one reproduces the paper's OOD-Joint test composition
+    (14, 15, 13, 11) cases in (L,L), (L,H), (H,L), (H,H); see tests/data/test_splits.py.
+  * Log mapping is the exact inverse of the normalization transform, u = 10^(u~min + xi (u~max - u~min)) - eps_u,
+    so that the OOD coordinate of a design row equals its LHS coordinate (q = xi).
+  * Bounded-integer mapping: u = min(low + floor(xi (high - low + 1)), high), i.e. every integer in
+    [low, high] has equal probability (both end points included).
+  * Physically admissible limits (``phys_min``/``phys_max``; used by the service to reject impossible inputs):
+    fluxes, exponents, energies and energy deviations must be >= 0; there is no physical upper limit (inf).
+    Values inside the admissible range but outside the design range [low, high] are extrapolation.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, TypeVar
+
+import numpy as np
+
+EPS_U = 1e-12  # epsilon of the flux log transform, eq:supp_control_transformation
+DESIGN_N = 500  # N_control, eq:supp_lhs_design
+DESIGN_SEED = 42
+LHS_SAMPLER = "scipy.stats.qmc.LatinHypercube(d=14, seed=42).random(500)  (numpy re-implementation)"
+
+ControlKind = Literal["log", "int", "linear"]
+
+
+@dataclass(frozen=True)
+class ControlSpec:
+    """One process control. ``low``/``high``: configured design range (tab:supp_control_space)."""
+
+    name: str
+    unit: str
+    kind: ControlKind  # sampling transformation: "log" | "int" | "linear"
+    low: float
+    high: float
+    phys_min: float = 0.0  # physically admissible minimum
+    phys_max: float = math.inf  # physically admissible maximum
+    label: str = ""  # human-readable symbol
+
+    @property
+    def t_low(self) -> float:
+        """Transformed lower bound u~min (eq:supp_flux_control_bounds)."""
+        return math.log10(self.low + EPS_U) if self.kind == "log" else float(self.low)
+
+    @property
+    def t_high(self) -> float:
+        """Transformed upper bound u~max."""
+        return math.log10(self.high + EPS_U) if self.kind == "log" else float(self.high)
+
+
+_FLUX = "mol m^-2 s^-1"
+CONTROL_SPECS: tuple[ControlSpec, ...] = (
+    ControlSpec("flux_ar_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Ar+)"),
+    ControlSpec("flux_cl_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Cl+)"),
+    ControlSpec("flux_cl2_plus", _FLUX, "log", 1e-6, 2e-4, label="Gamma(Cl2+)"),
+    ControlSpec("flux_cl", _FLUX, "log", 1e-3, 2e-2, label="Gamma(Cl)"),
+    ControlSpec("angle_cl", "1", "int", 0, 20, label="m(Cl)"),
+    ControlSpec("angle_cl_plus", "1", "int", 50, 3000, label="m(Cl+)"),
+    ControlSpec("angle_cl2_plus", "1", "int", 50, 3000, label="m(Cl2+)"),
+    ControlSpec("angle_ar_plus", "1", "int", 50, 3000, label="m(Ar+)"),
+    ControlSpec("energy_mean_cl_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl+)"),
+    ControlSpec("energy_std_cl_plus", "eV", "linear", 5.0, 10.0, label="sigma(Cl+)"),
+    ControlSpec("energy_mean_cl2_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl2+)"),
+    ControlSpec("energy_std_cl2_plus", "eV", "linear", 5.0, 15.0, label="sigma(Cl2+)"),
+    ControlSpec("energy_mean_ar_plus", "eV", "linear", 160.0, 500.0, label="mu(Ar+)"),
+    ControlSpec("energy_std_ar_plus", "eV", "linear", 5.0, 15.0, label="sigma(Ar+)"),
+)
+CONTROL_NAMES: tuple[str, ...] = tuple(s.name for s in CONTROL_SPECS)
+N_CONTROLS = len(CONTROL_SPECS)  # 14
+CONTROL_INDEX: dict[str, int] = {n: i for i, n in enumerate(CONTROL_NAMES)}
+FLUX_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "log")  # F = {1,2,3,4}
+INT_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "int")
+
+# Fixed bounds as arrays (14,)
+LOW = np.array([s.low for s in CONTROL_SPECS], dtype=np.float64)
+HIGH = np.array([s.high for s in CONTROL_SPECS], dtype=np.float64)
+T_LOW = np.array([s.t_low for s in CONTROL_SPECS], dtype=np.float64)
+T_HIGH = np.array([s.t_high for s in CONTROL_SPECS], dtype=np.float64)
+PHYS_MIN = np.array([s.phys_min for s in CONTROL_SPECS], dtype=np.float64)
+PHYS_MAX = np.array([s.phys_max for s in CONTROL_SPECS], dtype=np.float64)
+IS_LOG = np.array([s.kind == "log" for s in CONTROL_SPECS])
+
+A = TypeVar("A")  # np.ndarray or torch.Tensor
+
+
+def control_index(name: str) -> int:
+    """Column index of a control; ValueError listing the choices."""
+    try:
+        return CONTROL_INDEX[name]
+    except KeyError:
+        raise ValueError(f"unknown control {name!r}; expected one of {list(CONTROL_NAMES)}") from None
+
+
+def _is_torch(x: object) -> bool:
+    return type(x).__module__.startswith("torch")
+
+
+def _check_last_dim(x: object) -> None:
+    shape = tuple(x.shape)  # type: ignore[attr-defined]
+    if not shape or shape[-1] != N_CONTROLS:
+        raise ValueError(f"controls must have shape (..., {N_CONTROLS}); got {shape}")
+
+
+def _consts(x: object, *arrays: np.ndarray) -> list:
+    """The given (14,) constant arrays as numpy float64 or as torch tensors matching x."""
+    if _is_torch(x):
+        import torch
+
+        return [torch.as_tensor(a, dtype=x.dtype, device=x.device) for a in arrays]  # type: ignore[attr-defined]
+    return list(arrays)
+
+
+def transform(raw: A) -> A:
+    """eq:supp_control_transformation: log10(u + eps_u) for the fluxes, identity otherwise. (..., 14)."""
+    _check_last_dim(raw)
+    if _is_torch(raw):
+        import torch
+
+        raw_f = raw if raw.is_floating_point() else raw.double()  # type: ignore[attr-defined]
+        is_log = torch.as_tensor(IS_LOG, device=raw_f.device)
+        return torch.where(is_log, torch.log10(raw_f + EPS_U), raw_f)
+    raw = np.asarray(raw, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        logged = np.log10(np.where(IS_LOG, raw, 0.0) + EPS_U)
+    return np.where(IS_LOG, logged, raw)
+
+
+def inverse_transform(transformed: A) -> A:
+    """Inverse of ``transform``: 10**u~ - eps_u for the fluxes. (..., 14)."""
+    _check_last_dim(transformed)
+    if _is_torch(transformed):
+        import torch
+
+        is_log = torch.as_tensor(IS_LOG, device=transformed.device)  # type: ignore[attr-defined]
+        return torch.where(is_log, torch.pow(10.0, transformed) - EPS_U, transformed)
+    t = np.asarray(transformed, dtype=np.float64)
+    return np.where(IS_LOG, np.power(10.0, np.where(IS_LOG, t, 0.0)) - EPS_U, t)
+
+
+def normalize(transformed: A) -> A:
+    """eq:supp_control_normalization: 2 (u~ - u~min) / (u~max - u~min) - 1, fixed bounds, no clipping."""
+    _check_last_dim(transformed)
+    lo, hi = _consts(transformed, T_LOW, T_HIGH)
+    if not _is_torch(transformed):
+        transformed = np.asarray(transformed, dtype=np.float64)
+    return 2.0 * (transformed - lo) / (hi - lo) - 1.0
+
+
+def denormalize(normalized: A) -> A:
+    """Inverse of ``normalize``: transformed controls from [-1, 1] coordinates. (..., 14)."""
+    _check_last_dim(normalized)
+    lo, hi = _consts(normalized, T_LOW, T_HIGH)
+    if not _is_torch(normalized):
+        normalized = np.asarray(normalized, dtype=np.float64)
+    return lo + (normalized + 1.0) * 0.5 * (hi - lo)
+
+
+def to_normalized(raw: A) -> A:
+    """Raw physical controls (..., 14) -> normalized model input (..., 14) (numpy float64 or torch)."""
+    return normalize(transform(raw))
+
+
+def from_normalized(normalized: A) -> A:
+    """Normalized controls (..., 14) -> raw physical units. Integer controls are not rounded."""
+    return inverse_transform(denormalize(normalized))
+
+
+def ood_coordinate(raw: np.ndarray, name: str) -> np.ndarray:
+    """eq:supp_ood_unit_coordinate: q_j = (u~_j - u~min_j) / (u~max_j - u~min_j) of control ``name``.
+
+    Args:
+        raw: (..., 14) raw controls.
+    Returns:
+        (...,) q (in [0, 1] inside the design range; not clipped).
+    """
+    j = control_index(name)
+    return (np.asarray(to_normalized(raw))[..., j] + 1.0) * 0.5
+
+
+def from_unit(xi: np.ndarray) -> np.ndarray:
+    """eq:supp_control_mapping: unit-hypercube coordinates (N, 14) -> raw controls (N, 14).
+
+    Log and linear controls: inverse of the normalization, so q(u) = xi. Integer controls:
+    low + floor(xi (high - low + 1)), capped at high.
+    """
+    xi = np.asarray(xi, dtype=np.float64)
+    _check_last_dim(xi)
+    raw = from_normalized(2.0 * xi - 1.0)
+    ints = np.minimum(LOW + np.floor(xi * (HIGH - LOW + 1.0)), HIGH)
+    is_int = np.array([s.kind == "int" for s in CONTROL_SPECS])
+    return np.where(is_int, ints, raw)
+
+
+def lhs_unit(n: int = DESIGN_N, seed: int = DESIGN_SEED) -> np.ndarray:
+    """eq:supp_lhs_design: Xi = LHS(n, 14) in (0, 1)^(n x 14), bit-identical to LHS_SAMPLER.
+
+    Column j holds (pi_j(i) - U_ij) / n with pi_j a random permutation of 1..n and U_ij ~ U[0, 1).
+    """
+    if n < 1:
+        raise ValueError(f"n must be >= 1; got {n}")
+    rng = np.random.default_rng(seed)
+    jitter = rng.uniform(size=(n, N_CONTROLS))  # (n, 14), drawn first, as scipy does
+    perms = np.tile(np.arange(1, n + 1), (N_CONTROLS, 1))  # (14, n)
+    for j in range(N_CONTROLS):
+        rng.shuffle(perms[j, :])
+    return (perms.T - jitter) / n
+
+
+def lhs_design(n: int = DESIGN_N, seed: int = DESIGN_SEED) -> np.ndarray:
+    """The control design in raw physical units, (n, 14) float64; row i is control id i."""
+    return from_unit(lhs_unit(n, seed))
+
+
+def check_admissible(raw: np.ndarray) -> list[str]:
+    """Return one message per physically impossible value of raw (14,) controls (empty if admissible)."""
+    raw = np.asarray(raw, dtype=np.float64)
+    _check_last_dim(raw)
+    out = []
+    for s, v in zip(CONTROL_SPECS, raw.reshape(-1, N_CONTROLS)[0]):
+        if not np.isfinite(v) or v < s.phys_min or v > s.phys_max:
+            out.append(f"{s.name}={v!r} outside the physically admissible range [{s.phys_min}, {s.phys_max}]")
+    return out
+
+
+def outside_design_range(raw: np.ndarray) -> list[str]:
+    """Names of the controls of raw (14,) outside the configured design (training) range."""
+    raw = np.asarray(raw, dtype=np.float64).reshape(-1, N_CONTROLS)[0]
+    return [s.name for s, v in zip(CONTROL_SPECS, raw) if not (s.low <= v <= s.high)]
+
+
+# --- CSV -----------------------------------------------------------------------------------------------
+
+
+def write_controls_csv(path: str | Path, raw: np.ndarray) -> None:
+    """Write raw controls (N, 14): header = CONTROL_NAMES, one row per case, full float precision."""
+    raw = np.asarray(raw, dtype=np.float64)
+    if raw.ndim != 2 or raw.shape[1] != N_CONTROLS:
+        raise ValueError(f"controls must have shape (N, {N_CONTROLS}); got {raw.shape}")
+    is_int = [s.kind == "int" for s in CONTROL_SPECS]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(CONTROL_NAMES)
+        for row in raw:
+            w.writerow([str(int(v)) if k and float(v).is_integer() else repr(float(v)) for v, k in zip(row, is_int)])
+
+
+def read_controls_csv(path: str | Path) -> np.ndarray:
+    """Read a controls CSV -> (N, 14) float64 in CONTROL_NAMES order.
+
+    The header must name each of the 14 controls exactly once (any order); an optional ``case_id`` column is
+    ignored. Raises ValueError naming missing, unknown or duplicate columns, or the row/column of a bad value.
+    """
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise ValueError(f"{path}: empty file; expected a header with {list(CONTROL_NAMES)}")
+    header = [h.strip() for h in rows[0]]
+    dup = sorted({h for h in header if header.count(h) > 1})
+    unknown = [h for h in header if h not in CONTROL_INDEX and h != "case_id"]
+    missing = [n for n in CONTROL_NAMES if n not in header]
+    problems = []
+    if missing:
+        problems.append(f"missing columns {missing}")
+    if unknown:
+        problems.append(f"unknown columns {unknown}")
+    if dup:
+        problems.append(f"duplicate columns {dup}")
+    if problems:
+        raise ValueError(f"{path}: bad header: {'; '.join(problems)}; expected {list(CONTROL_NAMES)}")
+    cols = [header.index(n) for n in CONTROL_NAMES]
+    out = np.empty((len(rows) - 1, N_CONTROLS), dtype=np.float64)
+    for r, row in enumerate(rows[1:]):
+        if len(row) != len(header):
+            raise ValueError(f"{path}: row {r + 2} has {len(row)} fields; header has {len(header)}")
+        for j, c in enumerate(cols):
+            try:
+                out[r, j] = float(row[c])
+            except ValueError:
+                raise ValueError(f"{path}: row {r + 2}, column {CONTROL_NAMES[j]!r}: not a number: {row[c]!r}") from None
+    return out

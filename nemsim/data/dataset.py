@@ -1,0 +1,163 @@
+"""Streaming torch datasets over a trajectory file (``nemsim.data.hdf5``).
+
+``TransitionDataset`` yields one-step samples (x_t, u_t, x_{t+1}) (eq:supp_transition_sample) of the cases of
+one split, restricted to the first ``visible_transitions`` transitions of each case
+(eq:supp_temporal_training_set). ``TrajectoryDataset`` yields whole trajectories for autoregressive rollouts.
+
+Nothing but the (tiny) controls and ids is held in memory: each item reads its states from disk. The h5py
+handle is opened lazily on first access in each process, so a dataset built in the parent can be handed to
+DataLoader workers (fork or spawn); the handle is never pickled. A ``paper`` file (~70 GB raw) therefore
+streams with O(1) memory.
+
+Recipes: if the file has ``controls_raw_schedule`` (N, T-1, 14), u_t is that transition's control;
+otherwise u_t is the case's constant control (the benchmark). Controls are normalized with the fixed bounds
+(eq:supp_control_normalization).
+
+Choices where the paper is silent: items are ordered case-major (case, t) in manifest order; cases without
+their completion flag are refused (ValueError naming them) rather than silently skipped.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+SPLITS = ("train", "val", "test", "unused")
+
+
+def _select_rows(tf, manifest: dict | None, split: str) -> np.ndarray:
+    """Row indices (in manifest order) of the split's case ids; all complete rows if manifest is None."""
+    if manifest is None:
+        return np.flatnonzero(tf.complete)
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
+    ids = [int(c) for c in manifest.get(split, [])]
+    missing = [c for c in ids if c not in tf._row_of]
+    if missing:
+        raise ValueError(f"{len(missing)} case ids of split {split!r} are not in {tf.path}: {missing[:10]}")
+    rows = np.array([tf._row_of[c] for c in ids], dtype=np.int64)
+    unfinished = [int(tf.case_ids[r]) for r in rows if not tf.complete[r]]
+    if unfinished:
+        raise ValueError(f"{len(unfinished)} cases of split {split!r} are unfinished in {tf.path}: "
+                         f"{unfinished[:10]}; finish generation (rerun to resume) first")
+    return rows
+
+
+class _H5Backed(Dataset):
+    """Shared lazy-handle logic: ``self._states`` is (re)opened per process."""
+
+    def __init__(self, path: str | Path, manifest: dict | None, split: str) -> None:
+        from nemsim.data.hdf5 import open_trajectories
+
+        self.path = Path(path)
+        self.split = split
+        with open_trajectories(self.path) as tf:
+            self.scene = tf.scene
+            self.rows = _select_rows(tf, manifest, split)  # (n,) file rows
+            self.case_ids = tf.case_ids[self.rows].astype(np.int64)  # (n,)
+            self.n_states = tf.n_states
+            # (n, T-1, 14) float32 normalized per-transition controls (constant ones broadcast, no copy)
+            if tf.controls_raw_schedule is not None:
+                from nemsim.controls import to_normalized
+
+                self.u = to_normalized(tf.controls_raw_schedule[self.rows]).astype(np.float32)
+            else:
+                const = tf.controls_normalized[self.rows].astype(np.float32)  # (n, 14)
+                self.u = np.broadcast_to(const[:, None, :], (len(self.rows), self.n_states - 1, const.shape[1]))
+        self._file = None
+        self._states = None
+        self._pid = None
+
+    def _dataset(self):
+        if self._states is None or self._pid != os.getpid():
+            import h5py
+
+            self._file = h5py.File(self.path, "r")
+            self._states = self._file["states"]  # (N, T, 2, D, H, W), lazy
+            self._pid = os.getpid()
+        return self._states
+
+    def close(self) -> None:
+        if self._file is not None and self._pid == os.getpid():
+            self._file.close()
+        self._file = self._states = self._pid = None
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_file"] = state["_states"] = state["_pid"] = None
+        return state
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown; nothing to report
+            pass
+
+
+class TransitionDataset(_H5Backed):
+    """One-step samples of a split, streamed from disk.
+
+    Args:
+        path: trajectory ``.h5``.
+        manifest: split manifest dict (``nemsim.data.splits``) or None for every complete case.
+        split: "train" | "val" | "test" | "unused".
+        visible_transitions: only t = 0..V-1 of each case (Vis-p%); None = all T-1 transitions.
+    Items:
+        (x_t (2, D, H, W) float32, u_t (14,) float32 normalized, x_{t+1} (2, D, H, W) float32) tensors.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        manifest: dict | None = None,
+        split: str = "train",
+        visible_transitions: int | None = None,
+    ) -> None:
+        super().__init__(path, manifest, split)
+        n_trans = self.n_states - 1
+        v = n_trans if visible_transitions is None else int(visible_transitions)
+        if not 1 <= v <= n_trans:
+            raise ValueError(f"visible_transitions={visible_transitions} must be in [1, {n_trans}]")
+        self.visible_transitions = v
+
+    def __len__(self) -> int:
+        return len(self.rows) * self.visible_transitions
+
+    def index(self, i: int) -> tuple[int, int]:
+        """(case id, t) of item i."""
+        k, t = divmod(int(i), self.visible_transitions)
+        return int(self.case_ids[k]), t
+
+    def __getitem__(self, i: int):
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} transitions")
+        i = int(i) % len(self)
+        k, t = divmod(i, self.visible_transitions)
+        pair = self._dataset()[int(self.rows[k]), t : t + 2]  # (2, C, D, H, W): x_t, x_{t+1}
+        pair = torch.from_numpy(np.ascontiguousarray(pair, dtype=np.float32))
+        return pair[0], torch.from_numpy(np.array(self.u[k, t])), pair[1]
+
+
+class TrajectoryDataset(_H5Backed):
+    """Whole trajectories of a split for rollouts.
+
+    Items: (case_id int, states (T, 2, D, H, W) float32 tensor with T = n_states = transitions + 1,
+    u (T-1, 14) float32 normalized tensor).
+    """
+
+    def __init__(self, path: str | Path, manifest: dict | None = None, split: str = "test") -> None:
+        super().__init__(path, manifest, split)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, i: int):
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} trajectories")
+        k = int(i) % len(self)
+        states = np.asarray(self._dataset()[int(self.rows[k])], dtype=np.float32)  # (T, 2, D, H, W)
+        return int(self.case_ids[k]), torch.from_numpy(states), torch.from_numpy(np.array(self.u[k]))

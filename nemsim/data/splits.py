@@ -1,0 +1,226 @@
+"""Trajectory-level split manifests ([supp_protocols], tab:supp_split_summary) and nested data-efficiency
+subsets ([supp_data_efficiency]).
+
+Settings:
+  control-id  random 60/20/20 partition of all cases.
+  ood-ar      q(Ar+ flux) in I_in = [0.15, 0.85] -> train/val pool, q in I_out -> test (eq:supp_ood_intervals).
+  ood-cl      the same on q(Cl+ flux) (the ionic flux, not neutral Cl).
+  ood-joint   A and C (both in) -> pool, (not A) and (not C) -> test, A xor C -> unused
+              (eq:supp_joint_ood_indicators).
+  vis-50/60   the control-id partition with visible_transitions = 50 / 60 (eq:supp_temporal_training_set).
+
+Manifest (JSON, DESIGN.md): {"setting", "train", "val", "test", "unused", "visible_transitions"} plus
+informational keys: "seed", "n_transitions", for OOD settings "ood_controls", "interval_in" and
+"test_groups" (case ids per boundary region: "L"/"H", or "LL", "LH", "HL", "HH" for (Ar+, Cl+)), and
+"data_efficiency" ({"0.1": [...], "0.2": [...], "0.5": [...], "1.0": [...]}, nested training subsets).
+
+Choices where the paper is silent:
+  * Partitions are drawn with ``numpy.random.default_rng(seed)``, seed 0: control-id permutes all case ids
+    (train = round(0.6 N), val = round(0.2 N), test = rest); each OOD pool is permuted and val = round(0.2 pool)
+    (gives 280/70, 279-280/70, 202/50-51 as in the paper's table). vis-50/vis-60 reuse the control-id partition.
+  * Data-efficiency strata: a 3 x 3 grid of equal-width bins over [min, max] of the training cases' log10
+    Ar+ and Cl+ fluxes. Each stratum's members are shuffled once (seed 0); a fraction f keeps
+    n_f = floor(f n + 1/2) cases, allocated to strata proportionally to their size by growing the previous
+    fraction's allocation one case at a time (largest deficit f n_s - k_s first, ties by stratum index), and
+    takes the first k_s of each stratum's order. So D_10% subset D_20% subset D_50% subset D_100% by construction.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from nemsim.controls import CONTROL_INDEX, N_CONTROLS, ood_coordinate, transform
+
+SETTINGS = ("control-id", "ood-ar", "ood-cl", "ood-joint", "vis-50", "vis-60")
+INTERVAL_IN = (0.15, 0.85)  # I_in, eq:supp_ood_intervals
+VAL_FRACTION = 0.2
+CONTROL_ID_FRACTIONS = (0.6, 0.2, 0.2)
+DATA_EFFICIENCY_FRACTIONS = (0.1, 0.2, 0.5, 1.0)
+OOD_CONTROLS = {"ood-ar": ("flux_ar_plus",), "ood-cl": ("flux_cl_plus",), "ood-joint": ("flux_ar_plus", "flux_cl_plus")}
+
+
+def _region(q: np.ndarray) -> np.ndarray:
+    """'L' (q < 0.15), 'I' (inside [0.15, 0.85]) or 'H' (q > 0.85) per case."""
+    lo, hi = INTERVAL_IN
+    return np.where(q < lo, "L", np.where(q > hi, "H", "I"))
+
+
+def _split_pool(pool: np.ndarray, rng: np.random.Generator) -> tuple[list[int], list[int]]:
+    perm = rng.permutation(pool)
+    n_val = int(round(VAL_FRACTION * len(perm)))
+    return sorted(int(c) for c in perm[n_val:]), sorted(int(c) for c in perm[:n_val])
+
+
+def _manifest(setting, train, val, test, unused, visible, n_transitions, seed, **extra) -> dict:
+    return {
+        "setting": setting,
+        "train": sorted(int(c) for c in train),
+        "val": sorted(int(c) for c in val),
+        "test": sorted(int(c) for c in test),
+        "unused": sorted(int(c) for c in unused),
+        "visible_transitions": int(visible),
+        "n_transitions": int(n_transitions),
+        "seed": int(seed),
+        **extra,
+    }
+
+
+def make_manifests(design_raw, case_ids=None, *, seed: int = 0, n_transitions: int = 100) -> dict[str, dict]:
+    """All six split manifests of a control design.
+
+    Args:
+        design_raw: (N, 14) raw controls, row i = case ``case_ids[i]``.
+        case_ids: (N,) ids (default 0..N-1).
+        seed: partition seed.
+        n_transitions: transitions per trajectory (vis-p keeps round(p/100 * n_transitions)).
+    Returns:
+        {setting: manifest}; each manifest also carries its nested "data_efficiency" training subsets.
+    """
+    raw = np.asarray(design_raw, dtype=np.float64)
+    if raw.ndim != 2 or raw.shape[1] != N_CONTROLS:
+        raise ValueError(f"design must have shape (N, {N_CONTROLS}); got {raw.shape}")
+    n = raw.shape[0]
+    ids = np.arange(n, dtype=np.int64) if case_ids is None else np.asarray(case_ids, dtype=np.int64).reshape(-1)
+    if ids.shape != (n,) or len(np.unique(ids)) != n:
+        raise ValueError(f"case_ids must be {n} unique integers; got shape {ids.shape}")
+    out: dict[str, dict] = {}
+
+    perm = np.random.default_rng(seed).permutation(ids)
+    n_tr = int(round(CONTROL_ID_FRACTIONS[0] * n))
+    n_va = int(round(CONTROL_ID_FRACTIONS[1] * n))
+    tr, va, te = perm[:n_tr], perm[n_tr : n_tr + n_va], perm[n_tr + n_va :]
+    out["control-id"] = _manifest("control-id", tr, va, te, [], n_transitions, n_transitions, seed)
+    for p in (50, 60):
+        out[f"vis-{p}"] = _manifest(f"vis-{p}", tr, va, te, [], round(p / 100 * n_transitions), n_transitions, seed)
+
+    regions = {name: _region(ood_coordinate(raw, name)) for name in ("flux_ar_plus", "flux_cl_plus")}
+    for setting in ("ood-ar", "ood-cl"):
+        (name,) = OOD_CONTROLS[setting]
+        reg = regions[name]
+        train, val = _split_pool(ids[reg == "I"], np.random.default_rng(seed))
+        groups = {g: sorted(int(c) for c in ids[reg == g]) for g in ("L", "H")}
+        out[setting] = _manifest(setting, train, val, ids[reg != "I"], [], n_transitions, n_transitions, seed,
+                                 ood_controls=[name], interval_in=list(INTERVAL_IN), test_groups=groups)
+    ra, rc = regions["flux_ar_plus"], regions["flux_cl_plus"]
+    a_in, c_in = ra == "I", rc == "I"
+    train, val = _split_pool(ids[a_in & c_in], np.random.default_rng(seed))
+    groups = {g1 + g2: sorted(int(c) for c in ids[(ra == g1) & (rc == g2)]) for g1 in "LH" for g2 in "LH"}
+    out["ood-joint"] = _manifest("ood-joint", train, val, ids[~a_in & ~c_in], ids[a_in ^ c_in], n_transitions,
+                                 n_transitions, seed, ood_controls=list(OOD_CONTROLS["ood-joint"]),
+                                 interval_in=list(INTERVAL_IN), test_groups=groups)
+
+    row_of = {int(c): r for r, c in enumerate(ids)}
+    for m in out.values():
+        rows = [row_of[c] for c in m["train"]]
+        subsets = data_efficiency_subsets(m, raw[rows], m["train"])
+        m["data_efficiency"] = {k: v for k, v in subsets.items()}
+    return out
+
+
+def data_efficiency_subsets(
+    manifest: dict,
+    train_raw=None,
+    train_ids=None,
+    *,
+    fractions=DATA_EFFICIENCY_FRACTIONS,
+    seed: int = 0,
+) -> dict[str, list[int]]:
+    """Nested training subsets {"0.1": ids, "0.2": ids, "0.5": ids, "1.0": ids} ([supp_data_efficiency]).
+
+    Args:
+        manifest: a split manifest; if ``train_raw`` is None its stored "data_efficiency" key is returned.
+        train_raw: (n, 14) raw controls of the training cases (row k = ``train_ids[k]``).
+        train_ids: (n,) their ids (default: ``manifest["train"]`` in order).
+        fractions: increasing fractions in (0, 1].
+        seed: sampling seed (paper: 0).
+    """
+    if train_raw is None:
+        if "data_efficiency" not in manifest:
+            raise ValueError(f"manifest {manifest.get('setting')!r} has no stored 'data_efficiency' subsets; "
+                             "pass train_raw (the training cases' raw controls) to compute them")
+        return {str(k): [int(c) for c in v] for k, v in manifest["data_efficiency"].items()}
+    ids = np.asarray(manifest["train"] if train_ids is None else train_ids, dtype=np.int64)
+    raw = np.asarray(train_raw, dtype=np.float64).reshape(-1, N_CONTROLS)
+    if raw.shape[0] != ids.shape[0]:
+        raise ValueError(f"{raw.shape[0]} control rows for {ids.shape[0]} training ids")
+    fr = [float(f) for f in fractions]
+    if any(not 0 < f <= 1 for f in fr) or fr != sorted(fr):
+        raise ValueError(f"fractions must be increasing in (0, 1]; got {fractions}")
+    n = len(ids)
+    if n == 0:
+        return {_key(f): [] for f in fr}
+    t = transform(raw)
+    cols = [CONTROL_INDEX["flux_ar_plus"], CONTROL_INDEX["flux_cl_plus"]]
+    bins = []
+    for j in cols:
+        lo, hi = t[:, j].min(), t[:, j].max()
+        b = np.floor((t[:, j] - lo) / max(hi - lo, 1e-300) * 3).astype(int) if hi > lo else np.zeros(n, int)
+        bins.append(np.clip(b, 0, 2))
+    stratum = bins[0] * 3 + bins[1]  # (n,) in 0..8
+    rng = np.random.default_rng(seed)
+    members = [rng.permutation(ids[stratum == s]) for s in range(9)]
+    sizes = np.array([len(m) for m in members], dtype=float)
+    k = np.zeros(9, dtype=int)
+    out = {}
+    for f in fr:
+        target = min(n, max(1, int(math.floor(f * n + 0.5))))
+        while k.sum() < target:
+            deficit = np.where(k < sizes, f * sizes - k, -np.inf)
+            k[int(np.argmax(deficit))] += 1
+        out[_key(f)] = sorted(int(c) for s in range(9) for c in members[s][: k[s]])
+    return out
+
+
+def _key(f: float) -> str:
+    return f"{f:.1f}" if round(f, 1) == f else f"{f:g}"
+
+
+def write_manifests(manifests: dict[str, dict], out_dir: str | Path) -> list[Path]:
+    """Write ``<out_dir>/<setting>.json`` for each manifest; returns the paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for setting, m in manifests.items():
+        p = out / f"{setting}.json"
+        p.write_text(json.dumps(m, indent=1))
+        paths.append(p)
+    return paths
+
+
+def load_manifest(path_or_dir: str | Path, setting: str | None = None) -> dict:
+    """Load a manifest from a JSON file, or ``<dir>/<setting>.json``. ValueError if absent or malformed."""
+    p = Path(path_or_dir)
+    if p.is_dir():
+        if setting not in SETTINGS:
+            raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
+        p = p / f"{setting}.json"
+    if not p.is_file():
+        raise ValueError(f"no split manifest {p}; create it with `nemsim splits --design FILE.csv --out DIR`")
+    m = json.loads(p.read_text())
+    missing = [k for k in ("setting", "train", "val", "test", "unused", "visible_transitions") if k not in m]
+    if missing:
+        raise ValueError(f"{p}: manifest lacks {missing}")
+    if setting is not None and m["setting"] != setting:
+        raise ValueError(f"{p}: manifest is for setting {m['setting']!r}, not {setting!r}")
+    return m
+
+
+def split_table(manifests: dict[str, dict]) -> str:
+    """The set sizes as a text table (columns of tab:supp_split_summary)."""
+    head = f"{'Setting':<11} {'Train':>5} {'Val':>5} {'Test':>5} {'Unused':>6} {'Trans/traj':>10} {'Train samples':>13}"
+    lines = [head, "-" * len(head)]
+    for s in SETTINGS:
+        if s not in manifests:
+            continue
+        m = manifests[s]
+        v = m["visible_transitions"]
+        lines.append(f"{s:<11} {len(m['train']):>5} {len(m['val']):>5} {len(m['test']):>5} "
+                     f"{len(m['unused']):>6} {v:>10} {len(m['train']) * v:>13,}")
+    j = manifests.get("ood-joint", {}).get("test_groups")
+    if j:
+        lines.append("ood-joint test (Ar+, Cl+): " + ", ".join(f"({g[0]},{g[1]}) {len(v)}" for g, v in j.items()))
+    return "\n".join(lines)

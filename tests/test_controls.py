@@ -1,0 +1,116 @@
+"""nemsim.controls: vocabulary, transforms, normalization, OOD coordinate, LHS design, CSV."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from nemsim import controls as C
+
+
+def test_vocabulary_order_and_ranges():
+    assert C.CONTROL_NAMES == (
+        "flux_ar_plus", "flux_cl_plus", "flux_cl2_plus", "flux_cl", "angle_cl", "angle_cl_plus", "angle_cl2_plus",
+        "angle_ar_plus", "energy_mean_cl_plus", "energy_std_cl_plus", "energy_mean_cl2_plus",
+        "energy_std_cl2_plus", "energy_mean_ar_plus", "energy_std_ar_plus",
+    )
+    kinds = [s.kind for s in C.CONTROL_SPECS]
+    assert kinds == ["log"] * 4 + ["int"] * 4 + ["linear"] * 6
+    assert (C.CONTROL_SPECS[2].low, C.CONTROL_SPECS[2].high) == (1e-6, 2e-4)
+    assert (C.CONTROL_SPECS[4].low, C.CONTROL_SPECS[4].high) == (0, 20)
+    assert (C.CONTROL_SPECS[9].low, C.CONTROL_SPECS[9].high) == (5.0, 10.0)
+    assert all(s.phys_min == 0.0 and s.phys_max == math.inf for s in C.CONTROL_SPECS)
+
+
+def test_transform_and_normalization_bounds():
+    lo, hi = C.LOW[None], C.HIGH[None]
+    np.testing.assert_allclose(C.to_normalized(lo), -1.0, atol=1e-12)
+    np.testing.assert_allclose(C.to_normalized(hi), 1.0, atol=1e-12)
+    t = C.transform(lo)
+    assert t[0, 0] == pytest.approx(math.log10(1e-4 + 1e-12))
+    assert t[0, 8] == 160.0
+    # no clipping outside the range; zero flux is finite thanks to eps_u
+    out = C.to_normalized(np.where(np.arange(14) < 4, 0.0, C.HIGH * 2)[None])
+    assert np.all(np.isfinite(out)) and out[0, 0] < -1 and out[0, 8] > 1
+
+
+def test_roundtrip_numpy_and_torch():
+    import torch
+
+    raw = C.lhs_design(20, seed=3)
+    np.testing.assert_allclose(C.from_normalized(C.to_normalized(raw)), raw, rtol=1e-10)
+    tn = C.to_normalized(torch.tensor(raw))
+    np.testing.assert_allclose(tn.numpy(), C.to_normalized(raw), atol=1e-12)
+    t32 = C.to_normalized(torch.tensor(raw, dtype=torch.float32))
+    assert t32.dtype == torch.float32
+    np.testing.assert_allclose(C.from_normalized(tn).numpy(), raw, rtol=1e-10)
+    with pytest.raises(ValueError, match="14"):
+        C.to_normalized(np.zeros((3, 13)))
+
+
+def test_lhs_design_properties():
+    xi = C.lhs_unit(500, 42)
+    # one point per stratum in every column
+    for j in range(14):
+        assert sorted(np.floor(xi[:, j] * 500).astype(int)) == list(range(500))
+    d = C.lhs_design(500, 42)
+    assert d.shape == (500, 14)
+    assert np.all(d >= C.LOW) and np.all(d <= C.HIGH)
+    assert np.all(d[:, 4:8] == np.round(d[:, 4:8]))
+    assert len(np.unique(d, axis=0)) == 500
+    # q of a design row is its LHS coordinate
+    np.testing.assert_allclose(C.ood_coordinate(d, "flux_cl_plus"), xi[:, 1], atol=1e-12)
+    np.testing.assert_array_equal(C.lhs_design(500, 42), d)
+
+
+def test_lhs_matches_scipy_sampler():
+    from scipy.stats import qmc
+
+    try:
+        ref = qmc.LatinHypercube(d=14, seed=42).random(500)
+    except TypeError:  # a future scipy without the legacy `seed` keyword
+        pytest.skip("scipy no longer accepts seed=")
+    np.testing.assert_array_equal(C.lhs_unit(500, 42), ref)
+
+
+def test_int_mapping_covers_endpoints():
+    xi = np.tile(np.array([0.0, 0.999999, 0.5])[:, None], (1, 14))
+    raw = C.from_unit(xi)
+    assert raw[0, 4] == 0 and raw[1, 4] == 20 and raw[0, 5] == 50 and raw[1, 5] == 3000
+
+
+def test_ood_coordinate_unknown_name():
+    with pytest.raises(ValueError, match="flux_ar_plus"):
+        C.ood_coordinate(np.zeros((1, 14)), "flux_argon")
+
+
+def test_admissibility_helpers():
+    raw = C.lhs_design(1, 0)[0].copy()
+    assert C.check_admissible(raw) == [] and C.outside_design_range(raw) == []
+    raw[0] = -1.0
+    raw[8] = 900.0
+    msgs = C.check_admissible(raw)
+    assert len(msgs) == 1 and "flux_ar_plus" in msgs[0]
+    assert C.outside_design_range(raw) == ["flux_ar_plus", "energy_mean_cl_plus"]
+
+
+def test_csv_roundtrip_and_header_validation(tmp_path):
+    raw = C.lhs_design(7, 5)
+    p = tmp_path / "d.csv"
+    C.write_controls_csv(p, raw)
+    assert p.read_text().splitlines()[0] == ",".join(C.CONTROL_NAMES)
+    np.testing.assert_array_equal(C.read_controls_csv(p), raw)
+    # reordered columns are fine
+    lines = [line.split(",") for line in p.read_text().splitlines()]
+    perm = list(reversed(range(14)))
+    (tmp_path / "r.csv").write_text("\n".join(",".join(r[i] for i in perm) for r in lines) + "\n")
+    np.testing.assert_array_equal(C.read_controls_csv(tmp_path / "r.csv"), raw)
+    bad = p.read_text().replace("flux_cl2_plus", "flux_cl3_plus", 1)
+    (tmp_path / "b.csv").write_text(bad)
+    with pytest.raises(ValueError, match=r"missing columns \['flux_cl2_plus'\].*unknown columns \['flux_cl3_plus'\]"):
+        C.read_controls_csv(tmp_path / "b.csv")
+    (tmp_path / "n.csv").write_text(",".join(C.CONTROL_NAMES) + "\n" + ",".join(["x"] + ["1"] * 13) + "\n")
+    with pytest.raises(ValueError, match="row 2, column 'flux_ar_plus'"):
+        C.read_controls_csv(tmp_path / "n.csv")
