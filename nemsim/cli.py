@@ -28,35 +28,633 @@ class UserError(Exception):
 
 
 def _add_rules(sub: argparse._SubParsersAction) -> None:
-    pass
+    p = sub.add_parser("rules", help="validate and compile an Event Rules Library (rules/*.yaml)")
+    rsub = p.add_subparsers(dest="rules_command", metavar="ACTION")
+    rsub.required = True
+    c = rsub.add_parser("check", help="validate a rules file and print a summary table")
+    c.add_argument("path", nargs="?", default=None, help="rules YAML (default: the repo's rules/cl_si.yaml)")
+    c.set_defaults(handler=_cmd_rules_check)
+    k = rsub.add_parser("compile", help="compile a rules file to fixed tensors (.npz)")
+    k.add_argument("path", nargs="?", default=None, help="rules YAML (default: the repo's rules/cl_si.yaml)")
+    k.add_argument("--out", required=True, help="output .npz (arrays R, phi, psi, alpha0, r_mech, w_src, "
+                   "w_sink, s_dep, plus names and sha256)")  # fmt: skip
+    k.set_defaults(handler=_cmd_rules_compile)
+
+
+def _load_compiled_rules(path: str | None):
+    from nemsim.rules import RulesError, compile_rules, load_rules
+
+    try:
+        spec = load_rules(path)
+    except (RulesError, FileNotFoundError) as exc:
+        raise UserError(str(exc).splitlines()[0]) from None
+    return spec, compile_rules(spec)
+
+
+def _cmd_rules_check(args: argparse.Namespace) -> int:
+    from nemsim.rules.vocab import FAMILIES
+
+    spec, rt = _load_compiled_rules(args.path)
+    head = f"{'#':>3}  {'name':<28} {'family':<9} {'proj':<6} {'target':<7} {'prob':<9} {'yield':<9} relation"
+    lines = [head, "-" * len(head)]
+    for e, ev in enumerate(spec.events):
+        if ev.is_primary:
+            rel = ", ".join(f"+{p.species}({p.coeff})" for p in ev.products) or "-"
+        else:
+            rel = f"<-pool {ev.dep_params['species']} p_stick={ev.dep_params['p_stick']}"  # type: ignore[index]
+        lines.append(
+            f"{e + 1:>3}  {ev.name:<28} {FAMILIES[rt.group[e]]:<9} {ev.projectile:<6} {ev.target:<7} "
+            f"{ev.prob_model or '-':<9} {ev.yield_model or '-':<9} {rel}"
+        )
+    n_primary = int(rt.is_primary.sum())
+    lines.append(
+        f"{rt.n_events} events ({n_primary} primary, {rt.n_events - n_primary} product-mediated); "
+        f"sha256 {rt.sha256}"
+    )
+    print("\n".join(lines))  # noqa: T201
+    return 0
+
+
+def _cmd_rules_compile(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    _, rt = _load_compiled_rules(args.path)
+    arrays = rt.to_npz_dict()
+    try:
+        np.savez(args.out, **arrays, names=rt.names, sha256=np.array(rt.sha256))
+    except OSError as exc:
+        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in arrays.items())
+    print(f"wrote {args.out}: {shapes}; sha256 {rt.sha256}")  # noqa: T201
+    return 0
 
 
 # ==== section: controls, design, splits, data (owner: data) ====================================
 
 
 def _add_data(sub: argparse._SubParsersAction) -> None:
-    pass
+    p = sub.add_parser("design", help="write the Latin-hypercube control design as CSV ([supp_data_generation])",
+                       description="Header = the 14 control names; one row per case (id = row index) in "
+                       "physical units.")
+    p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
+    p.add_argument("--seed", type=int, default=42, help="LHS seed (default 42)")
+    p.add_argument("--out", required=True, help="output CSV")
+    p.set_defaults(handler=_cmd_design)
+
+    p = sub.add_parser("splits", help="write one split manifest JSON per setting ([supp_protocols])",
+                       description="control-id, ood-ar, ood-cl, ood-joint, vis-50, vis-60 as DIR/<setting>.json "
+                       "(with nested data-efficiency subsets); prints the table of set sizes.")
+    p.add_argument("--design", required=True, help="design CSV (from `nemsim design`); case id = row index")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--seed", type=int, default=0, help="partition seed (default 0)")
+    p.add_argument("--transitions", type=int, default=100, help="transitions per trajectory (default 100)")
+    p.set_defaults(handler=_cmd_splits)
+
+    p = sub.add_parser("data", help="trajectory-file tools")
+    dsub = p.add_subparsers(dest="data_command", metavar="ACTION")
+    dsub.required = True
+    c = dsub.add_parser("check", help="integrity checks of a trajectory HDF5 file ([supp_dataset_statistics]); "
+                        "exit 2 on failure")
+    c.add_argument("file", metavar="FILE", help="trajectory .h5")
+    c.add_argument("--allow-incomplete", action="store_true", help="unfinished cases are a warning, not a failure")
+    c.set_defaults(handler=_cmd_data_check)
+
+
+def _cmd_design(args: argparse.Namespace) -> int:
+    from nemsim.controls import lhs_design, write_controls_csv
+
+    if args.n < 1:
+        raise UserError(f"--n must be >= 1, got {args.n}")
+    raw = lhs_design(args.n, args.seed)
+    try:
+        write_controls_csv(args.out, raw)
+    except OSError as exc:
+        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    print(f"wrote {args.out}: {args.n} cases x 14 controls (LHS seed {args.seed})")  # noqa: T201
+    return 0
+
+
+def _cmd_splits(args: argparse.Namespace) -> int:
+    from nemsim.controls import read_controls_csv
+    from nemsim.data.splits import make_manifests, split_table, write_manifests
+
+    try:
+        raw = read_controls_csv(args.design)
+    except FileNotFoundError:
+        raise UserError(f"no such file: {args.design}") from None
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    manifests = make_manifests(raw, seed=args.seed, n_transitions=args.transitions)
+    try:
+        paths = write_manifests(manifests, args.out)
+    except OSError as exc:
+        raise UserError(f"cannot write to {args.out}: {exc.strerror}") from None
+    print(split_table(manifests))  # noqa: T201
+    print(f"wrote {len(paths)} manifests to {args.out}")  # noqa: T201
+    return 0
+
+
+def _cmd_data_check(args: argparse.Namespace) -> int:
+    import os
+
+    from nemsim.data.hdf5 import check_dataset
+
+    if not os.path.isfile(args.file):
+        raise UserError(f"no such file: {args.file}")
+    report = check_dataset(args.file, require_complete=not args.allow_incomplete)
+    print(report.text)  # noqa: T201
+    return 0 if report.ok else 2
 
 
 # ==== section: simulator: generate, sensitivity, bench sim/noise (owner: sim) ===================
 
 
 def _add_sim(sub: argparse._SubParsersAction) -> None:
-    pass
+    p = sub.add_parser(
+        "generate",
+        help="simulate trajectories of the control design into an HDF5 file (resumable)",
+        description=(
+            "Run the Monte Carlo simulator on cases 0..N-1 of the 500-case design (or on the rows of "
+            "--controls) and write one HDF5 trajectory file. Rerunning the same command resumes: finished "
+            "cases are kept, a half-written case is redone. The file is validated on close."
+        ),
+    )
+    p.add_argument("--scene", default="small", choices=("tiny", "small", "paper"), help="default: small")
+    p.add_argument("--n", type=int, default=None, help="first N design cases (default: all 500)")
+    p.add_argument("--seed", type=int, default=0, help="base simulator seed (per-case seeds derive from it)")
+    p.add_argument("--out", required=True, metavar="FILE.h5", help="output trajectory file")
+    p.add_argument("--controls", metavar="FILE.csv", default=None,
+                   help="simulate these control rows instead of the design (header as `nemsim design`)")
+    p.add_argument("--cases", metavar="A-B", default=None, help="only rows A..B (inclusive) of the cases")
+    p.add_argument("--workers", type=int, default=1, help="parallel simulations (default 1)")
+    p.add_argument("--executor", default="process", choices=("process", "ray"),
+                   help="local process pool (default) or a Ray cluster ($RAY_ADDRESS, else a local Ray)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a SimConfig constant, e.g. --set capacity=8 (repeatable)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_generate)
+
+    bench_sub = _bench_subparsers(sub)
+    p = bench_sub.add_parser("sim", help="simulator speed: median s/trajectory and primaries/s")
+    p.add_argument("--scenes", default="small,paper", help="comma-separated scenes (default small,paper)")
+    p.add_argument("--cases", type=int, default=5, help="first design cases to time (default 5)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a SimConfig constant (repeatable)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
+    p.set_defaults(handler=_cmd_bench_sim)
+    p = bench_sub.add_parser("noise", help="Monte Carlo noise floor: Avg RMSE between two seeds")
+    p.add_argument("--scene", default="small", choices=("tiny", "small", "paper"), help="default: small")
+    p.add_argument("--cases", type=int, default=5, help="first design cases (default 5)")
+    p.add_argument("--seeds", default="1,2", help="the two seeds, comma-separated (default 1,2)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a SimConfig constant (repeatable)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
+    p.set_defaults(handler=_cmd_bench_noise)
+
+
+def _sim_config(overrides: list[str]):
+    """SimConfig with ``KEY=VALUE`` overrides (values parsed as int, float, or left as text)."""
+    import dataclasses
+
+    from nemsim.sim import SimConfig
+
+    fields = {f.name: f for f in dataclasses.fields(SimConfig)}
+    kwargs = {}
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or key not in fields:
+            raise UserError(f"--set {item!r}: expected KEY=VALUE with KEY one of {sorted(fields)}")
+        try:
+            value = int(text) if text.strip().lstrip("-").isdigit() else float(text)
+        except ValueError:
+            raise UserError(f"--set {item!r}: value must be a number") from None
+        kwargs[key] = value
+    try:
+        return SimConfig(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"--set: {exc}") from exc
+
+
+def _parse_range(text: str, n: int) -> tuple[int, int]:
+    a, sep, b = text.partition("-")
+    try:
+        lo, hi = int(a), int(b) if sep else int(a)
+    except ValueError:
+        raise UserError(f"--cases {text!r}: expected A-B (two integers, inclusive)") from None
+    if not 0 <= lo <= hi < n:
+        raise UserError(f"--cases {text!r}: need 0 <= A <= B < {n} (number of available cases)")
+    return lo, hi
+
+
+def _cmd_generate(args: argparse.Namespace) -> int:
+    import os
+
+    import numpy as np
+
+    from nemsim.controls import DESIGN_N, check_admissible, lhs_design, read_controls_csv
+    from nemsim.rules import compile_rules, load_rules
+    from nemsim.scenes import get_scene
+    from nemsim.sim.generate import generate_dataset
+
+    scene = get_scene(args.scene)
+    config = _sim_config(args.overrides)
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    if args.controls:
+        if not os.path.isfile(args.controls):
+            raise UserError(f"no such file: {args.controls}")
+        try:
+            controls = read_controls_csv(args.controls)
+        except ValueError as exc:
+            raise UserError(str(exc)) from exc
+        if args.n is not None:
+            controls = controls[: args.n]
+    else:
+        n = DESIGN_N if args.n is None else args.n
+        if not 1 <= n <= DESIGN_N:
+            raise UserError(f"--n must be in [1, {DESIGN_N}], got {n}")
+        controls = lhs_design()[:n]
+    case_ids = np.arange(len(controls))
+    if args.cases:
+        lo, hi = _parse_range(args.cases, len(controls))
+        controls, case_ids = controls[lo : hi + 1], case_ids[lo : hi + 1]
+    for cid, row in zip(case_ids, controls):
+        bad = check_admissible(row)
+        if bad:
+            raise UserError(f"case {cid}: {bad[0]}")
+    rules = compile_rules(load_rules())
+    try:
+        report = generate_dataset(
+            args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,
+            workers=args.workers, executor=args.executor, progress=not args.no_progress,
+        )  # fmt: skip
+    except RuntimeError as exc:  # e.g. Ray missing
+        raise UserError(str(exc)) from exc
+    except ValueError as exc:  # e.g. an incompatible existing file
+        raise UserError(str(exc)) from exc
+    print(  # noqa: T201
+        f"{report['path']}: {report['written']} cases simulated, {report['skipped']} already complete, "
+        f"{report['wall_s']:.1f} s"
+    )
+    return 0
+
+
+def _cmd_bench_sim(args: argparse.Namespace) -> int:
+    import json
+
+    from nemsim.controls import lhs_design
+    from nemsim.rules import compile_rules, load_rules
+    from nemsim.scenes import get_scene
+    from nemsim.sim.bench import bench_speed
+
+    try:
+        scenes = [get_scene(name.strip()) for name in args.scenes.split(",") if name.strip()]
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    if args.cases < 1:
+        raise UserError(f"--cases must be >= 1, got {args.cases}")
+    config = _sim_config(args.overrides)
+    rules = compile_rules(load_rules())
+    design = lhs_design()[: args.cases]
+    out = {}
+    print(f"{'scene':<7} {'cases':>5} {'median s/traj':>14} {'median cpu s':>13} {'primaries/s':>12}")  # noqa: T201
+    for scene in scenes:
+        rep = bench_speed(scene, rules, design, config)
+        med = rep["median"]
+        out[scene.name] = rep
+        print(  # noqa: T201
+            f"{scene.name:<7} {rep['n_cases']:>5} {med['wall_s']:>14.2f} {med['cpu_s']:>13.2f} "
+            f"{med['primaries_per_s']:>12.3g}"
+        )
+    if args.json_out:
+        with open(args.json_out, "w") as fh:
+            json.dump(out, fh, indent=2)
+    return 0
+
+
+def _cmd_bench_noise(args: argparse.Namespace) -> int:
+    import json
+
+    from nemsim.controls import lhs_design
+    from nemsim.rules import compile_rules, load_rules
+    from nemsim.scenes import get_scene
+    from nemsim.sim.bench import bench_noise
+
+    try:
+        seeds = tuple(int(s) for s in args.seeds.split(","))
+    except ValueError:
+        raise UserError(f"--seeds {args.seeds!r}: expected two integers, e.g. 1,2") from None
+    if len(seeds) != 2 or seeds[0] == seeds[1]:
+        raise UserError(f"--seeds {args.seeds!r}: expected two different integers")
+    if args.cases < 1:
+        raise UserError(f"--cases must be >= 1, got {args.cases}")
+    scene = get_scene(args.scene)
+    rules = compile_rules(load_rules())
+    rep = bench_noise(scene, rules, lhs_design()[: args.cases], _sim_config(args.overrides), seeds)
+    print(f"noise floor ({scene.name}, {rep['n_cases']} design cases, seeds {seeds[0]} vs {seeds[1]}):")  # noqa: T201
+    print(f"  Avg RMSE   {rep['avg_rmse']:.5f}   (mask {rep['per_channel_avg_rmse'][0]:.5f}, "  # noqa: T201
+          f"Si {rep['per_channel_avg_rmse'][1]:.5f})")
+    print(f"  Final RMSE {rep['final_rmse']:.5f}")  # noqa: T201
+    print("  per case   " + "  ".join(f"{v:.5f}" for v in rep["per_case_avg_rmse"]))  # noqa: T201
+    if args.json_out:
+        with open(args.json_out, "w") as fh:
+            json.dump(rep, fh, indent=2)
+    return 0
 
 
 # ==== section: models, train, evaluate, counterfactual (owner: model) ==========================
 
 
 def _add_model(sub: argparse._SubParsersAction) -> None:
-    pass
+    from pathlib import Path
+
+    from nemsim.train import SETTINGS, add_train_arguments
+
+    p = sub.add_parser("train", help="train a model on one-step transitions ([supp_training])",
+                       description="Train with one-step MSE; best.pt by validation rollout; resumable. "
+                       "For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS.")
+    add_train_arguments(p)
+    p.set_defaults(handler=_cmd_train)
+
+    p = sub.add_parser("evaluate", help="100-step autoregressive evaluation of a checkpoint ([supp_protocols])")
+    p.add_argument("--checkpoint", required=True, type=Path)
+    p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file")
+    p.add_argument("--setting", required=True, choices=SETTINGS)
+    p.add_argument("--split", default="test", choices=("train", "val", "test"))
+    p.add_argument("--splits", type=Path, help="directory of split manifests <setting>.json")
+    p.add_argument("--json", type=Path, help="write the metrics as JSON here")
+    p.add_argument("--save-rollouts", type=Path, help="write predictions (N, T+1, 2, D, H, W) to this HDF5")
+    p.add_argument("--plot", type=Path, help="PNG path (default: next to --json, else next to the checkpoint)")
+    p.add_argument("--steps", type=int, help="rollout length (default: full horizon)")
+    p.add_argument("--batch-size", type=int, default=1, help="trajectories rolled out together")
+    p.add_argument("--no-cd", action="store_true", help="skip the Chamfer distance")
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(handler=_cmd_evaluate)
+
+    p = sub.add_parser("models", help="list registered models with their trainable-parameter counts")
+    p.add_argument("--scene", default="small", help="scene name (paper, small, tiny)")
+    p.add_argument("--json", type=Path, help='write {name: {"params": int}} here')
+    p.set_defaults(handler=_cmd_models)
+
+    p = sub.add_parser("counterfactual", help="Cl+/Cl flux interventions vs mechanism response "
+                       "([supp_mechanism_alignment])")
+    p.add_argument("--checkpoint", required=True, type=Path)
+    p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file")
+    p.add_argument("--setting", default="control-id", choices=SETTINGS)
+    p.add_argument("--split", default="test", choices=("train", "val", "test"))
+    p.add_argument("--splits", type=Path, help="directory of split manifests <setting>.json")
+    p.add_argument("--out", type=Path, help="output directory (default: <checkpoint dir>/counterfactual)")
+    p.add_argument("--max-cases", type=int, help="analyse only the first N cases of the split")
+    p.set_defaults(handler=_cmd_counterfactual)
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from nemsim.train import TrainInputError, run
+
+    try:
+        return run(args)
+    except (TrainInputError, FileNotFoundError) as exc:
+        raise UserError(str(exc)) from None
+
+
+def _load_for_eval(args: argparse.Namespace):
+    """(loaded model, trajectory file, manifest) with the data file's scene checked against the checkpoint."""
+    from pathlib import Path
+
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.train import TrainInputError, _load_manifest
+    from nemsim.training.checkpoint import CheckpointMismatch, load_checkpoint
+
+    for path in (args.checkpoint, args.data):
+        if not Path(path).is_file():
+            raise UserError(f"{path} does not exist")
+    tf = open_trajectories(args.data)
+    try:
+        loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
+        manifest = _load_manifest(Path(args.data), args.setting, args.splits, tf)
+    except (CheckpointMismatch, TrainInputError) as exc:
+        raise UserError(str(exc)) from None
+    if tf.rules_sha256 and tf.rules_sha256 != loaded.raw["rules_sha256"]:
+        logging.getLogger("nemsim.cli").warning(
+            "data was generated with rules %s..., the checkpoint's library is %s...",
+            str(tf.rules_sha256)[:12], loaded.raw["rules_sha256"][:12])
+    return loaded, tf, manifest
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from nemsim.data.dataset import TrajectoryDataset
+    from nemsim.evaluation.evaluate import evaluate, plot_evaluation, write_json
+
+    loaded, tf, manifest = _load_for_eval(args)
+    cases = TrajectoryDataset(args.data, manifest, args.split)
+    if len(cases) == 0:
+        raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
+    result = evaluate(loaded.model, cases, loaded.scene, steps=args.steps, batch_size=args.batch_size,
+                      device=args.device, chamfer=not args.no_cd, rollout_path=args.save_rollouts,
+                      rollout_attrs={"checkpoint": str(args.checkpoint), "setting": args.setting,
+                                     "model": loaded.name})
+    cd = "n/a" if result.cd is None else f"{result.cd:.4f}"
+    print(f"{loaded.name} on {args.setting}/{args.split} ({result.n_cases} cases, {result.steps} steps)")  # noqa: T201
+    print(f"  Avg RMSE   {result.avg_rmse:.5f}")  # noqa: T201
+    print(f"  Final RMSE {result.final_rmse:.5f}")  # noqa: T201
+    print(f"  CD         {cd} voxels")  # noqa: T201
+    print(f"  Params     {result.params} ({result.params / 1e6:.3f} M)")  # noqa: T201
+    print(f"  Rollout    {result.rollout_seconds:.2f} s total, "  # noqa: T201
+          f"{result.rollout_seconds_per_case:.3f} s per trajectory")
+    extra = {"setting": args.setting, "split": args.split, "model": loaded.name, "checkpoint": str(args.checkpoint)}
+    if args.json:
+        write_json(result, args.json, extra)
+    plot = args.plot or (args.json.with_suffix(".png") if args.json
+                         else Path(args.checkpoint).with_name(f"eval_{args.setting}.png"))
+    plot_evaluation(result, loaded.scene, plot, title=f"{loaded.name} {args.setting}")
+    print(f"  figure     {plot}")  # noqa: T201
+    return 0
+
+
+def _cmd_models(args: argparse.Namespace) -> int:
+    import json
+
+    from nemsim.evaluation.metrics import count_params
+    from nemsim.model.registry import available_models, build_model
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+    from nemsim.scenes import get_scene
+
+    try:
+        scene = get_scene(args.scene)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    rules = compile_rules(load_rules())
+    table = {}
+    for name in available_models():
+        table[name] = {"params": int(count_params(build_model(name, scene, rules)))}
+        print(f"{name:<18} {table[name]['params']:>10,d}")  # noqa: T201
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(table, indent=2))
+    return 0
+
+
+def _cmd_counterfactual(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from nemsim.analysis.counterfactual import analyze, format_table, write_outputs
+
+    args.device = "cpu"
+    loaded, tf, manifest = _load_for_eval(args)
+    ids = list(manifest[args.split])[: args.max_cases]
+    if not ids:
+        raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
+    row_of = {int(c): r for r, c in enumerate(np.asarray(tf.case_ids))}
+    raw = np.asarray(tf.controls_raw)
+    cases = [(int(c), np.asarray(tf.states[row_of[int(c)], 0]), raw[row_of[int(c)]]) for c in ids]
+    result = analyze(loaded.model, cases)
+    out = args.out or Path(args.checkpoint).parent / "counterfactual"
+    paths = write_outputs(result, out)
+    print(format_table(result))  # noqa: T201
+    print(f"wrote {paths['json']}, {paths['csv']}, {paths['png']}")  # noqa: T201
+    return 0
+
+
+# ==== section: metrics, sensitivity (owner: metrics) ============================================
+
+
+def _add_metrics(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "sensitivity",
+        help="rank the 14 controls by their importance for the final etch profile",
+        description=(
+            "Importance score I = 0.7|beta| + 0.3|rho| ([supp_protocols], eq:supp_control_importance) of "
+            "each control for etch depth, top-opening width, neck width, bottom width and bowing at the "
+            "final state, averaged over the quantities; printed as a ranked table with percentages."
+        ),
+    )
+    p.add_argument("file", metavar="FILE", help="trajectory file (.h5) written by `nemsim generate`")
+    p.add_argument("--json", metavar="OUT", default=None, help="also write the full result as JSON")
+    p.set_defaults(handler=_cmd_sensitivity)
+
+
+def _cmd_sensitivity(args: argparse.Namespace) -> int:
+    import json
+    import os
+
+    from nemsim.analysis.sensitivity import sensitivity_from_file
+
+    if not os.path.isfile(args.file):
+        raise UserError(f"no such file: {args.file}")
+    try:
+        result = sensitivity_from_file(args.file)
+    except (OSError, KeyError, ValueError) as exc:
+        raise UserError(f"{args.file}: {exc}") from exc
+    print(result.table())  # noqa: T201
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(result.to_dict(), fh, indent=2)
+    return 0
 
 
 # ==== section: serve (owner: service) ==========================================================
 
 
 def _add_service(sub: argparse._SubParsersAction) -> None:
-    pass
+    p = sub.add_parser("serve", help="serve a checkpoint over HTTP (FastAPI; OpenAPI docs at /docs)")
+    p.add_argument(
+        "--checkpoint", default=None, help="checkpoint .pt (default: $NEMSIM_CHECKPOINT or checkpoints/*.pt)"
+    )
+    p.add_argument("--host", default="127.0.0.1", help="bind address (containers: 0.0.0.0)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes, each with its own model copy")
+    p.set_defaults(handler=_cmd_serve)
+    _add_bench_service(_bench_subparsers(sub))
+
+
+def _bench_subparsers(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """The `bench` group's sub-subparsers: the one `_add_sim` made, or a new group if it made none."""
+    bench = sub.choices.get("bench")
+    if bench is None:
+        bench = sub.add_parser("bench", help="benchmarks")
+        group = bench.add_subparsers(dest="bench", metavar="BENCH")
+        group.required = True
+        return group
+    for action in bench._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return action
+    raise RuntimeError("the `bench` parser has no subcommands group")  # a programming error in cli.py
+
+
+def _add_bench_service(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser("service", help="p50/p95 latency of POST /rollout, uncached and cached")
+    p.add_argument("--checkpoint", default=None, help="checkpoint .pt (default: checkpoints/*.pt)")
+    p.add_argument("--steps", type=int, default=100, help="transitions per rollout (default 100)")
+    p.add_argument("-n", "--requests", type=int, default=20, help="uncached requests (distinct controls)")
+    p.add_argument("--cached-requests", type=int, default=200, help="repeats of one cached request")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random controls")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
+    p.set_defaults(handler=_cmd_bench_service)
+
+
+def _resolve_checkpoint(arg: str | None) -> str:
+    from pathlib import Path
+
+    from service.config import Settings
+
+    path = Path(arg).expanduser() if arg else Settings().resolved_checkpoint()
+    if path is None:
+        raise UserError("no checkpoint: pass --checkpoint, set NEMSIM_CHECKPOINT or add checkpoints/*.pt")
+    if not path.is_file():
+        raise UserError(f"checkpoint {path} does not exist")
+    return str(path.resolve())
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import os
+
+    import uvicorn
+
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    # every worker process builds its app from the environment, so the choice travels there
+    os.environ["NEMSIM_CHECKPOINT"] = _resolve_checkpoint(args.checkpoint)
+    from service.config import get_settings
+
+    get_settings.cache_clear()
+    uvicorn.run(
+        "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
+        log_level="info",
+    )
+    return 0
+
+
+def _cmd_bench_service(args: argparse.Namespace) -> int:
+    import json
+
+    from service.bench import bench_service
+
+    if args.steps < 1 or args.requests < 1 or args.cached_requests < 1:
+        raise UserError("--steps, --requests and --cached-requests must be >= 1")
+    report = bench_service(
+        _resolve_checkpoint(args.checkpoint),
+        n=args.requests,
+        n_cached=args.cached_requests,
+        steps=args.steps,
+        seed=args.seed,
+    )
+    u, c = report["uncached"], report["cached"]
+    print(  # noqa: T201
+        f"POST /rollout, {report['steps']} steps, metrics only, model {report['model_id']} "
+        "(in-process ASGI):\n"
+        f"  uncached: p50 {u['p50_ms']:.1f} ms  p95 {u['p95_ms']:.1f} ms  (n={u['n']})\n"
+        f"  cached:   p50 {c['p50_ms']:.2f} ms  p95 {c['p95_ms']:.2f} ms  (n={c['n']})"
+    )
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(report, f, indent=2)
+    return 0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -73,7 +671,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for add in (_add_rules, _add_data, _add_sim, _add_model, _add_service):
+    for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service):
         add(sub)
     return parser
 

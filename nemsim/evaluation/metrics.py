@@ -376,11 +376,12 @@ def mean_chamfer(
 
 def count_params(module: nn.Module) -> int:
     """Trainable scalar parameters (eq:supp_params, before the /1e6): shared tensors counted once,
-    buffers (fixed rule tensors) and frozen parameters excluded."""
+    buffers (fixed rule tensors) and frozen parameters excluded; a complex parameter (Fourier weights) counts
+    as two real scalars, as in the caption of tab:supp_baseline_impl."""
     seen: set[int] = set()
     total = 0
     for p in module.parameters():  # parameters() already skips duplicates; the set guards aliasing
         if p.requires_grad and id(p) not in seen:
             seen.add(id(p))
-            total += p.numel()
+            total += p.numel() * (2 if p.is_complex() else 1)
     return int(total)

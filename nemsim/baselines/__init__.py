@@ -1,0 +1,50 @@
+"""Data-driven baselines adapted to 3-D, and their RuleFeat (+Prior) variants ([supp_baselines],
+tab:supp_baseline_impl; [supp_rulefeat], eq:rulefeat).
+
+Every model keeps the shared contract ``forward(x (B, 2, D, H, W), u (B, 14) normalized) -> x_next`` and has a
+frozen config dataclass whose defaults are the paper's configuration. Registered with
+``nemsim.model.registry`` under:
+
+  name            class        config           trainable params at any scene (paper)
+  convlstm        ConvLSTM3d   ConvLSTMConfig     634,098   (0.634 M)
+  fno             FNO3d        FNOConfig        1,357,912   (1.358 M)
+  uno             UNO3d        UNOConfig        2,440,378   (2.432 M)
+  cno             CNO3d        CNOConfig        1,733,908   (1,733,908)
+  deeponet        DeepONet3d   DeepONetConfig   1,721,202   (1,720,162)
+  cno-prior       CNO3d        rulefeat=True    1,750,876   (1,750,876)
+  deeponet-prior  DeepONet3d   rulefeat=True    1,736,914   (1,735,874; delta +15,712 as the paper)
+
+Complex Fourier weights count as two reals (``nemsim.evaluation.metrics.count_params``). None of the counts depends on the
+scene: every layer is convolutional, spectral with fixed modes, or follows an adaptive pooling.
+"""
+
+from __future__ import annotations
+
+from nemsim.baselines.cno import CNO3d, CNOConfig
+from nemsim.baselines.convlstm import ConvLSTM3d, ConvLSTMConfig
+from nemsim.baselines.deeponet import DeepONet3d, DeepONetConfig
+from nemsim.baselines.fno import FNO3d, FNOConfig
+from nemsim.baselines.rulefeat import RuleFeat
+from nemsim.baselines.uno import UNO3d, UNOConfig
+
+__all__ = [
+    "CNO3d", "CNOConfig", "ConvLSTM3d", "ConvLSTMConfig", "DeepONet3d", "DeepONetConfig",
+    "FNO3d", "FNOConfig",
+    "RuleFeat", "UNO3d", "UNOConfig",
+]
+
+
+def _register() -> None:
+    from nemsim.model.registry import register_model
+
+    register_model("convlstm", lambda scene, rules, cfg: ConvLSTM3d(cfg), ConvLSTMConfig)
+    register_model("fno", lambda scene, rules, cfg: FNO3d(cfg), FNOConfig)
+    register_model("uno", lambda scene, rules, cfg: UNO3d(cfg), UNOConfig)
+    register_model("cno", lambda scene, rules, cfg: CNO3d(cfg, rules), CNOConfig)
+    register_model("deeponet", lambda scene, rules, cfg: DeepONet3d(cfg, rules), DeepONetConfig)
+    register_model("cno-prior", lambda scene, rules, cfg: CNO3d(cfg, rules), CNOConfig, {"rulefeat": True})
+    register_model("deeponet-prior", lambda scene, rules, cfg: DeepONet3d(cfg, rules), DeepONetConfig,
+                   {"rulefeat": True})
+
+
+_register()

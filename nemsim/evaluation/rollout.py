@@ -1,0 +1,67 @@
+"""The autoregressive rollout protocol of [supp_protocols] (eq. supp_autoregressive_rollout).
+
+x̂_0 = x_0 (ground truth), x̂_{t+1} = G_θ(x̂_t, u_t) for t = 0..T-1. Every prediction is fed back as it
+is: no teacher forcing, no correction, no reinitialization, no clipping of states or controls.
+Controls may vary per transition (a recipe); a constant control is the same vector repeated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import nn
+
+StepCallback = Callable[[int, torch.Tensor], None]
+
+
+@torch.no_grad()
+def rollout(
+    model: nn.Module,
+    x0: torch.Tensor,
+    u: torch.Tensor,
+    steps: int | None = None,
+    *,
+    keep: bool = True,
+    on_step: StepCallback | None = None,
+) -> torch.Tensor:
+    """Roll a one-step model forward from x0.
+
+    Args:
+        model: forward(x (B,2,D,H,W), u (B,14)) -> x_next (B,2,D,H,W).
+        x0: (B, 2, D, H, W) initial states (ground truth at step 0).
+        u: (B, T, 14) normalized controls per transition, or (B, 14) for a constant control
+            (then ``steps`` is required).
+        steps: number of transitions to run (default T); must be <= T when u is (B, T, 14).
+        keep: return the whole trajectory; with keep=False only the last state is returned
+            (memory stays at one state -- use ``on_step`` to stream the others).
+        on_step: called as on_step(t, x̂_t) for t = 1..steps with the freshly predicted state.
+
+    Returns:
+        (B, steps + 1, 2, D, H, W) with x0 first, or (B, 2, D, H, W) (the last state) if keep=False.
+        Same device and dtype as x0.
+    """
+    if x0.ndim != 5:
+        raise ValueError(f"x0 must be (B, 2, D, H, W), got shape {tuple(x0.shape)}")
+    B = x0.shape[0]
+    if u.ndim == 2:
+        if steps is None:
+            raise ValueError("a constant control u (B, 14) needs steps")
+        u = u[:, None, :].expand(B, steps, u.shape[-1])  # (B, T, 14)
+    if u.ndim != 3 or u.shape[0] != B:
+        raise ValueError(f"u must be (B={B}, T, 14) or (B, 14), got shape {tuple(u.shape)}")
+    T = u.shape[1] if steps is None else steps
+    if T > u.shape[1]:
+        raise ValueError(f"steps={T} exceeds the {u.shape[1]} control vectors supplied")
+    u = u.to(device=x0.device, dtype=x0.dtype)
+    traj = [x0] if keep else None
+    x = x0
+    for t in range(T):
+        x = model(x, u[:, t])  # (B, 2, D, H, W)
+        if keep:
+            traj.append(x)
+        if on_step is not None:
+            on_step(t + 1, x)
+    if keep:
+        return torch.stack(traj, dim=1)  # (B, T+1, 2, D, H, W)
+    return x

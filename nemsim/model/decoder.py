@@ -1,0 +1,72 @@
+"""State Increment Decoder (eq:decoder, eq:supp_mrc_state_update): Δx = Dec(z̃_{t+1}, b_t, x_t).
+
+The paper fixes only the residual form x̂_{t+1} = x_t + Dec(z̃, b, x). Our decoder is chosen for CPU speed:
+no convolution runs at full resolution.
+
+  1/4 grid:  ConvGNAct(C_z -> 24) + one residual block                          h (B, 24, d, h, w)
+  1/2 grid:  g = SiLU(up(Conv1x1(h)) + Conv1x1(b) + Conv1x1(unshuffle(x)))       (B, 16, D/2, H/2, W/2)
+             Δx' = Conv3x3x3(g) with 2·8 output channels
+  full grid: Δx = shuffle(Δx') (each 1/2-grid voxel emits its 2x2x2 block of both channels)
+
+``unshuffle`` / ``shuffle`` are the 3-D space-to-depth / depth-to-space rearrangements (2x2x2 blocks),
+so x enters at full detail and Δx has per-voxel values. Up-sampling 1/4 -> 1/2 is nearest-neighbour
+(applied after the 1x1x1 mix, with which it commutes). The last convolution is initialized with weights
+scaled by ``out_scale`` (0.1) and zero bias: the initial prediction is close to persistence (x̂ ≈ x) while
+gradients still reach every layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nemsim.model.layers import Conv3d, ConvGNAct, ResBlock3d
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    latent_channels: int = 18  # C_z
+    skip_channels: int = 12  # channels of b (encoder level 1, 1/2 resolution)
+    widths: tuple[int, int] = (24, 16)  # widths at 1/4 and 1/2 resolution
+    out_channels: int = 2
+    out_scale: float = 0.1  # init scale of the last convolution
+
+
+def space_to_depth(x: torch.Tensor) -> torch.Tensor:
+    """(B, C, D, H, W) -> (B, 8C, D/2, H/2, W/2): 2x2x2 blocks into channels (C-major)."""
+    B, C, D, H, W = x.shape
+    x = x.reshape(B, C, D // 2, 2, H // 2, 2, W // 2, 2)  # (B, C, d, 2, h, 2, w, 2)
+    return x.permute(0, 1, 3, 5, 7, 2, 4, 6).reshape(B, 8 * C, D // 2, H // 2, W // 2)
+
+
+def depth_to_space(x: torch.Tensor) -> torch.Tensor:
+    """(B, 8C, d, h, w) -> (B, C, 2d, 2h, 2w), the inverse of ``space_to_depth``."""
+    B, C8, d, h, w = x.shape
+    C = C8 // 8
+    x = x.reshape(B, C, 2, 2, 2, d, h, w).permute(0, 1, 5, 2, 6, 3, 7, 4)  # (B, C, d, 2, h, 2, w, 2)
+    return x.reshape(B, C, 2 * d, 2 * h, 2 * w)
+
+
+class ResidualDecoder(nn.Module):
+    def __init__(self, cfg: DecoderConfig) -> None:
+        super().__init__()
+        w4, w2 = cfg.widths
+        C = cfg.out_channels
+        self.coarse = nn.Sequential(ConvGNAct(cfg.latent_channels, w4), ResBlock3d(w4))
+        self.mix_latent = Conv3d(w4, w2, 1, bias=False)
+        self.mix_skip = Conv3d(cfg.skip_channels, w2, 1, bias=False)
+        self.mix_state = Conv3d(8 * C, w2, 1)
+        self.out = Conv3d(w2, 8 * C, 3, padding=1)
+        with torch.no_grad():
+            self.out.weight.mul_(cfg.out_scale)
+            self.out.bias.zero_()
+
+    def forward(self, z_next: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """Δx (B, 2, D, H, W) from z̃ (B, C_z, d, h, w), b (B, 12, D/2, H/2, W/2), x (B, 2, D, H, W)."""
+        h = self.mix_latent(self.coarse(z_next))  # (B, 16, d, h, w)
+        h = F.interpolate(h, size=tuple(b.shape[2:]), mode="nearest")  # (B, 16, D/2, H/2, W/2)
+        g = F.silu(h + self.mix_skip(b) + self.mix_state(space_to_depth(x.to(b.dtype))))  # (B, 16, D/2, ..)
+        return depth_to_space(self.out(g))  # (B, 2, D, H, W)

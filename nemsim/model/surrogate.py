@@ -1,0 +1,173 @@
+"""NEMSim: the composed surrogate F_θ(x_t, u_t; R, M) (eq:learned_transition).
+
+  (z, b, z̄) = SE(x)                                eq:se                 (encoder.py)
+  λ = EIC(z̄, u; R)                                  eq:base_rate, eq:primary_intensity   (eic.py)
+  α = MAC(λ, z̄, u; R),  T = λ ⊙ α                   eq:rule_based_routing, eq:mechanism_attribution,
+                                                    eq:emc_overview       (mac.py)
+  Δz, (S, P, G, w) = MRC(z, z̄, u, T)                eq:event_basis_signature ... eq:latent_update (mrc.py)
+  z̃ = z + Δz,  x̂ = x + Dec(z̃, b, x)                 eq:decoder            (decoder.py)
+
+Paper configuration ([supp_training]): stem 12, widths (12, 18, 24), 18 latent channels, M = 3 families,
+R_b = 4 modes, readout width 24. Ablations are switches, not forks: ``use_eic`` (w/o EIC: unstructured
+softplus intensities), ``use_mac`` (w/o MAC: uniform α), ``use_mrc`` (w/o MRC: directly predicted mode
+amplitudes). Perturbed rule libraries (``nemsim.rules.perturb``) are simply passed in as ``rules``.
+
+Choices where the paper is silent:
+  * spatial sizes: the state is padded on the high side of each axis with edge (replicate) values up to a
+    multiple of 4 and the prediction is cropped back, so every scene's odd size works (tiny 35x15x15,
+    small 65x28x28, paper 127x54x54);
+  * the latent z lives on the 1/4-resolution grid, the encoder's deepest level at 1/8, its support
+    feature b at 1/2; no convolution runs at full resolution (see encoder.py, decoder.py);
+  * rule-side computations (EIC, MAC, the amplitude part of MRC) run in fp32 even under bf16 autocast;
+  * aux also carries ``S`` (signature, E x M x R), ``lambda_p``, ``lambda_d``, ``pool`` and ``delta_l``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nemsim.model.decoder import DecoderConfig, ResidualDecoder
+from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredIntensity
+from nemsim.model.encoder import EncoderConfig, StateEncoder
+from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
+from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
+from nemsim.model.rule_buffers import RuleBuffers
+
+N_CONTROLS = 14
+
+
+@dataclass(frozen=True)
+class NEMSimConfig:
+    stem: int = 12  # encoder stem width
+    widths: tuple[int, int, int] = (12, 18, 24)  # encoder pyramid widths
+    latent_channels: int = 18  # channels of z
+    context_dim: int = 24  # size of the compact state context z̄
+    n_families: int = 3  # M
+    n_modes: int = 4  # R_b
+    readout_width: int = 24  # MRC trunk width
+    decoder_widths: tuple[int, int] = (24, 16)  # decoder widths at 1/4 and 1/2 resolution
+    decoder_out_scale: float = 0.1  # init scale of the decoder's last convolution
+    use_eic: bool = True  # False: w/o EIC ablation
+    use_mac: bool = True  # False: w/o MAC ablation
+    use_mrc: bool = True  # False: w/o MRC ablation
+    eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
+    mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
+    mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> "NEMSimConfig":
+        """Build from a partial, nested or dotted-key dict; unknown keys raise ValueError."""
+        return apply_overrides(cls(), d or {})
+
+
+def apply_overrides(cfg, overrides: dict[str, Any]):
+    """Return a copy of dataclass ``cfg`` with ``overrides`` applied (nested dicts or "a.b" keys)."""
+    nested: dict[str, Any] = {}
+    for key, value in overrides.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            nested.setdefault(head, {})[rest] = value
+        elif isinstance(value, dict):
+            nested.setdefault(head, {}).update(value)
+        else:
+            nested[head] = value
+    names = {f.name: f for f in dataclasses.fields(cfg)}
+    changes: dict[str, Any] = {}
+    for key, value in nested.items():
+        if key not in names:
+            raise ValueError(
+                f"unknown config key {key!r} for {type(cfg).__name__}; expected one of {sorted(names)}"
+            )
+        current = getattr(cfg, key)
+        if dataclasses.is_dataclass(current) and isinstance(value, dict):
+            changes[key] = apply_overrides(current, value)
+        elif isinstance(current, tuple) and isinstance(value, (list, tuple)):
+            changes[key] = tuple(value)
+        else:
+            changes[key] = value
+    return dataclasses.replace(cfg, **changes)
+
+
+class NEMSim(nn.Module):
+    """forward(x (B, 2, D, H, W), u (B, 14) normalized, return_aux=False) -> x̂ (B, 2, D, H, W) [, aux]."""
+
+    def __init__(self, rules, config: NEMSimConfig | None = None) -> None:
+        super().__init__()
+        cfg = config or NEMSimConfig()
+        self.config = cfg
+        self.rules = RuleBuffers(rules)  # fixed buffers, never parameters
+        E = self.rules.n_events
+        desc_dim = int(self.rules.phi.shape[1])
+        shared = dict(context_dim=cfg.context_dim, n_controls=N_CONTROLS)
+        self.encoder = StateEncoder(
+            EncoderConfig(stem=cfg.stem, widths=cfg.widths, latent_channels=cfg.latent_channels,
+                          context_dim=cfg.context_dim)
+        )
+        eic_cfg = dataclasses.replace(cfg.eic, **shared)
+        if cfg.use_eic:
+            self.eic: nn.Module = EventIntensityCompiler(eic_cfg, n_rate_desc=int(self.rules.psi.shape[1]))
+        else:
+            self.eic = UnstructuredIntensity(eic_cfg, E)
+        self.mac = MechanismAttributionCompiler(
+            dataclasses.replace(cfg.mac, n_families=cfg.n_families, desc_dim=desc_dim, **shared),
+            enabled=cfg.use_mac,
+        )
+        self.mrc = MechanismResponseCompiler(
+            dataclasses.replace(cfg.mrc, n_families=cfg.n_families, n_modes=cfg.n_modes,
+                                latent_channels=cfg.latent_channels, readout_width=cfg.readout_width,
+                                desc_dim=desc_dim, **shared),
+            n_events=E,
+            enabled=cfg.use_mrc,
+        )
+        self.decoder = ResidualDecoder(
+            DecoderConfig(latent_channels=cfg.latent_channels, skip_channels=cfg.widths[0],
+                          widths=cfg.decoder_widths, out_scale=cfg.decoder_out_scale)
+        )
+        self.multiple = self.encoder.cfg.downsample
+
+    @property
+    def rules_sha256(self) -> str:
+        return self.rules.sha256
+
+    def _pad(self, x: torch.Tensor) -> torch.Tensor:
+        """Edge-pad (B, C, D, H, W) on the high side of each axis up to a multiple of 4."""
+        D, H, W = x.shape[2:]
+        m = self.multiple
+        pd, ph, pw = (-D) % m, (-H) % m, (-W) % m
+        if pd == ph == pw == 0:
+            return x
+        return F.pad(x, (0, pw, 0, ph, 0, pd), mode="replicate")
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor, return_aux: bool = False):
+        if x.dim() != 5 or x.shape[1] != 2:
+            raise ValueError(f"x must be (B, 2, D, H, W), got {tuple(x.shape)}")
+        if u.shape != (x.shape[0], N_CONTROLS):
+            raise ValueError(f"u must be (B, {N_CONTROLS}) normalized controls, got {tuple(u.shape)}")
+        B, C, D, H, W = x.shape
+        xp = self._pad(x)  # (B, 2, D', H', W')
+        z, b, z_bar = self.encoder(xp)  # (B, C_z, d, h, w), (B, 12, D'/2, ..), (B, K)
+        eic = self.eic(z_bar, u, self.rules)
+        lam = eic["lam"]  # (B, E)
+        alpha = self.mac(lam, z_bar, u, self.rules)  # (B, E, M)
+        T = lam[:, :, None] * alpha  # (B, E, M)  eq:supp_event_mechanism_driver
+        dz, amp = self.mrc(z, z_bar, u, T, self.rules)  # (B, C_z, d, h, w)
+        z_next = z + dz.to(z.dtype)  # eq:supp_mrc_latent_update
+        dx = self.decoder(z_next, b, xp)  # (B, 2, D', H', W')
+        x_next = x + dx[:, :, :D, :H, :W].to(x.dtype)  # eq:supp_mrc_state_update, cropped back
+        if not return_aux:
+            return x_next
+        aux = {
+            "lambda": lam, "alpha": alpha, "T": T, "S": amp["S"], "P": amp["P"], "G": amp["G"],
+            "w": amp["w"], "lambda_p": eic["lam_p"], "lambda_d": eic["lam_d"], "pool": eic["pool"],
+            "delta_l": eic["dl"],
+        }
+        return x_next, aux

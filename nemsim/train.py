@@ -1,0 +1,216 @@
+"""Training entry point: ``nemsim train ...`` or, for DDP, ``torchrun --nproc-per-node 2 -m nemsim.train ...``.
+
+Reads the data file and split manifest, seeds, builds the model from the registry, calls
+``nemsim.training.loop.train`` and finally evaluates ``best.pt`` on the test split (stored in best.pt as
+``metrics[setting]`` and in ``DIR/test_metrics.json``). Under torchrun (WORLD_SIZE > 1) the process group
+is initialized here: gloo on CPU, NCCL on CUDA. Only rank 0 writes the log file and checkpoints.
+
+Choices where the paper is silent:
+  * the split manifest is ``--splits DIR/<setting>.json`` if given, else ``<data dir>/splits/<setting>.json``
+    if present, else computed from the data file's own design with ``nemsim.data.splits.make_manifests``
+    (the same seeded function the ``nemsim splits`` command uses);
+  * ``--fraction F`` (data efficiency, [supp_data_efficiency]) keeps the training subset of
+    ``nemsim.data.splits.data_efficiency_subsets`` for F; validation and test are unchanged;
+  * the model's scene is the data file's scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("nemsim.train")
+
+SETTINGS = ("control-id", "ood-ar", "ood-cl", "ood-joint", "vis-50", "vis-60")
+
+
+class TrainInputError(ValueError):
+    """Bad command-line input for training (the CLI turns it into exit code 2)."""
+
+
+def add_train_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--model", required=True, help="registered model name (see `nemsim models`)")
+    p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file")
+    p.add_argument("--setting", required=True, choices=SETTINGS, help="split setting")
+    p.add_argument("--out", required=True, type=Path, help="output directory (best.pt, last.pt, logs)")
+    p.add_argument("--config", type=Path, help="YAML/JSON: TrainConfig fields; model overrides under `model:`")
+    p.add_argument("--epochs", type=int, help="epoch budget (overrides max_epochs)")
+    p.add_argument("--fraction", type=float, help="train on this data-efficiency fraction of the train split")
+    p.add_argument("--resume", action="store_true", help="continue from DIR/last.pt")
+    p.add_argument("--splits", type=Path, help="directory of split manifests <setting>.json")
+    p.add_argument("--seed", type=int, help="override the seed (default 0)")
+    p.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None, help="bfloat16 autocast")
+    p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
+                   help="channels_last_3d memory format")
+    p.add_argument("--device", help="auto (default), cpu, cuda, cuda:N")
+    p.add_argument("--rollout-steps", type=int, help="validation rollout length (default: full horizon)")
+    p.add_argument("--perturb", default="none",
+                   help="rule-library perturbation: none, structure-only, mechanism-shuffle, event-drop, "
+                        "rate-noise")
+    p.add_argument("--perturb-seed", type=int, default=0, help="seed of the rule perturbation")
+    p.add_argument("--no-test", action="store_true", help="skip the final test evaluation of best.pt")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _load_manifest(data: Path, setting: str, splits: Path | None, tf: Any) -> dict:
+    from nemsim.data import splits as splits_mod
+
+    directory = splits if splits is not None else data.parent / "splits"
+    if splits is not None or (directory / f"{setting}.json").is_file():
+        try:
+            return splits_mod.load_manifest(directory, setting)
+        except ValueError as exc:
+            raise TrainInputError(str(exc)) from None
+    log.info("no %s; computing the %s manifest from the data file's design", directory / f"{setting}.json",
+             setting)
+    manifests = splits_mod.make_manifests(tf.controls_raw, tf.case_ids, n_transitions=tf.scene.n_transitions)
+    if setting not in manifests:
+        raise TrainInputError(f"setting {setting!r} not produced by make_manifests; got {sorted(manifests)}")
+    return manifests[setting]
+
+
+def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
+    import numpy as np
+
+    from nemsim.data.splits import data_efficiency_subsets
+
+    if not 0 < fraction <= 1:
+        raise TrainInputError(f"--fraction must be in (0, 1], got {fraction}")
+    if fraction == 1:
+        return manifest
+    if "data_efficiency" in manifest:
+        subsets = data_efficiency_subsets(manifest)
+    else:
+        row_of = {int(c): r for r, c in enumerate(np.asarray(tf.case_ids))}
+        raw = np.asarray(tf.controls_raw)[[row_of[int(c)] for c in manifest["train"]]]
+        subsets = data_efficiency_subsets(manifest, raw)
+    key = min(subsets, key=lambda k: abs(float(k) - fraction))
+    if abs(float(key) - fraction) > 1e-9:
+        raise TrainInputError(f"--fraction {fraction} is not a data-efficiency subset; choose from {sorted(subsets)}")
+    return {**manifest, "train": list(subsets[key])}
+
+
+def _config_dict(cfg: Any) -> dict:
+    return asdict(cfg) if is_dataclass(cfg) else dict(cfg)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+    import torch.distributed as dist
+
+    from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.model.registry import available_models, build_model, model_config
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+    from nemsim.training.config import TrainConfig, read_config_file
+    from nemsim.training.loop import ModelMeta, TrainData, seed_everything, train
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend=backend)
+        if torch.cuda.is_available():
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+    rank = dist.get_rank() if dist.is_initialized() else 0
+    try:
+        if args.model not in available_models():
+            raise TrainInputError(f"unknown model {args.model!r}; expected one of {available_models()}")
+        if not Path(args.data).is_file():
+            raise TrainInputError(f"data file {args.data} does not exist")
+        cfg, model_overrides = read_config_file(args.config) if args.config else (TrainConfig(), {})
+        changes: dict[str, Any] = {}
+        for arg, key in (("epochs", "max_epochs"), ("seed", "seed"), ("bf16", "bf16"),
+                         ("channels_last", "channels_last"), ("device", "device"),
+                         ("rollout_steps", "rollout_steps")):
+            if getattr(args, arg, None) is not None:
+                changes[key] = getattr(args, arg)
+        if args.no_progress or rank != 0:
+            changes["progress"] = False
+        cfg = cfg.replace(**changes) if changes else cfg
+
+        out = Path(args.out)
+        if rank == 0:
+            out.mkdir(parents=True, exist_ok=True)
+            handler = logging.FileHandler(out / "train.log")
+            handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+            logging.getLogger().addHandler(handler)
+            if logging.getLogger().level > logging.INFO or logging.getLogger().level == logging.NOTSET:
+                logging.getLogger().setLevel(logging.INFO)
+
+        # ---- data ----
+        tf = open_trajectories(args.data)
+        scene = tf.scene
+        manifest = _load_manifest(Path(args.data), args.setting, args.splits, tf)
+        if args.fraction is not None:
+            manifest = _apply_fraction(manifest, args.fraction, tf)
+        visible = manifest.get("visible_transitions")
+        data = TrainData(
+            train=TransitionDataset(args.data, manifest, "train", visible_transitions=visible),
+            val=TrajectoryDataset(args.data, manifest, "val"),
+        )
+
+        # ---- rules (optionally perturbed) and model ----
+        rules = compile_rules(load_rules())
+        if tf.rules_sha256 and tf.rules_sha256 != rules.sha256:
+            log.warning("data %s was generated with rules %s..., the library is %s...", args.data,
+                        str(tf.rules_sha256)[:12], rules.sha256[:12])
+        perturbation = None
+        if args.perturb != "none":
+            from nemsim.rules.perturb import perturb
+
+            rules = perturb(rules, args.perturb, args.perturb_seed)
+            if not hasattr(rules, "sha256"):
+                rules = compile_rules(rules)
+            perturbation = {"kind": args.perturb, "seed": args.perturb_seed}
+        seed_everything(cfg.seed)
+        model = build_model(args.model, scene, rules, model_overrides or None)
+        mcfg = _config_dict(model_config(args.model, scene, model_overrides or None))
+        meta = ModelMeta(name=args.model, config=mcfg, scene=scene, rules=rules,
+                         rules_perturbation=perturbation)
+        log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", args.setting,
+                 len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)
+        summary = train(cfg, model, data, out, meta, resume=args.resume)
+        log.info("training done: best %s %.5g at epoch %d", summary["select_metric"], summary["best_val"],
+                 summary["best_epoch"])
+
+        if dist.is_initialized():
+            dist.barrier()
+        if rank == 0 and not args.no_test and (out / "best.pt").is_file() and manifest.get("test"):
+            from nemsim.evaluation.evaluate import evaluate, write_json
+            from nemsim.training.checkpoint import load_checkpoint, update_metrics
+
+            loaded = load_checkpoint(out / "best.pt")
+            result = evaluate(loaded.model, TrajectoryDataset(args.data, manifest, "test"), scene,
+                              steps=cfg.rollout_steps)
+            update_metrics(out / "best.pt", {args.setting: result.to_json_dict()})
+            write_json(result, out / "test_metrics.json", {"setting": args.setting})
+            log.info("test: Avg RMSE %.5f, Final RMSE %.5f, CD %s", result.avg_rmse, result.final_rmse,
+                     f"{result.cd:.4f}" if result.cd is not None else "n/a")
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m nemsim.train", description=__doc__.splitlines()[0])
+    add_train_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return run(args)
+    except TrainInputError as exc:
+        print(f"nemsim train: {exc}", file=sys.stderr)  # noqa: T201
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

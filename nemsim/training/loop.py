@@ -1,0 +1,318 @@
+"""The training loop ([supp_training], [supp_evaluation], eq. training_loss): one function, top to bottom.
+
+One-step supervision only: minimize the voxel-wise MSE between F_θ(x_t, u_t) and x_{t+1} on normalized
+fields. Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full
+horizon on the validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and
+training stops after ``patience`` validation rounds without improvement. ``last.pt`` is written after
+every epoch with the optimizer, schedule step, RNG states and history, so a killed run resumes at the
+start of the interrupted epoch and reproduces the uninterrupted run (shuffling is a pure function of
+seed and epoch through ``DistributedSampler.set_epoch``).
+
+DDP: if ``torch.distributed`` is initialized (``torchrun``, see ``nemsim.train``) the model is wrapped
+in DistributedDataParallel, each rank sees a disjoint shard of every epoch (per-rank batch =
+batch_size / world size, so the global batch stays 24), validation trajectories are sharded and their
+error sums all-reduced; only rank 0 writes files.
+
+Outputs in ``out_dir``: ``best.pt``, ``last.pt``, ``metrics.csv`` (one row per epoch: lr, train loss,
+validation metrics when computed, seconds). The log file and the progress bar are set up by the
+entry point / here on rank 0 only.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import random
+import time
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.utils.data import DataLoader, Dataset
+from torch.utils.data.distributed import DistributedSampler
+
+from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
+from nemsim.scenes import Scene
+from nemsim.training.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
+from nemsim.training.config import TrainConfig
+
+log = logging.getLogger(__name__)
+
+CSV_FIELDS = ("epoch", "step", "lr", "train_loss", "val_avg_rmse", "val_final_rmse", "val_mse",
+              "epoch_seconds", "val_seconds")
+
+
+@dataclass
+class TrainData:
+    """train: items (x_t (2,D,H,W), u_t (14,), x_{t+1}); val: indexable of (case_id, states, u)."""
+
+    train: Dataset
+    val: Any
+
+
+@dataclass
+class ModelMeta:
+    """What a checkpoint needs to rebuild the model (see nemsim.training.checkpoint)."""
+
+    name: str
+    config: dict[str, Any]
+    scene: Scene
+    rules: Any  # RuleTensors
+    rules_perturbation: dict[str, Any] | None = None
+
+
+def lr_at(step: int, steps_per_epoch: int, cfg: TrainConfig) -> float:
+    """Linear warm-up over ``warmup_epochs`` then half-cosine from lr to min_lr at ``max_epochs``."""
+    warm = cfg.warmup_epochs * steps_per_epoch
+    total = max(cfg.max_epochs * steps_per_epoch, warm + 1)
+    if step < warm:
+        return cfg.lr * (step + 1) / warm
+    progress = min((step - warm) / max(total - warm, 1), 1.0)
+    return cfg.min_lr + 0.5 * (cfg.lr - cfg.min_lr) * (1.0 + math.cos(math.pi * progress))
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        if torch.cuda.is_available():
+            local = int(__import__("os").environ.get("LOCAL_RANK", 0))
+            return torch.device("cuda", local)
+        return torch.device("cpu")
+    return torch.device(name)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def _rng_state() -> dict[str, Any]:
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _write_csv(path: Path, history: list[dict[str, Any]]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        w.writeheader()
+        for row in history:
+            w.writerow({k: row.get(k, "") for k in CSV_FIELDS})
+    tmp.replace(path)
+
+
+def train(
+    cfg: TrainConfig,
+    model: nn.Module,
+    data: TrainData,
+    out_dir: str | Path,
+    meta: ModelMeta,
+    *,
+    resume: bool = False,
+) -> dict[str, Any]:
+    """Train ``model`` on one-step transitions; returns the training summary (also stored in best.pt).
+
+    Args:
+        cfg: hyper-parameters (TrainConfig).
+        model: freshly built model (seeded by the caller); on resume its weights are replaced.
+        data: TrainData (train transitions, validation trajectories).
+        out_dir: where best.pt, last.pt and metrics.csv go.
+        meta: model name/config/scene/rules stored in every checkpoint.
+        resume: continue from out_dir/last.pt if present (else start fresh).
+    """
+    out_dir = Path(out_dir)
+    distributed = dist.is_available() and dist.is_initialized()
+    rank, world = (dist.get_rank(), dist.get_world_size()) if distributed else (0, 1)
+    is_main = rank == 0
+    if is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+
+    # ---- device, precision, model --------------------------------------------------------------
+    device = pick_device(cfg.device)
+    memory_format = torch.channels_last_3d if cfg.channels_last else torch.contiguous_format
+    model = model.to(device=device, memory_format=memory_format)
+    autocast = (
+        torch.autocast(device_type=device.type, dtype=torch.bfloat16) if cfg.bf16 else nullcontext()
+    )
+    optimizer = torch.optim.AdamW(
+        model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay
+    )
+
+    # ---- data: DistributedSampler also for one rank, so shuffling = f(seed, epoch) ----------------
+    if cfg.batch_size % world:
+        log.warning("batch_size %d is not divisible by world size %d", cfg.batch_size, world)
+    per_rank_batch = max(1, cfg.batch_size // world)
+    sampler = DistributedSampler(data.train, num_replicas=world, rank=rank, shuffle=True, seed=cfg.seed)
+    loader = DataLoader(
+        data.train,
+        batch_size=per_rank_batch,
+        sampler=sampler,
+        num_workers=cfg.num_workers,
+        pin_memory=device.type == "cuda",
+        persistent_workers=cfg.num_workers > 0,
+    )
+    steps_per_epoch = len(loader)
+    val_index = list(range(rank, len(data.val), world))  # this rank's validation trajectories
+
+    # ---- state, optionally resumed ---------------------------------------------------------------
+    start_epoch, step, best, best_epoch, bad_rounds = 0, 0, math.inf, -1, 0
+    history: list[dict[str, Any]] = []
+    last_path, best_path = out_dir / "last.pt", out_dir / "best.pt"
+    if resume and last_path.is_file():
+        ckpt = read_checkpoint(last_path)
+        ts = ckpt["train_state"]
+        unwrap(model).load_state_dict(ckpt["model_state"])
+        optimizer.load_state_dict(ts["optimizer"])
+        start_epoch, step = ts["epoch"], ts["schedule_step"]
+        best, best_epoch, bad_rounds = ts["best"], ts["best_epoch"], ts["bad_rounds"]
+        history = list(ts["history"])
+        _set_rng_state(ts["rng"])
+        log.info("resumed from %s at epoch %d (best %.5g at epoch %d)", last_path, start_epoch, best, best_epoch)
+    elif resume:
+        log.info("--resume: no %s yet, starting fresh", last_path)
+    train_model: nn.Module = model
+    if distributed:
+        ids = [device.index] if device.type == "cuda" else None
+        train_model = nn.parallel.DistributedDataParallel(model, device_ids=ids)
+
+    stopped_early = bad_rounds >= cfg.patience
+    t_start = time.perf_counter()
+    bar = None
+    if is_main and cfg.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.max_epochs * steps_per_epoch, initial=start_epoch * steps_per_epoch,
+                   unit="step", dynamic_ncols=True)
+    log.info("training %s: %d transitions, %d steps/epoch x %d epochs, %d ranks, device %s, bf16=%s, "
+             "channels_last=%s", meta.name, len(data.train), steps_per_epoch, cfg.max_epochs, world, device,
+             cfg.bf16, cfg.channels_last)
+
+    epoch = start_epoch
+    for epoch in range(start_epoch, cfg.max_epochs):
+        if stopped_early:
+            break
+        # ---- one epoch of one-step MSE (eq. training_loss) ----------------------------------------
+        t_epoch = time.perf_counter()
+        sampler.set_epoch(epoch)
+        train_model.train()
+        loss_sum = torch.zeros(2, dtype=torch.float64, device=device)  # (Σ loss·n, n)
+        lr = cfg.lr
+        for x, u, y in loader:
+            lr = lr_at(step, steps_per_epoch, cfg)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            x = x.to(device, non_blocking=True).contiguous(memory_format=memory_format)  # (B, 2, D, H, W)
+            y = y.to(device, non_blocking=True).contiguous(memory_format=memory_format)
+            u = u.to(device, non_blocking=True)  # (B, 14)
+            with autocast:
+                pred = train_model(x, u)
+            loss = torch.mean((pred.float() - y) ** 2)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            optimizer.step()
+            step += 1
+            loss_sum += torch.stack([loss.detach().double() * x.shape[0], torch.tensor(x.shape[0], device=device,
+                                                                                       dtype=torch.float64)])
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(epoch=epoch + 1, loss=f"{loss.item():.3e}", lr=f"{lr:.2e}")
+        if distributed:
+            dist.all_reduce(loss_sum)
+        train_loss = float(loss_sum[0] / max(loss_sum[1], 1))
+        row: dict[str, Any] = {"epoch": epoch + 1, "step": step, "lr": lr, "train_loss": train_loss,
+                               "epoch_seconds": time.perf_counter() - t_epoch}
+
+        # ---- validation rollout every val_every epochs and at the last epoch ----------------------
+        if (epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.max_epochs:
+            t_val = time.perf_counter()
+            model.eval()
+            if val_index:  # streamed: one batch of trajectories in memory at a time
+                sq, n = rollout_errors(model, (data.val[i] for i in val_index), steps=cfg.rollout_steps,
+                                       batch_size=cfg.val_batch_size, device=device)
+            else:
+                sq, n = None, 0
+            if distributed:  # ranks may hold no val case: share the length first
+                length = torch.tensor([0 if sq is None else len(sq)], device=device)
+                dist.all_reduce(length, op=dist.ReduceOp.MAX)
+                buf = torch.zeros(int(length) + 1, dtype=torch.float64, device=device)
+                if sq is not None:
+                    buf[:-1] = torch.as_tensor(sq, dtype=torch.float64)
+                buf[-1] = n
+                dist.all_reduce(buf)
+                sq, n = buf[:-1].cpu().numpy(), int(buf[-1])
+            if n == 0:
+                raise ValueError("the validation split is empty; a validation rollout needs trajectories")
+            val = rmse_summary(sq, n)
+            row.update(val_avg_rmse=val["avg_rmse"], val_final_rmse=val["final_rmse"], val_mse=val["mse"],
+                       val_seconds=time.perf_counter() - t_val)
+            score = val["avg_rmse"] if cfg.select_metric == "avg_rmse" else val["mse"]
+            improved = score < best
+            if improved:
+                best, best_epoch, bad_rounds = score, epoch + 1, 0
+            else:
+                bad_rounds += 1
+            stopped_early = bad_rounds >= cfg.patience
+            log.info("epoch %d: train loss %.4e, val Avg RMSE %.5f, Final RMSE %.5f%s", epoch + 1, train_loss,
+                     val["avg_rmse"], val["final_rmse"], " (best)" if improved else f" ({bad_rounds} w/o gain)")
+            if improved and is_main:
+                write_checkpoint_dict(best_path, _ckpt(model, meta, cfg, history + [row], best, best_epoch,
+                                                       epoch + 1, t_start, stopped_early))
+        else:
+            log.info("epoch %d: train loss %.4e (%.1f s)", epoch + 1, train_loss, row["epoch_seconds"])
+        history.append(row)
+
+        # ---- last.pt: everything needed to resume --------------------------------------------------
+        if is_main:
+            train_state = {"optimizer": optimizer.state_dict(), "epoch": epoch + 1, "schedule_step": step,
+                           "best": best, "best_epoch": best_epoch, "bad_rounds": bad_rounds,
+                           "history": history, "rng": _rng_state()}
+            ckpt = _ckpt(model, meta, cfg, history, best, best_epoch, epoch + 1, t_start, stopped_early)
+            ckpt["train_state"] = train_state
+            write_checkpoint_dict(last_path, ckpt)
+            _write_csv(out_dir / "metrics.csv", history)
+        if distributed:
+            dist.barrier()
+        if stopped_early:
+            log.info("early stop: %d validation rounds without improvement", bad_rounds)
+            break
+    if bar is not None:
+        bar.close()
+    return _summary(cfg, history, best, best_epoch, len(history), t_start, stopped_early)
+
+
+def _summary(cfg: TrainConfig, history: list, best: float, best_epoch: int, epochs: int, t_start: float,
+             stopped_early: bool) -> dict[str, Any]:
+    return {
+        "epochs": epochs,
+        "best_epoch": best_epoch,
+        "best_val": best,
+        "select_metric": cfg.select_metric,
+        "stopped_early": stopped_early,
+        "seconds": time.perf_counter() - t_start,
+        "train_config": asdict(cfg),
+        "final_train_loss": history[-1]["train_loss"] if history else None,
+    }
+
+
+def _ckpt(model: nn.Module, meta: ModelMeta, cfg: TrainConfig, history: list, best: float, best_epoch: int,
+          epoch: int, t_start: float, stopped_early: bool) -> dict[str, Any]:
+    summary = _summary(cfg, history, best, best_epoch, epoch, t_start, stopped_early)
+    return checkpoint_dict(model, model_name=meta.name, model_config=meta.config, scene=meta.scene,
+                           rules=meta.rules, rules_perturbation=meta.rules_perturbation, summary=summary)

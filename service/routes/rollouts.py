@@ -1,0 +1,167 @@
+"""Rollouts and their surface meshes."""
+
+from __future__ import annotations
+
+import base64
+import time
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Path, Query
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+
+from service.deps import SettingsDep, SurrogateDep, busy, reject
+from service.schemas import (
+    Channel,
+    FieldsPayload,
+    MeshFormat,
+    MeshPayload,
+    RolloutRequest,
+    RolloutResponse,
+    Timings,
+    array_to_controls,
+)
+from service.surrogate import RolloutResult, ServiceBusy, Surrogate, UnknownRollout
+
+router = APIRouter(tags=["rollouts"])
+
+MEDIA_TYPES = {
+    "glb": "model/gltf-binary",
+    "ply": "application/octet-stream",
+    "obj": "model/obj",
+    "stl": "model/stl",
+}
+
+
+def _mesh_url(rollout_id: str, step: int, channel: str, fmt: str) -> str:
+    return f"/rollouts/{rollout_id}/mesh?step={step}&channel={channel}&format={fmt}"
+
+
+async def _mesh_bytes(
+    surrogate: Surrogate, result: RolloutResult, step: int, channel: str, fmt: str
+) -> bytes:
+    try:
+        return await run_in_threadpool(surrogate.mesh, result, step, channel, fmt)
+    except ServiceBusy as exc:
+        busy(exc)
+    except ValueError as exc:  # e.g. no zero-level surface in this channel at this step
+        reject(("query", "step"), f"no {channel} mesh at step {step}: {exc}")
+
+
+@router.post("/rollout", response_model=RolloutResponse, responses={503: {"description": "busy or loading"}})
+async def post_rollout(
+    body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep
+) -> RolloutResponse:
+    """Predict the etch over `steps` transitions of 0.1 s; metrics always, fields and meshes on demand."""
+    t_start = time.perf_counter()
+    assert body.steps is not None  # resolved by the request validator
+    if body.steps > settings.max_steps:
+        reject(
+            ("body", "steps"), f"steps = {body.steps} exceeds this server's ceiling of {settings.max_steps}"
+        )
+    if len(body.meshes) > settings.max_meshes:
+        reject(
+            ("body", "meshes"),
+            f"{len(body.meshes)} meshes requested; at most {settings.max_meshes} per rollout",
+        )
+    schedule = body.schedule_raw()  # (T, 14) physical units
+    warnings = surrogate.warnings_for(schedule)
+    if body.steps > surrogate.horizon_steps:
+        warnings.append(
+            f"steps = {body.steps} goes beyond the {surrogate.horizon_steps}-step horizon the model was "
+            "trained on"
+        )
+    try:
+        result, cached = await run_in_threadpool(surrogate.rollout, schedule)
+    except ServiceBusy as exc:
+        busy(exc)
+
+    t0 = time.perf_counter()
+    fields = None
+    if body.fields != "none":
+        steps = list(range(result.steps + 1)) if body.fields == "all" else [result.steps]
+        data = result.states[steps].astype("<f2", copy=False)  # (n, 2, D, H, W)
+        fields = FieldsPayload(
+            shape=list(data.shape),
+            steps=steps,
+            d_max_nm=float(surrogate.scene.d_max_nm),
+            data=base64.b64encode(data.tobytes()).decode("ascii"),
+        )
+    t1 = time.perf_counter()
+    meshes = []
+    for spec in body.meshes:
+        raw = await _mesh_bytes(surrogate, result, spec.step, spec.channel, spec.format)
+        meshes.append(
+            MeshPayload(
+                step=spec.step,
+                channel=spec.channel,
+                format=spec.format,
+                media_type=MEDIA_TYPES[spec.format],
+                url=_mesh_url(result.id, spec.step, spec.channel, spec.format),
+                data=base64.b64encode(raw).decode("ascii"),
+            )
+        )
+    t2 = time.perf_counter()
+    varying = body.recipe is not None
+    return RolloutResponse(
+        id=result.id,
+        model_id=result.model_id,
+        steps=result.steps,
+        cached=cached,
+        times_s=result.times_s,
+        metrics={
+            k: [v if v == v and abs(v) != float("inf") else None for v in vals]
+            for k, vals in result.metrics.items()
+        },
+        controls=array_to_controls(result.controls_raw[0]),
+        recipe=[array_to_controls(row) for row in result.controls_raw] if varying else None,
+        warnings=warnings,
+        fields=fields,
+        meshes=meshes,
+        timings=Timings(
+            total_ms=1e3 * (time.perf_counter() - t_start),
+            rollout_ms=0.0 if cached else result.rollout_ms,
+            metrics_ms=0.0 if cached else result.metrics_ms,
+            fields_ms=1e3 * (t1 - t0),
+            meshes_ms=1e3 * (t2 - t1),
+        ),
+    )
+
+
+@router.get(
+    "/rollouts/{rollout_id}/mesh",
+    response_class=Response,
+    responses={
+        200: {"content": {t: {} for t in sorted(set(MEDIA_TYPES.values()))}, "description": "the mesh file"},
+        404: {"description": "unknown or expired rollout id"},
+    },
+)
+async def get_mesh(
+    rollout_id: Annotated[str, Path(max_length=64)],
+    surrogate: SurrogateDep,
+    step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
+    channel: Annotated[Channel, Query(description="mask or si")] = "si",
+    format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
+) -> Response:
+    """The zero-level surface of one channel at one step of a cached rollout, in nm, with provenance."""
+    try:
+        result = surrogate.get_rollout(rollout_id)
+    except UnknownRollout:
+        raise HTTPException(
+            status_code=404,
+            detail=f"unknown rollout id {rollout_id!r} (never computed here, or evicted from "
+            "the cache): POST /rollout again, it returns the same id",
+        ) from None
+    step = result.steps if step is None else step
+    if step > result.steps:
+        reject(("query", "step"), f"step = {step} is beyond this rollout's last state ({result.steps})")
+    data = await _mesh_bytes(surrogate, result, step, channel, format)
+    filename = f"nemsim_{rollout_id}_step{step}_{channel}.{format}"
+    return Response(
+        content=data,
+        media_type=MEDIA_TYPES[format],
+        headers={
+            "Content-Disposition": f'attachment; filename="{filename}"',
+            "X-Model-Id": surrogate.model_id,
+        },
+    )

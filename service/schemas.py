@@ -1,0 +1,370 @@
+"""Request and response models of the service, split by direction (STYLE rule 13).
+
+Controls are given by name in physical units; each field's JSON schema carries its unit, the
+physically admissible range (violations are 422 naming the field) and the design range the model
+was trained on (values outside it are accepted with a warning). The field set is built from
+`nemsim.controls.CONTROL_SPECS`, so units and ranges are typed once.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model, model_validator
+
+from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
+
+DEFAULT_STEPS = 100  # the paper horizon: 100 transitions of 0.1 s
+MAX_STEPS_HARD = 10_000  # no configuration may allow more (Settings.max_steps has the same bound)
+CHANNELS = ("mask", "si")  # state channel 0, 1
+Channel = Literal["mask", "si"]
+MeshFormat = Literal["glb", "ply", "obj", "stl"]
+FieldsMode = Literal["none", "final", "all"]
+
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _admissible(spec: Any):
+    """After-validator: reject physically impossible values with a message naming the control."""
+
+    def check(value: float) -> float:
+        if value < spec.phys_min or value > spec.phys_max:
+            bound = f">= {spec.phys_min:g}" if value < spec.phys_min else f"<= {spec.phys_max:g}"
+            raise ValueError(
+                f"{spec.name} = {value:g} {spec.unit} is physically impossible: it must be "
+                f"{bound} {spec.unit}"
+            )
+        return value
+
+    return check
+
+
+MAX_ABS_NORMALIZED = 1e3  # |normalized control| beyond this is no process at all (e.g. 1e300 mol m^-2 s^-1)
+
+
+def check_scale(raw: np.ndarray, where: str) -> None:
+    """Raise ValueError naming the control whose value is too far outside the design box to mean anything
+    (it would overflow the model's float32 input). raw: (..., 14) physical units."""
+    with np.errstate(all="ignore"):
+        norm = np.asarray(to_normalized(np.asarray(raw, dtype=np.float64)), dtype=np.float64)
+    bad = ~(np.abs(norm) <= MAX_ABS_NORMALIZED)  # also catches NaN
+    if bad.any():
+        i = int(np.argwhere(bad)[0][-1])
+        spec = CONTROL_SPECS[i]
+        value = float(np.asarray(raw)[..., i].flat[int(np.argmax(bad[..., i].ravel()))])
+        raise ValueError(
+            f"{where}{spec.name} = {value:g} {spec.unit} is far outside any meaningful range "
+            f"(training range {spec.low:g}..{spec.high:g})"
+        )
+
+
+def default_controls_raw() -> np.ndarray:
+    """The documented default base control vector: the centre of the design range in normalized
+    coordinates (geometric mean for log-sampled fluxes), integer controls rounded. (14,) physical units."""
+    raw = np.asarray(from_normalized(np.zeros(len(CONTROL_NAMES))), dtype=np.float64)
+    for i, spec in enumerate(CONTROL_SPECS):
+        if spec.kind == "int":
+            raw[i] = float(round(raw[i]))
+    return raw
+
+
+def _control_field(spec: Any, default: float | None, *, strict: bool = True) -> tuple[Any, Any]:
+    """strict: JSON numbers only (no strings, no booleans); query parameters arrive as text (strict=False)."""
+    extra: dict[str, Any] = {
+        "unit": spec.unit,
+        "kind": spec.kind,
+        "train_min": spec.low,
+        "train_max": spec.high,
+    }
+    if math.isfinite(spec.phys_min):
+        extra["minimum"] = spec.phys_min
+    if math.isfinite(spec.phys_max):
+        extra["maximum"] = spec.phys_max
+    what = "integer cosine-power exponent" if spec.kind == "int" else spec.kind + "-sampled"
+    description = (
+        f"{spec.name} in {spec.unit} ({what}); trained on {spec.low:g}..{spec.high:g}; "
+        f"physically admissible {spec.phys_min:g}..{spec.phys_max:g}"
+    )
+    typ = Annotated[float, Field(strict=strict), AfterValidator(_admissible(spec))]
+    example = float(default_controls_raw()[CONTROL_NAMES.index(spec.name)])
+    field = Field(
+        ... if default is None else default,
+        description=description,
+        json_schema_extra=extra,
+        examples=[example],
+    )
+    return (typ, field)
+
+
+Controls = create_model(
+    "Controls",
+    __config__=_STRICT,
+    __doc__="The 14 process controls by name, in physical units (all required).",
+    **{s.name: _control_field(s, None) for s in CONTROL_SPECS},
+)
+
+_DEFAULTS = default_controls_raw()
+
+
+class _MechanismsBase(BaseModel):
+    model_config = _STRICT
+
+    @model_validator(mode="after")
+    def _meaningful(self) -> _MechanismsBase:
+        check_scale(np.array([getattr(self, n) for n in CONTROL_NAMES]), "")
+        return self
+
+
+MechanismsQuery = create_model(
+    "MechanismsQuery",
+    __base__=_MechanismsBase,
+    __doc__="A base control vector by name in physical units; missing controls take the documented default "
+    "(centre of the design range, geometric mean for fluxes).",
+    factors=(
+        Annotated[list[Annotated[float, Field(gt=0, le=100)]], Field(min_length=1, max_length=4)] | None,
+        Field(
+            None,
+            description="flux multiplier levels for Cl+ and neutral Cl (> 0, at most 4); the "
+            "interventions are all (s_Cl+, s_Cl) pairs of these levels and 1 except (1, 1). "
+            "Default: 0.5 and 1.5 (the eight of the paper)",
+        ),
+    ),
+    **{s.name: _control_field(s, float(_DEFAULTS[i]), strict=False) for i, s in enumerate(CONTROL_SPECS)},
+)
+
+
+def controls_to_array(controls: BaseModel) -> np.ndarray:
+    """(14,) float64 in CONTROL_NAMES order."""
+    return np.array([getattr(controls, n) for n in CONTROL_NAMES], dtype=np.float64)
+
+
+def array_to_controls(raw: np.ndarray) -> dict[str, float]:
+    return {n: float(v) for n, v in zip(CONTROL_NAMES, raw, strict=True)}
+
+
+# --- requests --------------------------------------------------------------------------------------
+
+
+class MeshSpec(BaseModel):
+    """One surface mesh to return inline with a rollout."""
+
+    model_config = _STRICT
+    step: int = Field(ge=0, description="state index, 0 = initial geometry, `steps` = final")
+    channel: Channel = Field("si", description="mask (resist) or si (silicon)")
+    format: MeshFormat = Field("glb", description="file format of the mesh")
+
+
+NormalizedVector = Annotated[
+    list[Annotated[float, Field(strict=True)]],
+    Field(min_length=len(CONTROL_NAMES), max_length=len(CONTROL_NAMES)),
+]
+
+
+class RolloutRequest(BaseModel):
+    """Give exactly one of `controls` (physical units), `controls_normalized` or `recipe`."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        allow_inf_nan=False,
+        json_schema_extra={
+            "examples": [
+                {"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}
+            ]
+        },
+    )
+
+    controls: Controls | None = Field(None, description="constant controls by name, physical units")  # type: ignore[valid-type]
+    controls_normalized: NormalizedVector | None = Field(
+        None,
+        description=f"constant controls as 14 normalized numbers in the order {list(CONTROL_NAMES)}; "
+        "[-1, 1] is the training range (outside it: a warning)",
+    )
+    recipe: list[Controls] | None = Field(  # type: ignore[valid-type]
+        None,
+        min_length=1,
+        max_length=MAX_STEPS_HARD,
+        description="one control set per transition (time-varying process)",
+    )
+    steps: int | None = Field(
+        None,
+        ge=1,
+        le=MAX_STEPS_HARD,
+        description=f"transitions of 0.1 s to predict; 1..{DEFAULT_STEPS} by default (server ceiling "
+        f"NEMSIM_MAX_STEPS); default {DEFAULT_STEPS}, or the recipe length",
+    )
+    fields: FieldsMode = Field(
+        "none", description="SDF fields to return: none, the final state, or all states (float16, base64)"
+    )
+    meshes: list[MeshSpec] = Field(
+        default_factory=list,
+        max_length=64,
+        description="surface meshes to return inline (server limit applies)",
+    )
+
+    @model_validator(mode="after")
+    def _one_source(self) -> RolloutRequest:
+        given = [n for n in ("controls", "controls_normalized", "recipe") if getattr(self, n) is not None]
+        if len(given) != 1:
+            raise ValueError(
+                "give exactly one of controls (by name, physical units), controls_normalized (14 numbers) "
+                f"or recipe (one control set per transition); got {given or 'none'}"
+            )
+        if self.recipe is not None:
+            if self.steps is None:
+                self.steps = len(self.recipe)
+            elif self.steps != len(self.recipe):
+                raise ValueError(
+                    f"recipe has {len(self.recipe)} control sets but steps={self.steps}: "
+                    "give one per transition"
+                )
+        if self.steps is None:
+            self.steps = DEFAULT_STEPS
+        if self.controls_normalized is not None:
+            with np.errstate(all="ignore"):  # huge inputs overflow to inf, rejected below
+                raw = np.asarray(from_normalized(np.asarray(self.controls_normalized, dtype=np.float64)))
+            for i, spec in enumerate(CONTROL_SPECS):
+                v = float(raw[i])
+                if not math.isfinite(v) or v < spec.phys_min or v > spec.phys_max:
+                    raise ValueError(
+                        f"controls_normalized[{i}] ({spec.name}) = {self.controls_normalized[i]:g} maps to "
+                        f"{v:g} {spec.unit}, which is physically impossible (admissible "
+                        f"{spec.phys_min:g}..{spec.phys_max:g})"
+                    )
+        check_scale(self._rows_raw(), "")
+        for k, mesh in enumerate(self.meshes):
+            if mesh.step > self.steps:
+                raise ValueError(
+                    f"meshes[{k}].step = {mesh.step} is beyond the last state (steps = {self.steps})"
+                )
+        return self
+
+    def _rows_raw(self) -> np.ndarray:
+        """(K, 14) the distinct control rows given (K = recipe length, else 1), physical units."""
+        if self.recipe is not None:
+            return np.stack([controls_to_array(c) for c in self.recipe])
+        if self.controls is not None:
+            return controls_to_array(self.controls)[None]
+        return np.asarray(from_normalized(np.asarray(self.controls_normalized, dtype=np.float64)))[None]
+
+    def schedule_raw(self) -> np.ndarray:
+        """(T, 14) physical controls per transition (constant controls repeated)."""
+        assert self.steps is not None  # set by the validator
+        rows = self._rows_raw()
+        return rows if self.recipe is not None else np.repeat(rows, self.steps, axis=0)
+
+
+# --- responses -------------------------------------------------------------------------------------
+
+
+class FieldsPayload(BaseModel):
+    """SDF states, normalized (SDF / d_max, clipped to [-1, 1]; negative inside material)."""
+
+    encoding: Literal["base64"] = "base64"
+    dtype: Literal["<f2"] = Field("<f2", description="little-endian float16")
+    order: Literal["C"] = "C"
+    shape: list[int] = Field(description="(n_states, 2, D, H, W); channel 0 = mask, 1 = si; depth = z + 1")
+    steps: list[int] = Field(description="state index of each entry along the first axis")
+    channels: list[str] = list(CHANNELS)
+    d_max_nm: float
+    data: str
+
+
+class MeshPayload(BaseModel):
+    step: int
+    channel: Channel
+    format: MeshFormat
+    media_type: str
+    url: str = Field(description="GET this for the same file")
+    data: str = Field(description="base64 of the file bytes")
+
+
+class Timings(BaseModel):
+    total_ms: float
+    rollout_ms: float = Field(description="model rollout (0 when served from the cache)")
+    metrics_ms: float
+    fields_ms: float
+    meshes_ms: float
+
+
+class RolloutResponse(BaseModel):
+    id: str = Field(description="rollout id, for GET /rollouts/{id}/mesh")
+    model_id: str
+    steps: int
+    cached: bool = Field(description="served from the cache (nothing recomputed)")
+    times_s: list[float] = Field(description="time of each state, s (index = step)")
+    metric_units: Literal["nm"] = "nm"
+    metrics: dict[str, list[float | None]] = Field(
+        description="profile metrics per state (index = step): etch depth, widths, bowing, mask loss"
+    )
+    controls: dict[str, float] = Field(description="controls of the first transition, physical units")
+    recipe: list[dict[str, float]] | None = Field(None, description="per-transition controls, when varying")
+    warnings: list[str]
+    fields: FieldsPayload | None = None
+    meshes: list[MeshPayload] = []
+    timings: Timings
+
+
+class ControlInfo(BaseModel):
+    name: str
+    unit: str
+    kind: str
+    min: float | None = Field(description="physically admissible minimum (null: unbounded)")
+    max: float | None = Field(description="physically admissible maximum (null: unbounded)")
+    train_min: float
+    train_max: float
+
+
+class ModelInfo(BaseModel):
+    model_id: str
+    checkpoint: str
+    model_name: str
+    n_params: int
+    scene: dict[str, Any]
+    rules_sha256: str
+    max_steps: int
+    horizon_steps: int
+    summary: dict[str, Any]
+    metrics: dict[str, Any]
+    controls: list[ControlInfo]
+
+
+class MechanismsResponse(BaseModel):
+    model_id: str
+    controls: dict[str, float] = Field(description="the base control vector used, physical units")
+    result: dict[str, Any] = Field(
+        description="nemsim.analysis.counterfactual.mechanism_response: the Cl+/Cl interventions with "
+        "Delta M per family (physical, chemical, coupled) and Delta R, base intensities lambda and "
+        "attributions alpha"
+    )
+    warnings: list[str]
+
+
+class Health(BaseModel):
+    status: str
+    detail: str | None = None
+    model_id: str | None = None
+
+
+def jsonable(value: Any) -> Any:
+    """Numpy/torch values to plain JSON; non-finite floats become None (JSON has no NaN)."""
+    if hasattr(value, "detach"):
+        value = value.detach().cpu().numpy()
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return _finite_or_none(value)
+    if value is None or isinstance(value, bool | int | str):
+        return value
+    return str(value)

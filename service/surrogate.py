@@ -1,0 +1,327 @@
+"""The service-side wrapper around a loaded checkpoint: rollouts, profile metrics, meshes, counterfactuals.
+
+No physics here: the rollout is `nemsim.evaluation.rollout.rollout`, metrics are
+`nemsim.geometry.profile.profile_metrics_batch` (profile_metrics over all steps), meshes
+`nemsim.geometry.mesh`, mechanisms `nemsim.analysis.counterfactual.mechanism_response`. This module
+adds what a server needs:
+
+* a model id (checkpoint stem + the first 12 hex digits of the file's SHA-256);
+* an LRU cache of finished rollouts keyed by (model id, normalized controls per transition, steps); the
+  key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
+  controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway) and the
+  cache is bounded in entries;
+* bounded concurrency: at most `max_concurrency` computations at once and at most `max_queue` waiting;
+  more get `ServiceBusy` (the route answers 503). Cache hits never wait.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, to_normalized
+
+log = logging.getLogger(__name__)
+
+
+class ServiceBusy(RuntimeError):
+    """Too many requests are computing or waiting; retry later."""
+
+
+class UnknownRollout(KeyError):
+    """No cached rollout has this id (never computed here, or evicted)."""
+
+
+@dataclass(frozen=True)
+class RolloutResult:
+    id: str
+    model_id: str
+    steps: int
+    controls_raw: np.ndarray  # (T, 14) physical units
+    states: np.ndarray  # (T+1, 2, D, H, W) float16, normalized SDF
+    metrics: dict[str, list[float]]  # name -> (T+1,) values in nm
+    times_s: list[float]  # (T+1,)
+    rollout_ms: float
+    metrics_ms: float
+
+
+@dataclass
+class _Gate:
+    """Admission control: `limit` concurrent holders, `queue` more may wait (threads, loop-agnostic)."""
+
+    limit: int
+    queue: int
+    timeout_s: float
+    _sem: threading.Semaphore = field(init=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, init=False)
+    _inside: int = field(default=0, init=False)  # holding or waiting
+
+    def __post_init__(self) -> None:
+        self._sem = threading.Semaphore(self.limit)
+
+    @contextmanager
+    def slot(self) -> Iterator[None]:
+        with self._lock:
+            if self._inside >= self.limit + self.queue:
+                raise ServiceBusy(f"{self._inside} requests are already computing or queued; retry shortly")
+            self._inside += 1
+        try:
+            if not self._sem.acquire(timeout=self.timeout_s):
+                raise ServiceBusy(f"no compute slot became free within {self.timeout_s:g} s; retry shortly")
+            try:
+                yield
+            finally:
+                self._sem.release()
+        finally:
+            with self._lock:
+                self._inside -= 1
+
+
+class _LRU:
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[Any, Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: Any) -> Any | None:
+        with self._lock:
+            if key not in self._items:
+                return None
+            self._items.move_to_end(key)
+            return self._items[key]
+
+    def put(self, key: Any, value: Any) -> None:
+        if self.size <= 0:
+            return
+        with self._lock:
+            self._items[key] = value
+            self._items.move_to_end(key)
+            while len(self._items) > self.size:
+                self._items.popitem(last=False)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def initial_state(loaded: Any) -> np.ndarray:
+    """(2, D, H, W) float32 normalized SDF of the scene's initial geometry (the library builds it)."""
+    from nemsim.sim import initial_state as build  # the simulator's SDF of the scene's initial geometry
+
+    return np.asarray(build(loaded.scene), dtype=np.float32)
+
+
+class Surrogate:
+    """A loaded checkpoint plus cache and admission control. Thread-safe."""
+
+    def __init__(
+        self,
+        loaded: Any,
+        *,
+        model_id: str,
+        x0: np.ndarray | None = None,
+        cache_size: int = 32,
+        max_concurrency: int = 1,
+        max_queue: int = 16,
+        queue_timeout_s: float = 60.0,
+    ) -> None:
+        self.loaded = loaded
+        self.model_id = model_id
+        self.scene = loaded.scene
+        self.x0 = initial_state(loaded) if x0 is None else np.asarray(x0, dtype=np.float32)
+        expected = tuple(self.scene.state_shape)
+        if self.x0.shape != expected:
+            raise ValueError(
+                f"initial state has shape {self.x0.shape}, scene {self.scene.name!r} needs {expected}"
+            )
+        self._rollouts = _LRU(cache_size)
+        self._meshes = _LRU(4 * cache_size)
+        self._mechanisms = _LRU(cache_size)
+        self._gate = _Gate(max_concurrency, max_queue, queue_timeout_s)
+        ranges = (loaded.raw or {}).get("control_ranges") or {}
+        specs = {s.name: s for s in CONTROL_SPECS}
+        # train range: what the checkpoint recorded at training time, else the current design range
+        self.train_range = {
+            n: (
+                float(ranges.get(n, {}).get("low", specs[n].low)),
+                float(ranges.get(n, {}).get("high", specs[n].high)),
+            )
+            for n in CONTROL_NAMES
+        }
+
+    # --- construction ---------------------------------------------------------------------------
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, **kwargs: Any) -> Surrogate:
+        from nemsim.training.checkpoint import load_checkpoint
+
+        path = Path(path)
+        loaded = load_checkpoint(path)
+        model_id = f"{path.stem}@{file_sha256(path)[:12]}"
+        return cls(loaded, model_id=model_id, **kwargs)
+
+    # --- facts --------------------------------------------------------------------------------------
+    @property
+    def n_params(self) -> int:
+        return int(sum(p.numel() for p in self.loaded.model.parameters() if p.requires_grad))
+
+    @property
+    def horizon_steps(self) -> int:
+        return int(self.scene.n_transitions)
+
+    def warnings_for(self, controls_raw: np.ndarray) -> list[str]:
+        """Readable warnings for controls outside the training range. controls_raw: (T, 14) or (14,)."""
+        out: list[str] = []
+        rows = np.atleast_2d(controls_raw)
+        for i, spec in enumerate(CONTROL_SPECS):
+            lo, hi = self.train_range[spec.name]
+            col = rows[:, i]
+            vmin, vmax = float(col.min()), float(col.max())
+            if vmin < lo or vmax > hi:
+                bad = vmin if vmin < lo else vmax
+                out.append(
+                    f"{spec.name} = {bad:g} {spec.unit} is outside the training range {lo:g}..{hi:g}: "
+                    "the prediction is an extrapolation"
+                )
+        return out
+
+    @staticmethod
+    def rollout_id(model_id: str, u_norm: np.ndarray, steps: int) -> str:
+        h = hashlib.sha256(model_id.encode())
+        h.update(str(steps).encode())
+        h.update(np.ascontiguousarray(u_norm, dtype="<f4").tobytes())
+        return h.hexdigest()[:24]
+
+    # --- rollouts ---------------------------------------------------------------------------------
+    def get_rollout(self, rollout_id: str) -> RolloutResult:
+        result = self._rollouts.get(rollout_id)
+        if result is None:
+            raise UnknownRollout(rollout_id)
+        return result
+
+    def rollout(self, controls_raw: np.ndarray) -> tuple[RolloutResult, bool]:
+        """Roll out (T,14) physical controls, one row per transition. Returns (result, served_from_cache)."""
+        controls_raw = np.asarray(controls_raw, dtype=np.float64)
+        steps = int(controls_raw.shape[0])
+        u_norm = np.asarray(to_normalized(controls_raw), dtype=np.float32)  # (T, 14)
+        rid = self.rollout_id(self.model_id, u_norm, steps)
+        cached = self._rollouts.get(rid)
+        if cached is not None:
+            return cached, True
+        with self._gate.slot():
+            cached = self._rollouts.get(rid)  # an identical request may have finished while we waited
+            if cached is not None:
+                return cached, True
+            result = self._compute(rid, controls_raw, u_norm)
+        self._rollouts.put(rid, result)
+        return result, False
+
+    def _compute(self, rid: str, controls_raw: np.ndarray, u_norm: np.ndarray) -> RolloutResult:
+        from nemsim.evaluation.rollout import rollout
+        from nemsim.geometry.profile import profile_metrics_batch
+
+        steps = u_norm.shape[0]
+        x0 = torch.from_numpy(self.x0)[None]  # (1, 2, D, H, W)
+        u = torch.from_numpy(u_norm)[None]  # (1, T, 14)
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            traj = rollout(self.loaded.model, x0, u, steps)[0].float().numpy()  # (T+1, 2, D, H, W)
+        t1 = time.perf_counter()
+        metrics = {k: [float(v) for v in vals] for k, vals in profile_metrics_batch(traj, self.scene).items()}
+        t2 = time.perf_counter()
+        dt = float(self.scene.snapshot_dt_s)
+        return RolloutResult(
+            id=rid,
+            model_id=self.model_id,
+            steps=steps,
+            controls_raw=controls_raw,
+            states=traj.astype(np.float16),
+            metrics=metrics,
+            times_s=[round(k * dt, 6) for k in range(steps + 1)],
+            rollout_ms=1e3 * (t1 - t0),
+            metrics_ms=1e3 * (t2 - t1),
+        )
+
+    def warm_up(self, steps: int) -> None:
+        """One short uncached rollout so the first request does not pay for allocation/JIT."""
+        if steps <= 0:
+            return
+        from nemsim.evaluation.rollout import rollout
+
+        u = torch.zeros(1, steps, len(CONTROL_NAMES))
+        with torch.inference_mode():
+            rollout(self.loaded.model, torch.from_numpy(self.x0)[None], u, steps, keep=False)
+
+    # --- meshes -------------------------------------------------------------------------------------
+    def mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes:
+        """File bytes of the zero-level surface of one channel at one step (cached)."""
+        key = (result.id, step, channel, fmt)
+        data = self._meshes.get(key)
+        if data is not None:
+            return data
+        from nemsim.geometry.mesh import export_mesh, surface_mesh
+
+        with self._gate.slot():
+            ch = 0 if channel == "mask" else 1
+            field_ = result.states[step, ch].astype(np.float32)  # (D, H, W)
+            metadata = {
+                "model_id": self.model_id,
+                "rollout_id": result.id,
+                "step": step,
+                "time_s": result.times_s[step],
+                "channel": channel,
+                "scene": self.scene.name,
+                "controls": {
+                    n: float(v)
+                    for n, v in zip(CONTROL_NAMES, result.controls_raw[max(step - 1, 0)], strict=True)
+                },
+            }
+            data = export_mesh(surface_mesh(field_, self.scene, metadata), fmt)
+        self._meshes.put(key, data)
+        return data
+
+    # --- mechanisms ---------------------------------------------------------------------------------
+    @property
+    def supports_mechanisms(self) -> bool:
+        """Only NEMSim models expose event intensities and attributions (forward(..., return_aux=True))."""
+        return "return_aux" in inspect.signature(self.loaded.model.forward).parameters
+
+    def mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any]:
+        """`mechanism_response` for one base control vector (cached).
+
+        `factors` are flux multiplier levels; the interventions are every (s_Cl+, s_Cl) pair of the levels
+        and 1, except (1, 1) -- {0.5, 1.5} gives the paper's eight. None: the library default (the paper's).
+        """
+        from nemsim.analysis.counterfactual import mechanism_response
+
+        kwargs: dict[str, Any] = {}
+        if factors:
+            levels = sorted({1.0, *map(float, factors)})
+            kwargs["factors"] = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
+        key = (np.asarray(controls_raw, dtype="<f8").tobytes(), kwargs.get("factors"))
+        cached = self._mechanisms.get(key)
+        if cached is not None:
+            return cached
+        with self._gate.slot():  # no inference_mode: the library owns its autograd settings
+            result = mechanism_response(
+                self.loaded, np.asarray(controls_raw, dtype=np.float64), x0=self.x0, **kwargs
+            )
+        self._mechanisms.put(key, result)
+        return result

@@ -1,0 +1,141 @@
+"""Fixtures for the service tests: a tiny checkpoint (untrained NEMSim on the `tiny` scene, written with
+`save_checkpoint`), the Surrogate over it, and TestClients.
+
+Until a trained small checkpoint is shipped, tests make their own on `tiny`. Until the simulator exports
+`nemsim.sim.initial_state(scene)` (the SDF of the initial geometry, which the service and
+`mechanism_response` start from), a stand-in with the same signature is installed here -- test
+scaffolding only; the service itself never builds geometry.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import torch
+
+torch.set_num_threads(1)
+
+
+def _install_initial_state_stand_in() -> None:
+    import nemsim.sim as sim
+
+    if hasattr(sim, "initial_state"):
+        return
+
+    def initial_state(scene):  # (2, D, H, W) normalized SDF: flat Si slab, resist with a round opening
+        D, H, W = scene.field_shape
+        z = np.arange(D)[:, None, None] - 1.0  # depth index = z + 1
+        y = np.arange(H)[None, :, None] - 1.0 - scene.opening_centre[1]
+        x = np.arange(W)[None, None, :] - 1.0 - scene.opening_centre[0]
+        r = np.sqrt(x**2 + y**2)
+        si = np.broadcast_to(z - (scene.si_top - 0.5), (D, H, W))
+        in_layer = np.maximum(z - (scene.resist_top - 0.5), (scene.si_top - 0.5) - z)
+        mask = np.maximum(in_layer, scene.opening_radius_vox - r)
+        return np.clip(np.stack([mask, si]) / scene.d_max_vox, -1, 1).astype(np.float32)
+
+    sim.initial_state = initial_state
+
+
+_install_initial_state_stand_in()
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory, tiny_scene):
+    from nemsim.model.registry import build_model
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+    from nemsim.training.checkpoint import save_checkpoint
+
+    rules = compile_rules(load_rules())
+    torch.manual_seed(0)
+    model = build_model("nemsim", tiny_scene, rules)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny_nemsim.pt"
+    save_checkpoint(
+        path,
+        model,
+        model_name="nemsim",
+        model_config={},
+        scene=tiny_scene,
+        rules=rules,
+        summary={"note": "untrained, for tests"},
+        metrics={"avg_rmse": 0.5},
+    )
+    return path
+
+
+@pytest.fixture(scope="session")
+def surrogate(tiny_checkpoint):
+    from service.surrogate import Surrogate
+
+    return Surrogate.from_checkpoint(tiny_checkpoint, cache_size=16)
+
+
+def wait_ready(client, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        r = client.get("/ready")
+        if r.status_code == 200:
+            return
+        status = r.json().get("status")
+        if status == "failed" or time.monotonic() > deadline:
+            raise AssertionError(f"service not ready: {r.json()}")
+        time.sleep(0.02)
+
+
+@pytest.fixture(scope="session")
+def client(tiny_checkpoint):
+    """The app as deployed: settings name the checkpoint, lifespan loads it and runs the warm-up."""
+    from fastapi.testclient import TestClient
+
+    from service.config import Settings
+    from service.main import create_app
+
+    app = create_app(Settings(checkpoint=tiny_checkpoint, warmup_steps=1, max_steps=100, cache_size=16))
+    with TestClient(app) as c:
+        wait_ready(c)
+        yield c
+
+
+@pytest.fixture
+def make_client(surrogate):
+    """A client over the shared surrogate with other settings (no reload): make_client(max_body_bytes=...)."""
+    from fastapi.testclient import TestClient
+
+    from service.config import Settings
+    from service.deps import get_surrogate
+    from service.main import create_app
+
+    clients = []
+
+    def make(**overrides):
+        app = create_app(Settings(**{"warmup_steps": 0, **overrides}), surrogate=surrogate)
+        app.dependency_overrides[get_surrogate] = lambda: surrogate
+        c = TestClient(app)
+        c.__enter__()
+        clients.append(c)
+        return c
+
+    yield make
+    for c in clients:
+        c.__exit__(None, None, None)
+
+
+@pytest.fixture(scope="session")
+def default_controls():
+    from service.schemas import array_to_controls, default_controls_raw
+
+    return array_to_controls(default_controls_raw())
+
+
+@pytest.fixture(scope="session")
+def decode_fields():
+    """payload of `fields` -> np.ndarray (n, 2, D, H, W) float16."""
+    import base64
+
+    def decode(payload: dict) -> np.ndarray:
+        assert payload["dtype"] == "<f2" and payload["encoding"] == "base64"
+        return np.frombuffer(base64.b64decode(payload["data"]), dtype="<f2").reshape(payload["shape"])
+
+    return decode

@@ -1,0 +1,182 @@
+"""POST /rollout and GET /rollouts/{id}/mesh: results, caching, fields, recipes, meshes."""
+
+from __future__ import annotations
+
+import base64
+import threading
+
+import numpy as np
+import pytest
+
+
+def test_rollout_metrics(client, default_controls):
+    r = client.post("/rollout", json={"controls": default_controls, "steps": 3})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["steps"] == 3 and body["metric_units"] == "nm" and body["warnings"] == []
+    assert body["times_s"] == pytest.approx([0.0, 0.1, 0.2, 0.3])
+    assert set(body["metrics"]) >= {
+        "etch_depth",
+        "top_width",
+        "neck_width",
+        "bottom_width",
+        "bowing",
+        "mask_loss",
+    }
+    assert all(len(v) == 4 for v in body["metrics"].values())
+    assert body["metrics"]["etch_depth"][0] == pytest.approx(
+        0.0, abs=1e-6
+    )  # the initial geometry is unetched
+    assert body["controls"] == pytest.approx(default_controls) and body["recipe"] is None
+    assert body["fields"] is None and body["meshes"] == []
+    assert body["timings"]["total_ms"] > 0
+
+
+def test_repeat_is_cached(client, default_controls):
+    req = {"controls": default_controls, "steps": 4}
+    first = client.post("/rollout", json=req).json()
+    second = client.post("/rollout", json=req).json()
+    assert second["id"] == first["id"] and second["cached"] is True
+    assert second["timings"]["rollout_ms"] == 0.0
+    assert second["metrics"] == first["metrics"]
+    other = client.post("/rollout", json={**req, "steps": 5}).json()
+    assert other["id"] != first["id"]
+
+
+def test_cache_hit_recomputes_nothing(client, default_controls, monkeypatch):
+    """A repeat must not call the model at all."""
+    import nemsim.evaluation.rollout as lib
+
+    req = {"controls": default_controls, "steps": 2}
+    assert client.post("/rollout", json=req).status_code == 200
+
+    def boom(*a, **k):
+        raise AssertionError("rollout recomputed")
+
+    monkeypatch.setattr(lib, "rollout", boom)
+    assert client.post("/rollout", json=req).json()["cached"] is True
+
+
+def test_controls_normalized(client):
+    r = client.post("/rollout", json={"controls_normalized": [0.0] * 14, "steps": 2})
+    assert r.status_code == 200 and r.json()["warnings"] == []
+    r = client.post("/rollout", json={"controls_normalized": [1.5] + [0.0] * 13, "steps": 2})
+    assert r.status_code == 200
+    assert any("outside the training range" in w for w in r.json()["warnings"])
+
+
+def test_outside_training_range_warns(client, default_controls):
+    from nemsim.controls import CONTROL_SPECS
+
+    spec = next(s for s in CONTROL_SPECS if s.name == "flux_cl")
+    r = client.post(
+        "/rollout", json={"controls": {**default_controls, "flux_cl": spec.high * 10}, "steps": 1}
+    )
+    assert r.status_code == 200
+    assert len(r.json()["warnings"]) == 1 and "flux_cl" in r.json()["warnings"][0]
+
+
+def test_fields_final_and_all(client, default_controls, decode_fields, tiny_scene):
+    final = client.post("/rollout", json={"controls": default_controls, "steps": 2, "fields": "final"}).json()
+    f = decode_fields(final["fields"])
+    assert f.shape == (1, *tiny_scene.state_shape) and final["fields"]["steps"] == [2]
+    assert np.isfinite(f).all()
+    everything = client.post(
+        "/rollout", json={"controls": default_controls, "steps": 2, "fields": "all"}
+    ).json()
+    a = decode_fields(everything["fields"])
+    assert a.shape == (3, *tiny_scene.state_shape)
+    np.testing.assert_array_equal(a[-1], f[0])
+    # step 0 is the scene's initial geometry
+    from nemsim.sim import initial_state
+
+    np.testing.assert_allclose(a[0], np.asarray(initial_state(tiny_scene)), atol=1e-3)
+
+
+def test_recipe(client, default_controls):
+    recipe = [default_controls, {**default_controls, "flux_cl": default_controls["flux_cl"] * 2}]
+    r = client.post("/rollout", json={"recipe": recipe})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["steps"] == 2 and len(body["recipe"]) == 2
+    assert body["recipe"][1]["flux_cl"] == pytest.approx(2 * default_controls["flux_cl"])
+    constant = client.post("/rollout", json={"controls": default_controls, "steps": 2}).json()
+    assert constant["id"] != body["id"]
+
+
+def test_inline_meshes(client, default_controls):
+    req = {
+        "controls": default_controls,
+        "steps": 2,
+        "meshes": [
+            {"step": 2, "channel": "si", "format": "ply"},
+            {"step": 0, "channel": "mask", "format": "stl"},
+        ],
+    }
+    body = client.post("/rollout", json=req).json()
+    assert [m["format"] for m in body["meshes"]] == ["ply", "stl"]
+    ply = base64.b64decode(body["meshes"][0]["data"])
+    assert ply.startswith(b"ply")
+    follow = client.get(body["meshes"][0]["url"])
+    assert follow.status_code == 200 and follow.content == ply
+
+
+@pytest.mark.parametrize(
+    ("fmt", "media"), [("glb", "model/gltf-binary"), ("obj", "model/obj"), ("stl", "model/stl")]
+)
+def test_mesh_download(client, default_controls, fmt, media):
+    rid = client.post("/rollout", json={"controls": default_controls, "steps": 2}).json()["id"]
+    r = client.get(f"/rollouts/{rid}/mesh", params={"step": 1, "channel": "si", "format": fmt})
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"].startswith(media) and len(r.content) > 100
+    assert f"step1_si.{fmt}" in r.headers["content-disposition"]
+
+
+def test_mesh_glb_carries_provenance(client, default_controls):
+    import io
+
+    import trimesh
+
+    body = client.post("/rollout", json={"controls": default_controls, "steps": 2}).json()
+    r = client.get(f"/rollouts/{body['id']}/mesh", params={"channel": "mask"})  # default: final step, glb
+    assert r.status_code == 200
+    scene = trimesh.load(io.BytesIO(r.content), file_type="glb")
+    text = repr(getattr(scene, "metadata", {})) + "".join(
+        repr(g.metadata) for g in getattr(scene, "geometry", {}).values()
+    )
+    assert body["model_id"] in text and "mask" in text
+
+
+def test_mesh_unknown_id_404(client):
+    r = client.get("/rollouts/deadbeef/mesh")
+    assert r.status_code == 404 and "unknown rollout id" in r.json()["detail"]
+
+
+@pytest.mark.parametrize(
+    "params", [{"format": "fbx"}, {"channel": "resist"}, {"step": 99}, {"step": -1}, {"step": "last"}]
+)
+def test_mesh_bad_query_422(client, default_controls, params):
+    rid = client.post("/rollout", json={"controls": default_controls, "steps": 2}).json()["id"]
+    r = client.get(f"/rollouts/{rid}/mesh", params=params)
+    assert r.status_code == 422, r.text
+    assert r.json()["message"]
+
+
+def test_concurrent_requests_are_safe(client):
+    """Many requests at once: all answered, identical ones share one cached result."""
+    results: list = []
+
+    def post(k: int) -> None:
+        r = client.post("/rollout", json={"controls_normalized": [k % 3 * 0.1] + [0.2] * 13, "steps": 2})
+        results.append((k % 3, r.status_code, r.json().get("id")))
+
+    threads = [threading.Thread(target=post, args=(k,)) for k in range(9)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(code == 200 for _, code, _ in results)
+    ids = {}
+    for k, _, rid in results:
+        ids.setdefault(k, set()).add(rid)
+    assert all(len(v) == 1 for v in ids.values()) and len(ids) == 3

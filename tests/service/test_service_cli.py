@@ -1,0 +1,45 @@
+"""`nemsim serve` and `nemsim bench service` command-line handling."""
+
+from __future__ import annotations
+
+import json
+
+from nemsim.cli import build_parser, main
+
+
+def test_serve_flags_parse():
+    args = build_parser().parse_args(
+        ["serve", "--checkpoint", "x.pt", "--host", "0.0.0.0", "--port", "9000", "--workers", "2"]
+    )
+    assert (args.checkpoint, args.host, args.port, args.workers) == ("x.pt", "0.0.0.0", 9000, 2)
+
+
+def test_serve_missing_checkpoint_exit_2(tmp_path, capsys):
+    assert main(["serve", "--checkpoint", str(tmp_path / "nope.pt")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_bench_service(tiny_checkpoint, tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    code = main(
+        [
+            "bench",
+            "service",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--steps",
+            "2",
+            "-n",
+            "2",
+            "--cached-requests",
+            "3",
+            "--json",
+            str(out),
+        ]
+    )
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "uncached: p50" in text and "cached:" in text
+    report = json.loads(out.read_text())
+    assert report["uncached"]["n"] == 2 and report["cached"]["n"] == 3
+    assert report["cached"]["p50_ms"] < report["uncached"]["p50_ms"] * 10

@@ -1,0 +1,111 @@
+"""Tiny train -> evaluate end to end through the CLI, `nemsim models`, and a 2-process DDP run."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import h5py
+import pytest
+
+from nemsim.cli import main
+
+STEPS = 4  # as in tests/training/conftest.py
+
+
+def _train_args(tiny_data, out, *extra):
+    splits = tiny_data.parent / "splits"
+    return ["train", "--model", "test-standin", "--data", str(tiny_data), "--setting", "control-id",
+            "--out", str(out), "--splits", str(splits), "--epochs", "2", "--rollout-steps", str(STEPS),
+            "--no-progress", *extra]
+
+
+@pytest.mark.slow
+def test_train_then_evaluate(tmp_path, tiny_data, tiny_scene, capsys):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("warmup_epochs: 1\nval_every: 1\nbatch_size: 4\nmodel:\n  width: 3\n")
+    out = tmp_path / "run"
+    assert main(_train_args(tiny_data, out, "--config", str(cfg))) == 0
+    for name in ("best.pt", "last.pt", "metrics.csv", "train.log", "test_metrics.json"):
+        assert (out / name).is_file(), name
+    assert "epoch 2" in (out / "train.log").read_text()
+
+    capsys.readouterr()
+    js, h5 = tmp_path / "eval.json", tmp_path / "roll.h5"
+    rc = main(["evaluate", "--checkpoint", str(out / "best.pt"), "--data", str(tiny_data), "--setting",
+               "control-id", "--splits", str(tiny_data.parent / "splits"), "--json", str(js),
+               "--save-rollouts", str(h5), "--steps", str(STEPS), "--batch-size", "2"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    for word in ("Avg RMSE", "Final RMSE", "CD", "Params", "Rollout"):
+        assert word in printed
+    result = json.loads(js.read_text())
+    for key in ("avg_rmse", "final_rmse", "cd", "params", "rollout_seconds", "rmse_per_step"):
+        assert key in result
+    assert len(result["rmse_per_step"]) == STEPS and result["params"] > 0 and result["cd"] >= 0
+    assert result["final_rmse"] == pytest.approx(result["rmse_per_step"][-1])
+    assert js.with_suffix(".png").is_file()
+    with h5py.File(h5) as f:
+        assert f["pred"].shape == (2, STEPS + 1, *tiny_scene.state_shape)
+        assert list(f["case_ids"][:]) == [4, 5]
+    # mismatched scene: a checkpoint is refused by name
+    from nemsim.training.checkpoint import read_checkpoint, write_checkpoint_dict
+    from nemsim.scenes import SMALL
+
+    ck = read_checkpoint(out / "best.pt")
+    ck["scene"] = SMALL.to_json()
+    write_checkpoint_dict(tmp_path / "wrong.pt", ck)
+    rc = main(["evaluate", "--checkpoint", str(tmp_path / "wrong.pt"), "--data", str(tiny_data),
+               "--setting", "control-id", "--splits", str(tiny_data.parent / "splits")])
+    assert rc == 2 and "scene" in capsys.readouterr().err
+
+
+def test_resume_flag_continues(tmp_path, tiny_data):
+    out = tmp_path / "run"
+    assert main(_train_args(tiny_data, out, "--no-test")) == 0
+    args = _train_args(tiny_data, out, "--no-test", "--resume")
+    args[args.index("--epochs") + 1] = "3"
+    assert main(args) == 0
+    assert "resumed from" in (out / "train.log").read_text()
+
+
+def test_models_lists_params(tmp_path, capsys):
+    js = tmp_path / "models.json"
+    assert main(["models", "--scene", "tiny", "--json", str(js)]) == 0
+    table = json.loads(js.read_text())
+    assert "nemsim" in table and "test-standin" in table
+    assert all(isinstance(v["params"], int) and v["params"] > 0 for v in table.values())
+
+
+def test_bad_input_exit_2(tmp_path, tiny_data, capsys):
+    args = _train_args(tiny_data, tmp_path / "x")
+    args[args.index("--model") + 1] = "no-such-model"
+    assert main(args) == 2
+    assert "no-such-model" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_torchrun_ddp_two_processes(tmp_path, tiny_data):
+    out = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "nemsim.train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id",
+           "--out", str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1",
+           "--rollout-steps", "2", "--no-progress", "--no-test"]
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert (out / "last.pt").is_file() and (out / "best.pt").is_file()
+    log = (out / "train.log").read_text()
+    assert "2 ranks" in log
+
+
+def test_fraction_uses_data_efficiency_subset(tmp_path, tiny_data):
+    out = tmp_path / "frac"
+    args = _train_args(tiny_data, out, "--no-test", "--fraction", "0.5")
+    args[args.index("--epochs") + 1] = "1"
+    assert main(args) == 0
+    log = (out / "train.log").read_text()
+    assert "train / 1 val" in log and "3 train /" not in log  # fewer than the 3 training cases
+    assert main([*args[:-2], "--fraction", "0.3"]) == 2  # not one of the subsets

@@ -1,0 +1,43 @@
+"""TrainConfig holds the paper's hyper-parameters; the LR schedule is warm-up + cosine ([supp_training])."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from nemsim.training.config import TrainConfig, from_dict, read_config_file
+from nemsim.training.loop import lr_at
+
+
+def test_paper_defaults():
+    c = TrainConfig()
+    assert (c.lr, c.weight_decay, c.min_lr, c.grad_clip) == (5e-4, 1e-5, 1e-5, 1.0)
+    assert (c.warmup_epochs, c.batch_size, c.max_epochs, c.val_every, c.patience, c.seed) == (10, 24, 350, 10, 20, 0)
+    assert c.rollout_steps is None  # full horizon
+
+
+def test_schedule_warmup_then_cosine_to_min():
+    c = TrainConfig()
+    spe = 7
+    lrs = [lr_at(s, spe, c) for s in range(c.max_epochs * spe)]
+    warm = c.warmup_epochs * spe
+    assert lrs[0] == pytest.approx(c.lr / warm)
+    assert all(b > a for a, b in zip(lrs[: warm - 1], lrs[1:warm]))  # linear increase
+    assert lrs[warm - 1] == pytest.approx(c.lr)
+    assert all(b <= a for a, b in zip(lrs[warm:], lrs[warm + 1:]))  # monotone cosine decay
+    assert lr_at(c.max_epochs * spe, spe, c) == pytest.approx(c.min_lr)
+    mid = warm + (c.max_epochs * spe - warm) // 2
+    assert lrs[mid] == pytest.approx(c.min_lr + 0.5 * (c.lr - c.min_lr), rel=1e-2)
+    assert all(math.isfinite(v) and v > 0 for v in lrs)
+
+
+def test_unknown_keys_and_bad_values(tmp_path):
+    with pytest.raises(ValueError, match="unknown training config keys"):
+        from_dict({"learning_rate": 1e-3})
+    with pytest.raises(ValueError, match="batch_size"):
+        TrainConfig(batch_size=0)
+    f = tmp_path / "c.yaml"
+    f.write_text("max_epochs: 3\nbetas: [0.8, 0.9]\nmodel:\n  width: 2\n")
+    cfg, model = read_config_file(f)
+    assert cfg.max_epochs == 3 and cfg.betas == (0.8, 0.9) and model == {"width": 2}
