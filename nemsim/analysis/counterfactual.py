@@ -68,17 +68,6 @@ def _relative_change(cf: np.ndarray, base: np.ndarray) -> np.ndarray:
     return np.where(base != 0, out, np.nan)
 
 
-def _initial_state(scene: Any) -> np.ndarray:
-    """(2, D, H, W) x_0 of ``scene``: the simulator's Ψ of its initial geometry (as in run_trajectory)."""
-    from nemsim.sim import SimConfig
-    from nemsim.sim.domain import initial_domain
-    from nemsim.sim.sdf import psi
-
-    cfg = SimConfig().resolved(scene)
-    dom = initial_domain(scene, cfg.capacity, cfg.resist_capacity)
-    return np.asarray(psi(*dom.fractions(), scene, cfg.psi_sigma_vox), dtype=np.float32)
-
-
 @torch.no_grad()
 def response_batch(
     model: torch.nn.Module, x0: torch.Tensor, controls_raw: np.ndarray,
@@ -138,7 +127,9 @@ def mechanism_response(
 
     model = loaded.model
     if x0 is None:
-        x0 = _initial_state(loaded.scene)
+        from nemsim.sim import initial_state
+
+        x0 = initial_state(loaded.scene)
     x = torch.as_tensor(np.asarray(x0), dtype=torch.float32)[None]  # (1, 2, D, H, W)
     out = response_batch(model, x, np.asarray(controls_raw, dtype=np.float64)[None], tuple(factors))
     fams = list(FAMILIES)[: out["M"].shape[-1]]

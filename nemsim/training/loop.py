@@ -189,7 +189,8 @@ def train(
     train_model: nn.Module = model
     if distributed:
         ids = [device.index] if device.type == "cuda" else None
-        train_model = nn.parallel.DistributedDataParallel(model, device_ids=ids)
+        # The compiled rule tensors are fixed buffers: nothing to broadcast after construction.
+        train_model = nn.parallel.DistributedDataParallel(model, device_ids=ids, broadcast_buffers=False)
 
     stopped_early = bad_rounds >= cfg.patience
     t_start = time.perf_counter()

@@ -1,10 +1,8 @@
 """Fixtures for the service tests: a tiny checkpoint (untrained NEMSim on the `tiny` scene, written with
 `save_checkpoint`), the Surrogate over it, and TestClients.
 
-Until a trained small checkpoint is shipped, tests make their own on `tiny`. Until the simulator exports
-`nemsim.sim.initial_state(scene)` (the SDF of the initial geometry, which the service and
-`mechanism_response` start from), a stand-in with the same signature is installed here -- test
-scaffolding only; the service itself never builds geometry.
+Until a trained small checkpoint is shipped, tests make their own on `tiny`. Rollouts start from
+`nemsim.sim.initial_state(scene)`, the simulator's SDF of the initial geometry.
 """
 
 from __future__ import annotations
@@ -16,29 +14,6 @@ import pytest
 import torch
 
 torch.set_num_threads(1)
-
-
-def _install_initial_state_stand_in() -> None:
-    import nemsim.sim as sim
-
-    if hasattr(sim, "initial_state"):
-        return
-
-    def initial_state(scene):  # (2, D, H, W) normalized SDF: flat Si slab, resist with a round opening
-        D, H, W = scene.field_shape
-        z = np.arange(D)[:, None, None] - 1.0  # depth index = z + 1
-        y = np.arange(H)[None, :, None] - 1.0 - scene.opening_centre[1]
-        x = np.arange(W)[None, None, :] - 1.0 - scene.opening_centre[0]
-        r = np.sqrt(x**2 + y**2)
-        si = np.broadcast_to(z - (scene.si_top - 0.5), (D, H, W))
-        in_layer = np.maximum(z - (scene.resist_top - 0.5), (scene.si_top - 0.5) - z)
-        mask = np.maximum(in_layer, scene.opening_radius_vox - r)
-        return np.clip(np.stack([mask, si]) / scene.d_max_vox, -1, 1).astype(np.float32)
-
-    sim.initial_state = initial_state
-
-
-_install_initial_state_stand_in()
 
 
 @pytest.fixture(scope="session")

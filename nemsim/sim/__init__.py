@@ -1,0 +1,19 @@
+"""Monte Carlo feature-profile simulator: the reference that makes NEMSim's data ([supp_simulator]).
+
+Pipeline (ViennaPS-like nouns, snake_case)::
+
+    from nemsim.sim import SimConfig, simulate_trajectory
+    states = simulate_trajectory(scene, rules, controls_raw, np.random.default_rng(0), SimConfig())
+
+Modules: ``config`` (SimConfig, calibration), ``domain`` (voxel state, initial geometry), ``events``
+(compiled rules -> kernel tables), ``kernels`` (numba particle transport and surface events), ``sdf``
+(Psi: voxels -> signed distances), ``process`` (time stepping, one trajectory), ``generate`` (data sets:
+case scheduling, resumable HDF5 writing, process pool or Ray), ``bench`` (speed and noise floor).
+
+Calibration and the measured speed / noise figures: ``config`` module docstring and the README.
+"""
+
+from .config import SimConfig
+from .process import TrajectoryResult, initial_state, run_trajectory, simulate_trajectory
+
+__all__ = ["SimConfig", "TrajectoryResult", "initial_state", "run_trajectory", "simulate_trajectory"]

@@ -1,0 +1,93 @@
+"""Simulator benchmarks: speed (``nemsim bench sim``) and Monte Carlo noise floor (``nemsim bench noise``).
+
+Speed: median wall time and CPU time per 101-state trajectory and primary particles per second, on the
+first design cases, one core, after a JIT warm-up (a one-transition run of every scene). Wall time on a
+shared machine includes waiting for the CPU, so the CPU time (``time.process_time``) is reported too.
+
+Noise floor ([issue: calibration]): the Avg RMSE [eq:supp_avg_rmse] between two runs of the same controls
+with different seeds, over t = 1..100, computed with ``nemsim.evaluation.metrics`` exactly as for model
+predictions; a surrogate cannot be expected to beat it.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import time
+
+import numpy as np
+
+from nemsim.rules.compile import RuleTensors
+from nemsim.scenes import Scene
+
+from .config import SimConfig
+from .events import build_event_tables
+from .process import run_trajectory
+
+log = logging.getLogger(__name__)
+
+
+def warm_up(scene: Scene, rules: RuleTensors, config: SimConfig, controls_raw: np.ndarray) -> None:
+    """Compile (or load from cache) every kernel by simulating one transition."""
+    run_trajectory(scene, rules, controls_raw, np.random.default_rng(0), config, n_transitions=1)
+
+
+def bench_speed(
+    scene: Scene, rules: RuleTensors, design: np.ndarray, config: SimConfig | None = None, seed: int = 0
+) -> dict:
+    """Time full trajectories of the design rows ``design`` (n, 14) on ``scene``.
+
+    Returns: dict with per-case rows and the medians (wall_s, cpu_s, primaries, primaries_per_s).
+    """
+    config = (config or SimConfig()).resolved(scene)
+    tables = build_event_tables(rules, config)
+    warm_up(scene, rules, config, design[0])
+    rows = []
+    for i, u in enumerate(design):
+        c0 = time.process_time()
+        res = run_trajectory(scene, rules, u, np.random.default_rng([seed, i]), config, tables=tables)
+        cpu = time.process_time() - c0
+        prim = res.counters["primary"]
+        rows.append({"case": i, "wall_s": res.wall_s, "cpu_s": cpu, "primaries": prim,
+                     "primaries_per_s": prim / max(res.wall_s, 1e-9),
+                     "primaries_per_cpu_s": prim / max(cpu, 1e-9)})  # fmt: skip
+        log.info("%s case %d: %.2f s wall, %.2f s cpu, %d primaries", scene.name, i, res.wall_s, cpu, prim)
+    med = {k: statistics.median(r[k] for r in rows) for k in rows[0] if k != "case"}
+    return {"scene": scene.name, "n_cases": len(rows), "cases": rows, "median": med,
+            "capacity": config.capacity}  # fmt: skip
+
+
+def bench_noise(
+    scene: Scene,
+    rules: RuleTensors,
+    design: np.ndarray,
+    config: SimConfig | None = None,
+    seeds: tuple[int, int] = (1, 2),
+) -> dict:
+    """Avg and final RMSE between two seeds of the same controls, per case and over the cases.
+
+    Args: design (n, 14) raw controls; seeds: the two base seeds (case i uses default_rng([seed, i])).
+    """
+    from nemsim.evaluation.metrics import rmse_per_step
+
+    config = (config or SimConfig()).resolved(scene)
+    tables = build_event_tables(rules, config)
+    runs = []
+    for s in seeds:
+        states = [
+            run_trajectory(scene, rules, u, np.random.default_rng([s, i]), config, tables=tables).states
+            for i, u in enumerate(design)
+        ]
+        runs.append(np.stack(states))  # (n, T+1, 2, D, H, W)
+    a, b = runs[0][:, 1:], runs[1][:, 1:]  # t = 1..100
+    per_case = [rmse_per_step(a[i : i + 1], b[i : i + 1]) for i in range(len(design))]
+    r_t = rmse_per_step(a, b)
+    return {
+        "scene": scene.name,
+        "n_cases": len(design),
+        "seeds": list(seeds),
+        "avg_rmse": float(r_t.mean()),
+        "final_rmse": float(r_t[-1]),
+        "per_case_avg_rmse": [float(r.mean()) for r in per_case],
+        "per_channel_avg_rmse": [float(rmse_per_step(a[:, :, c], b[:, :, c]).mean()) for c in range(2)],
+    }

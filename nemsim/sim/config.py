@@ -1,0 +1,127 @@
+"""Simulator configuration: the constants the paper leaves to the implementation ([supp_simulator]).
+
+``SimConfig`` is a frozen dataclass; ``SimConfig.resolved(scene)`` fills the scene-dependent defaults
+(voxel capacities) and ``to_meta()`` is what every generated file records as the simulator's constants.
+
+Flux-to-particle conversion ([supp_simulator], "Particle Injection and Transport"): a control flux
+Gamma_s [mol m^-2 s^-1] becomes a simulated particle rate
+
+    R_s = Gamma_s * N_A * A_top * w,     w = flux_scale * capacity_si / (si_atoms_per_nm3 * V_voxel)
+
+with A_top the top-plane area (nm^2 -> m^2) and V_voxel the voxel volume (nm^3): one simulated particle
+stands for as many real particles as one Si material unit holds Si atoms (divided by ``flux_scale``).
+The physical etch rate per unit flux is therefore independent of the voxel capacity and of the scene's
+resolution; the capacity only trades Monte Carlo noise against run time. ``flux_scale`` (kappa) is the one
+dimensionless calibration factor (kappa = 1: a simulated removal event removes as many Si atoms as there
+were real incident particles behind the simulated one).
+
+Calibration (``small``; measured on 25 design cases = every 20th row of the 500-case design, seed 0):
+  * capacity 16 Si units per 4 nm voxel (0.25 units/nm^3; ``paper``: 8 per 2 nm voxel via ``min_capacity``,
+    ``tiny``: 16 per 8 nm voxel via ``max_capacity``) - the Monte Carlo noise / run time trade-off;
+  * flux_scale kappa = 0.6: final Si etch depth 12 nm (lowest fluxes) .. 160 nm (the whole 160 nm of Si,
+    1 case in 25), median 59 nm; depth rises with the ion fluxes, the ion energy and the neutral supply;
+  * resist_density_ratio 0.75 (12 resist units per voxel; the same erosion events remove more volume of
+    resist than of Si): planar mask loss 0.3 .. 15 nm of 80 nm (median 3.5 nm) on those cases, 29 nm with
+    60 % of the resist volume gone (faceted opening) in the design's most aggressive case (row 81: 1.25e-2
+    mol m^-2 s^-1 of ions at ~390 eV) - clearly eroded, never removed;
+  * noise floor (``nemsim bench noise``, design rows 0-4, seeds 1 vs 2): see the README; moderate cases
+    are ~0.005 Avg RMSE, fast-etching ones (deep holes, eroding mask) ~0.02.
+Values were chosen by short sweeps (kappa 1.0 -> 0.7 -> 0.6; resist ratio 1.0 / 0.75 / 0.5; capacity 16
+vs 32, which did not lower the noise of the fast-etching cases - their seed-to-seed spread is in the
+etch-front position, not in voxel-scale roughness).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+
+from nemsim.scenes import Scene
+
+AVOGADRO = 6.02214076e23  # 1/mol
+
+# Atomic / molecular masses [amu] for the mass-ratio energy loss of specularly reflected ions.
+# Resist has no single mass; we use a CH2 repeat unit (14 amu), a choice the paper does not make.
+_PROJECTILE_MASS_AMU = (
+    ("Cl", 35.45), ("Cl2", 70.90), ("Cl+", 35.45), ("Cl2+", 70.90), ("Ar+", 39.95),
+    ("SiCl", 63.54), ("SiCl2", 98.99), ("SiCl3", 134.44),
+)  # fmt: skip
+_TARGET_MASS_AMU = (("Si", 28.09), ("SiCl", 63.54), ("SiCl2", 98.99), ("SiCl3", 134.44), ("Resist", 14.03))
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Constants of the Monte Carlo feature-profile simulator (defaults = the calibrated data set).
+
+    Capacities are material units per voxel; ``None`` means "derive from the per-volume density and the
+    scene's voxel volume" so the physical behaviour is the same on every scene (see the module docstring).
+    """
+
+    capacity: int | None = None  # Si-class units per full voxel; None -> units_per_nm3 * V_voxel
+    resist_capacity: int | None = None  # resist units per full voxel; None -> capacity * resist_density_ratio
+    units_per_nm3: float = 0.25  # Si material units per nm^3 (small: 16 units per 4 nm voxel)
+    min_capacity: int = 8  # floor on the derived Si capacity (paper: 8 units per 2 nm voxel)
+    max_capacity: int = 16  # ceiling on the derived Si capacity (tiny's 8 nm voxels stay cheap)
+    resist_density_ratio: float = 0.75  # resist units per voxel / Si units per voxel (calibrated)
+    si_atoms_per_nm3: float = 50.0  # Si atomic density [nm^-3]: real atoms in one Si unit = n V / capacity
+    flux_scale: float = 0.6  # kappa: simulated particles per (real particle / atoms per unit); calibrated
+    max_steps: int = 10_000  # steps (voxel crossings + surface hits) per particle [supp_simulator]
+    neutral_energy_ev: float = 0.2  # incident energy of neutral Cl [supp_simulator]
+    product_energy_ev: float = 2.0  # energy of emitted SiCl_x products [supp_simulator]
+    psi_sigma_vox: float = 0.7  # Gaussian smoothing of the material fraction before the SDF (voxels)
+    queue_capacity: int = 1 << 15  # FIFO ring buffer for secondary products (drained after each primary)
+    projectile_mass_amu: tuple[tuple[str, float], ...] = _PROJECTILE_MASS_AMU
+    target_mass_amu: tuple[tuple[str, float], ...] = _TARGET_MASS_AMU
+
+    def __post_init__(self) -> None:
+        if self.flux_scale < 0 or not math.isfinite(self.flux_scale):
+            raise ValueError(f"flux_scale must be a finite number >= 0, got {self.flux_scale}")
+        for name in ("capacity", "resist_capacity"):
+            value = getattr(self, name)
+            if value is not None and not (1 <= value <= 30_000):
+                raise ValueError(f"{name} must be in [1, 30000] units per voxel, got {value}")
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.psi_sigma_vox < 0:
+            raise ValueError(f"psi_sigma_vox must be >= 0, got {self.psi_sigma_vox}")
+
+    def resolved(self, scene: Scene) -> SimConfig:
+        """This config with ``capacity`` and ``resist_capacity`` filled in for ``scene``."""
+        cap = self.capacity
+        if cap is None:
+            cap = int(round(self.units_per_nm3 * scene.voxel_nm**3))
+            cap = min(max(cap, self.min_capacity), self.max_capacity)
+        rcap = self.resist_capacity
+        if rcap is None:
+            rcap = max(1, int(round(cap * self.resist_density_ratio)))
+        return replace(self, capacity=cap, resist_capacity=rcap)
+
+    def particles_per_real(self, scene: Scene) -> float:
+        """Simulated particles per real incident particle, w (module docstring)."""
+        cap = self.resolved(scene).capacity
+        assert cap is not None
+        return self.flux_scale * cap / (self.si_atoms_per_nm3 * scene.voxel_nm**3)
+
+    def particle_rate_per_flux(self, scene: Scene) -> float:
+        """Simulated particles per second per unit flux (1 mol m^-2 s^-1) through the top plane."""
+        return AVOGADRO * scene.area_nm2 * 1e-18 * self.particles_per_real(scene)
+
+    def to_meta(self, scene: Scene | None = None) -> dict:
+        """JSON-able record of every constant (resolved for ``scene`` when given)."""
+        cfg = self.resolved(scene) if scene is not None else self
+        out = asdict(cfg)
+        out["projectile_mass_amu"] = dict(cfg.projectile_mass_amu)
+        out["target_mass_amu"] = dict(cfg.target_mass_amu)
+        if scene is not None:
+            out["particle_rate_per_flux"] = self.particle_rate_per_flux(scene)
+        return out
+
+    @classmethod
+    def from_meta(cls, meta: dict) -> SimConfig:
+        """Inverse of ``to_meta`` (derived keys are ignored)."""
+        known = {f for f in cls.__dataclass_fields__}
+        kwargs = {k: v for k, v in meta.items() if k in known}
+        for key in ("projectile_mass_amu", "target_mass_amu"):
+            if isinstance(kwargs.get(key), dict):
+                kwargs[key] = tuple(kwargs[key].items())
+        return cls(**kwargs)

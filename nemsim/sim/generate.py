@@ -1,0 +1,245 @@
+"""Data sets: simulate many cases into one resumable HDF5 file ([supp_data_generation]).
+
+``generate_dataset`` schedules the cases on a local process pool (default) or a Ray cluster, writes each
+finished case from the parent process through ``nemsim.data.hdf5.TrajectoryWriter`` (which flags a case
+complete only after its states are on disk), skips cases already complete in an existing file (resume),
+shows a tqdm progress bar with ETA and validates the file on close.
+
+Seeds: case ``c`` of a run with base seed ``S`` uses ``np.random.default_rng(case_seed(S, c))`` with
+``case_seed(S, c) = SeedSequence([S, c]).generate_state(1, uint64)[0] >> 1`` (a non-negative int64); the
+seed is stored per case (``seeds``) and the base seed, simulator version and all ``SimConfig`` constants in
+the file's ``generator`` attribute. A case's trajectory does not depend on the worker count or the order
+in which cases finish.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from nemsim.rules.compile import RuleTensors
+from nemsim.scenes import Scene
+
+from .config import SimConfig
+
+log = logging.getLogger(__name__)
+
+SIMULATOR_NAME = "nemsim.sim"
+SIMULATOR_VERSION = "1.0"
+EXECUTORS = ("process", "ray")
+Executor = Literal["process", "ray"]
+
+
+def case_seed(base_seed: int, case_id: int) -> int:
+    """Per-case simulator seed (module docstring); independent of scheduling."""
+    state = np.random.SeedSequence([int(base_seed), int(case_id)]).generate_state(1, np.uint64)[0]
+    return int(state >> np.uint64(1))
+
+
+def generator_meta(scene: Scene, config: SimConfig, base_seed: int) -> dict:
+    """The ``generator`` attribute: simulator identity, constants and the seeding rule."""
+    from nemsim import __version__
+
+    return {
+        "simulator": SIMULATOR_NAME,
+        "simulator_version": SIMULATOR_VERSION,
+        "package_version": __version__,
+        "base_seed": int(base_seed),
+        "case_seed": "SeedSequence([base_seed, case_id]).generate_state(1, uint64)[0] >> 1",
+        "config": config.to_meta(scene),
+    }
+
+
+@dataclass(frozen=True)
+class CaseTask:
+    """One case to simulate (picklable; sent to workers)."""
+
+    row: int
+    case_id: int
+    seed: int
+    controls: np.ndarray  # (14,) or (T, 14) raw
+
+
+def simulate_case(scene: Scene, rules: RuleTensors, config: SimConfig, task: CaseTask) -> tuple:
+    """Worker body: one case -> (row, states (T+1, 2, D, H, W) float32, seed, meta)."""
+    from .process import run_trajectory
+
+    t0 = time.process_time()
+    res = run_trajectory(scene, rules, task.controls, np.random.default_rng(task.seed), config)
+    meta = {
+        "case_id": task.case_id,
+        "wall_s": round(res.wall_s, 3),
+        "cpu_s": round(time.process_time() - t0, 3),
+        "counters": res.counters,
+        "event_counts": {str(n): int(v) for n, v in zip(rules.names, res.event_counts) if v},
+        "initial_totals": res.initial_totals.tolist(),
+        "final_totals": res.final_totals.tolist(),
+    }
+    return task.row, res.states, task.seed, meta
+
+
+def _worker_init() -> None:
+    # one core per worker: numba kernels are single-threaded; keep BLAS/OpenMP from oversubscribing
+    for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
+def _run_serial(scene, rules, config, tasks) -> Iterator[tuple]:
+    for task in tasks:
+        yield simulate_case(scene, rules, config, task)
+
+
+def _run_process_pool(scene, rules, config, tasks, workers) -> Iterator[tuple]:
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    ctx = mp.get_context("spawn")  # no fork of an open HDF5 file / torch state
+    pending = list(tasks)[::-1]
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    finished = False
+    try:
+        running = set()
+        while pending or running:
+            while pending and len(running) < 2 * workers:  # bound memory: states return to the parent
+                running.add(pool.submit(simulate_case, scene, rules, config, pending.pop()))
+            done, running = wait(running, return_when=FIRST_COMPLETED)
+            for fut in done:
+                yield fut.result()
+        finished = True
+    finally:
+        if finished:
+            pool.shutdown(wait=True)
+        else:  # interrupted or failed: do not wait for cases still running in our workers
+            procs = list((getattr(pool, "_processes", None) or {}).values())
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                if proc.is_alive():
+                    proc.terminate()
+
+
+def _run_ray(scene, rules, config, tasks, workers) -> Iterator[tuple]:
+    try:
+        import ray
+    except ImportError as exc:
+        raise RuntimeError(
+            "executor 'ray' needs Ray: install it with `pip install 'nemsim[ray]'` (or `pip install ray`), "
+            "or use --executor process"
+        ) from exc
+    started = False
+    if not ray.is_initialized():
+        address = os.environ.get("RAY_ADDRESS")
+        ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
+                 log_to_driver=False)  # fmt: skip
+        started = True
+    try:
+        remote = ray.remote(num_cpus=1)(simulate_case)
+        shared = [ray.put(scene), ray.put(rules), ray.put(config)]
+        pending = list(tasks)[::-1]
+        running: list = []
+        while pending or running:
+            while pending and len(running) < 2 * max(workers, 1):
+                running.append(remote.remote(*shared, pending.pop()))
+            done, running = ray.wait(running, num_returns=1)
+            for ref in done:
+                yield ray.get(ref)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def generate_dataset(
+    out: str | Path,
+    scene: Scene,
+    rules: RuleTensors,
+    controls_raw: np.ndarray,
+    case_ids: Sequence[int],
+    *,
+    seed: int = 0,
+    config: SimConfig | None = None,
+    controls_schedule: np.ndarray | None = None,
+    workers: int = 1,
+    executor: Executor = "process",
+    progress: bool = True,
+    on_case: Callable[[int, dict], None] | None = None,
+) -> dict:
+    """Simulate ``case_ids`` (rows of ``controls_raw``) into ``out``, resuming a compatible existing file.
+
+    Args:
+      out: HDF5 path. scene, rules: as for ``simulate_trajectory``.
+      controls_raw: (N, 14) raw constant controls (for recipes: the first transition's vector).
+      case_ids: (N,) ids stored with each row. seed: base seed (module docstring).
+      controls_schedule: optional (N, T, 14) recipes, one control vector per transition.
+      workers: parallel simulations (1 = in-process). executor: "process" or "ray".
+      progress: show a tqdm bar. on_case: callback(row, meta) after each written case.
+    Returns: {"written": int, "skipped": int, "wall_s": float, "path": str}.
+    """
+    from nemsim.data.hdf5 import TrajectoryWriter
+
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor {executor!r} is not one of {EXECUTORS}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    config = (config or SimConfig()).resolved(scene)
+    controls_raw = np.asarray(controls_raw, dtype=np.float64)
+    case_ids = [int(c) for c in case_ids]
+    if controls_raw.shape != (len(case_ids), 14):
+        raise ValueError(f"controls_raw must be ({len(case_ids)}, 14) for {len(case_ids)} cases, got "
+                         f"{controls_raw.shape}")  # fmt: skip
+    t0 = time.perf_counter()
+    writer = TrajectoryWriter(
+        out,
+        scene=scene,
+        case_ids=case_ids,
+        controls_raw=controls_raw,
+        generator=generator_meta(scene, config, seed),
+        rules_sha256=rules.sha256,
+        controls_schedule=controls_schedule,
+    )
+    ok = False
+    try:
+        done = writer.finished
+        sched = controls_schedule
+        tasks = [
+            CaseTask(
+                row=row, case_id=cid, seed=case_seed(seed, cid),
+                controls=controls_raw[row] if sched is None else np.asarray(sched[row]),
+            )  # fmt: skip
+            for row, cid in enumerate(case_ids)
+            if row not in done
+        ]
+        if done:
+            log.info("%s: %d of %d cases already complete; simulating the other %d", out, len(done),
+                     len(case_ids), len(tasks))  # fmt: skip
+        if executor == "ray":
+            results = _run_ray(scene, rules, config, tasks, workers)
+        elif workers == 1 or len(tasks) <= 1:
+            results = _run_serial(scene, rules, config, tasks)
+        else:
+            results = _run_process_pool(scene, rules, config, tasks, workers)
+        bar = None
+        if progress and tasks:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(tasks), unit="case", desc=f"generate {scene.name}", dynamic_ncols=True)
+        try:
+            for row, states, case_sd, meta in results:
+                writer.write(row, states, seed=case_sd, meta=meta)
+                if on_case is not None:
+                    on_case(row, meta)
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(last_s=f"{meta['wall_s']:.1f}")
+        finally:
+            if bar is not None:
+                bar.close()
+        ok = True
+    finally:
+        writer.close(validate=ok)
+    return {"written": len(tasks), "skipped": len(done), "wall_s": time.perf_counter() - t0, "path": str(out)}

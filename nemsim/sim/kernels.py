@@ -1,0 +1,541 @@
+"""Numba kernels of the Monte Carlo feature-profile simulator ([supp_simulator]).
+
+Pure functions over explicit arrays: the voxel state (``mat``, ``fill``), the event tables of
+``events.EventTables`` and a seed (numba's generator is re-seeded at every kernel call, so a call is a
+deterministic function of its inputs). Nothing is allocated per particle; secondary products go through a
+preallocated FIFO ring buffer that is drained after every primary particle.
+
+Coordinates are voxel units: voxel (i, j, k) covers [i, i+1) x [j, j+1) x [k, k+1); z grows upward.
+
+Per primary particle ([supp_simulator], "Particle Injection and Transport"):
+  * species k with probability R_k / sum R (``src_cum``); launched at (U nx, U ny, nz - eps);
+    polar angle with p(Omega) ~ cos^m theta [eq:supp_particle_angular_distribution], i.e.
+    cos theta = U^(1/(m+1)), uniform azimuth; energy max(N(mu, sigma^2), 0) for ions
+    [eq:supp_particle_energy_sampling], ``neutral_energy_ev`` (0.2 eV) for neutrals.
+  * transport: exact voxel traversal (Amanatides-Woo) in continuous coordinates, periodic in x and y,
+    terminated when leaving through z < 0 or z >= nz or after ``max_steps`` steps (voxel crossings plus
+    surface hits) [supp_simulator].
+  * at the first solid voxel (fill > 0; it is surface-exposed by construction since the particle arrives
+    through a vacuum face neighbour): surface normal from the local material configuration (the
+    fill-weighted unit offsets of the 26 neighbours, n = -sum f(o) o/|o|, normalized; the entry face normal
+    when that estimate is degenerate or faces away); incidence cosine = -d.n; target species sampled from
+    the voxel's contents; all rule channels of the (projectile, target) pair compete: total probability
+    < 1 leaves a non-reactive remainder, otherwise the channels are normalized.
+  * probability: ``kinetics.prob_physical`` (hard thresholds, real incidence angle). Choice: the paper
+    lists "saturation at the reference energy" among the safeguards its *differentiable* form adds to the
+    source Monte Carlo expression ([supp_kinetic_models]), so the simulator uses the unsaturated law
+    p0 ((E - E_th)/(E_ref - E_th))^n F(theta): ``prob_physical`` times ((E - E_th)/(E_ref - E_th))^n for
+    E > E_ref. Without it every design energy (160-500 eV > E_ref = 100-150 eV) would give the same
+    probabilities.
+  * yield: ``kinetics.yield_physical``; integer removal count k by stochastic rounding.
+  * outcome: react / remove (+ SiCl_x products) / deposit, see ``events``; a reacting particle is consumed.
+    Non-reactive ions reflect specularly about the normal and keep the fraction
+    sin^2 theta + cos^2 theta ((M1 - M2)/(M1 + M2))^2 of their energy (elastic transfer of the normal
+    momentum to a target atom at rest -- our choice of "energy reduction determined by the
+    projectile-target mass relation"); non-reactive neutrals and products reflect diffusely (cosine about
+    the normal) at unchanged energy.
+  * products: ``product_energy_ev`` (2 eV), cosine-distributed about the local normal, launched from the
+    vacuum voxel in front of the hit face; on a solid voxel they stick with the rule's p_stick (adding one
+    unit of their species to the hit voxel, or to the vacuum voxel in front of it when the hit voxel is
+    full), otherwise reflect diffusely.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from nemsim.rules.kinetics import EPS, prob_physical, yield_physical
+
+from .events import ACT_DEPOSIT, ACT_REACT, ACT_REMOVE
+
+# counters (int64 array) layout
+C_PRIMARY, C_IONS, C_NEUTRALS, C_PRODUCTS, C_STUCK = 0, 1, 2, 3, 4
+C_ESC_TOP, C_ESC_BOTTOM, C_STEP_LIMIT, C_HITS, C_REACTIONS = 5, 6, 7, 8, 9
+C_STEPS, C_DROPPED = 10, 11
+C_REMOVED = 12  # + target index (5)
+C_DEPOSITED = 17  # + target index (5)
+C_CONV_FROM = 22  # + target index (5)
+C_CONV_TO = 27  # + target index (5)
+N_COUNTERS = 32
+COUNTER_NAMES = (
+    "primary", "ions", "neutrals", "products", "stuck", "escaped_top", "escaped_bottom", "step_limit",
+    "hits", "reactions", "steps", "dropped",
+) + tuple(f"removed_{i}" for i in range(5)) + tuple(f"deposited_{i}" for i in range(5)) + tuple(
+    f"converted_from_{i}" for i in range(5)
+) + tuple(f"converted_to_{i}" for i in range(5))  # fmt: skip
+assert len(COUNTER_NAMES) == N_COUNTERS
+
+_Q_X, _Q_Y, _Q_Z, _Q_DX, _Q_DY, _Q_DZ, _Q_SPECIES, _Q_ENERGY = 0, 1, 2, 3, 4, 5, 6, 7
+_FACE_EPS = 1e-9  # how far inside the vacuum voxel a particle restarts after a surface hit
+
+
+@numba.njit(cache=True)
+def seed_rng(seed: int) -> None:
+    """Seed numba's internal generator (used by every kernel of this module)."""
+    np.random.seed(seed)
+
+
+@numba.njit(cache=True)
+def unsaturated_factor(prob_model: int, prob_params: np.ndarray, energy_ev: float) -> float:
+    """((E - E_th)/(E_ref - E_th))^n above E_ref for probModel events, else 1 (module docstring)."""
+    if prob_model != 1:
+        return 1.0
+    e_th = prob_params[0]
+    x = (energy_ev - e_th) / (prob_params[1] - e_th + EPS)
+    if x <= 1.0:
+        return 1.0
+    return x ** prob_params[3]
+
+
+@numba.njit(cache=True)
+def stochastic_round(value: float) -> int:
+    """floor(value) + Bernoulli(frac(value)): an integer with expectation ``value`` (value >= 0)."""
+    if value <= 0.0:
+        return 0
+    k = int(math.floor(value))
+    if np.random.random() < value - k:
+        k += 1
+    return k
+
+
+@numba.njit(cache=True)
+def cos_power_polar(m: float) -> float:
+    """cos theta for p(Omega) ~ cos^m theta on the hemisphere [eq:supp_particle_angular_distribution]."""
+    return np.random.random() ** (1.0 / (m + 1.0))
+
+
+@numba.njit(cache=True)
+def cosine_about(nx_: float, ny_: float, nz_: float) -> tuple[float, float, float]:
+    """Direction drawn from the cosine-weighted hemisphere about the unit vector n."""
+    u1 = np.random.random()
+    u2 = np.random.random()
+    ct = math.sqrt(u1)
+    st = math.sqrt(max(0.0, 1.0 - u1))
+    ph = 2.0 * math.pi * u2
+    a = st * math.cos(ph)
+    b = st * math.sin(ph)
+    # orthonormal basis around n (Duff et al. 2017)
+    sign = 1.0 if nz_ >= 0.0 else -1.0
+    e = -1.0 / (sign + nz_)
+    f = nx_ * ny_ * e
+    t1x = 1.0 + sign * nx_ * nx_ * e
+    t1y = sign * f
+    t1z = -sign * nx_
+    t2x = f
+    t2y = sign + ny_ * ny_ * e
+    t2z = -ny_
+    return (a * t1x + b * t2x + ct * nx_, a * t1y + b * t2y + ct * ny_, a * t1z + b * t2z + ct * nz_)
+
+
+@numba.njit(cache=True)
+def _fill_at(fill: np.ndarray, i: int, j: int, k: int) -> float:
+    nx, ny, nz = fill.shape
+    if k >= nz:
+        return 0.0
+    if k < 0:
+        k = 0
+    return fill[i % nx, j % ny, k]
+
+
+@numba.njit(cache=True)
+def surface_normal(fill: np.ndarray, i: int, j: int, k: int) -> tuple[float, float, float]:
+    """Outward normal at voxel (i, j, k) from its 26 neighbours' fill (module docstring); may be 0."""
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    for a in range(-1, 2):
+        for b in range(-1, 2):
+            for c in range(-1, 2):
+                r2 = a * a + b * b + c * c
+                if r2 == 0:
+                    continue
+                f = _fill_at(fill, i + a, j + b, k + c)
+                if f == 0.0:
+                    continue
+                w = f / math.sqrt(r2)
+                gx -= w * a
+                gy -= w * b
+                gz -= w * c
+    norm = math.sqrt(gx * gx + gy * gy + gz * gz)
+    if norm < 1e-9:
+        return 0.0, 0.0, 0.0
+    return gx / norm, gy / norm, gz / norm
+
+
+@numba.njit(cache=True)
+def _refill(mat: np.ndarray, fill: np.ndarray, i: int, j: int, k: int, cap: float, rcap: float) -> None:
+    s = mat[i, j, k, 0] + mat[i, j, k, 1] + mat[i, j, k, 2] + mat[i, j, k, 3]
+    fill[i, j, k] = s / cap + mat[i, j, k, 4] / rcap
+
+
+@numba.njit(cache=True)
+def _push(queue: np.ndarray, tail: int, head: int, x: float, y: float, z: float,
+          dx: float, dy: float, dz: float, species: int, energy: float) -> int:  # fmt: skip
+    """Append to the ring buffer; returns the new tail (unchanged when full)."""
+    cap = queue.shape[0]
+    nxt = (tail + 1) % cap
+    if nxt == head:
+        return tail
+    queue[tail, _Q_X] = x
+    queue[tail, _Q_Y] = y
+    queue[tail, _Q_Z] = z
+    queue[tail, _Q_DX] = dx
+    queue[tail, _Q_DY] = dy
+    queue[tail, _Q_DZ] = dz
+    queue[tail, _Q_SPECIES] = species
+    queue[tail, _Q_ENERGY] = energy
+    return nxt
+
+
+@numba.njit(cache=True)
+def fly(
+    species: int, energy: float, x: float, y: float, z: float, dx: float, dy: float, dz: float,
+    mat: np.ndarray, fill: np.ndarray, cap: float, rcap: float,
+    pair_start: np.ndarray, pair_count: np.ndarray, pair_events: np.ndarray, action: np.ndarray,
+    conv_to: np.ndarray, prob_model: np.ndarray, prob_params: np.ndarray, angle_kind: np.ndarray,
+    yield_model: np.ndarray, yield_params: np.ndarray, s_dep: np.ndarray, prod_coef: np.ndarray,
+    prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
+    target_mass: np.ndarray, product_energy: float, max_steps: int,
+    queue: np.ndarray, head: int, tail: int, pbuf: np.ndarray, counters: np.ndarray,
+    event_counts: np.ndarray,
+) -> int:  # fmt: skip
+    """Transport one particle until it reacts, escapes or runs out of steps; returns the queue tail.
+
+    Mutates ``mat``/``fill`` (surface events), ``queue`` (emitted products), ``counters``, ``event_counts``.
+    """
+    nx, ny, nz = fill.shape
+    n_t = mat.shape[3]
+    steps = 0
+    inf = 1e300
+    while True:
+        # ---------------- voxel traversal from (x, y, z) along (dx, dy, dz) ----------------
+        ix = int(math.floor(x))
+        iy = int(math.floor(y))
+        iz = int(math.floor(z))
+        if iz < 0:
+            counters[C_ESC_BOTTOM] += 1
+            return tail
+        if iz >= nz:
+            counters[C_ESC_TOP] += 1
+            return tail
+        sx = 1 if dx > 0.0 else -1
+        sy = 1 if dy > 0.0 else -1
+        sz = 1 if dz > 0.0 else -1
+        if dx != 0.0:
+            tdx = 1.0 / abs(dx)
+            tmx = ((ix + 1.0 - x) if dx > 0.0 else (x - ix)) * tdx
+        else:
+            tdx = inf
+            tmx = inf
+        if dy != 0.0:
+            tdy = 1.0 / abs(dy)
+            tmy = ((iy + 1.0 - y) if dy > 0.0 else (y - iy)) * tdy
+        else:
+            tdy = inf
+            tmy = inf
+        if dz != 0.0:
+            tdz = 1.0 / abs(dz)
+            tmz = ((iz + 1.0 - z) if dz > 0.0 else (z - iz)) * tdz
+        else:
+            tdz = inf
+            tmz = inf
+        axis = -1
+        t = 0.0
+        hit = False
+        wx = ix % nx
+        wy = iy % ny
+        if fill[wx, wy, iz] > 0.0:
+            # started inside material (e.g. a product deposited where this particle waits): hit it at once
+            hit = True
+            axis = 2
+            sz = -1 if dz < 0.0 else 1
+        while not hit and steps < max_steps:
+            if tmx < tmy:
+                if tmx < tmz:
+                    axis = 0
+                    t = tmx
+                    ix += sx
+                    tmx += tdx
+                else:
+                    axis = 2
+                    t = tmz
+                    iz += sz
+                    tmz += tdz
+            else:
+                if tmy < tmz:
+                    axis = 1
+                    t = tmy
+                    iy += sy
+                    tmy += tdy
+                else:
+                    axis = 2
+                    t = tmz
+                    iz += sz
+                    tmz += tdz
+            steps += 1
+            if iz < 0:
+                counters[C_STEPS] += steps
+                counters[C_ESC_BOTTOM] += 1
+                return tail
+            if iz >= nz:
+                counters[C_STEPS] += steps
+                counters[C_ESC_TOP] += 1
+                return tail
+            wx = ix % nx
+            wy = iy % ny
+            if fill[wx, wy, iz] > 0.0:
+                hit = True
+        if not hit:
+            counters[C_STEPS] += steps
+            counters[C_STEP_LIMIT] += 1
+            return tail
+        steps += 1  # a surface hit counts as a step (guarantees termination)
+        counters[C_HITS] += 1
+        # restart point: on the entry face, just inside the vacuum voxel in front of it
+        x = x + t * dx
+        y = y + t * dy
+        z = z + t * dz
+        fnx = 0.0
+        fny = 0.0
+        fnz = 0.0
+        if axis == 0:
+            fnx = -float(sx)
+            x = (ix if sx > 0 else ix + 1) - sx * _FACE_EPS
+        elif axis == 1:
+            fny = -float(sy)
+            y = (iy if sy > 0 else iy + 1) - sy * _FACE_EPS
+        else:
+            fnz = -float(sz)
+            z = (iz if sz > 0 else iz + 1) - sz * _FACE_EPS
+        x -= nx * math.floor(x / nx)
+        y -= ny * math.floor(y / ny)
+        # ---------------- surface normal and incidence ----------------
+        nnx, nny, nnz = surface_normal(fill, wx, wy, iz)
+        ddotn = dx * nnx + dy * nny + dz * nnz
+        if ddotn > -1e-3 or nnx * fnx + nny * fny + nnz * fnz <= 0.0:
+            nnx = fnx
+            nny = fny
+            nnz = fnz
+            ddotn = dx * nnx + dy * nny + dz * nnz
+        cos_inc = min(1.0, -ddotn)
+        # ---------------- target species from the voxel contents ----------------
+        total = 0
+        for q in range(n_t):
+            total += mat[wx, wy, iz, q]
+        r = np.random.random() * total
+        tgt = n_t - 1
+        acc = 0.0
+        for q in range(n_t):
+            acc += mat[wx, wy, iz, q]
+            if r < acc:
+                tgt = q
+                break
+        # ---------------- competing rule channels ----------------
+        pi = species * n_t + tgt
+        start = pair_start[pi]
+        cnt = pair_count[pi]
+        ptot = 0.0
+        for c in range(cnt):
+            e = pair_events[start + c]
+            if action[e] == ACT_DEPOSIT:
+                p = s_dep[e]
+            else:
+                p = prob_physical(prob_model[e], prob_params[e], angle_kind[e], energy, cos_inc)
+                p *= unsaturated_factor(prob_model[e], prob_params[e], energy)
+            pbuf[c] = p
+            ptot += p
+        chosen = -1
+        if ptot > 0.0:
+            u = np.random.random() * max(ptot, 1.0)
+            acc = 0.0
+            for c in range(cnt):
+                acc += pbuf[c]
+                if u < acc:
+                    chosen = pair_events[start + c]
+                    break
+        if chosen >= 0:
+            counters[C_STEPS] += steps
+            counters[C_REACTIONS] += 1
+            event_counts[chosen] += 1
+            act = action[chosen]
+            if act == ACT_DEPOSIT:
+                add = conv_to[chosen]
+                if fill[wx, wy, iz] + 1.0 / cap <= 1.0 + 1e-9:
+                    mat[wx, wy, iz, add] += 1
+                    _refill(mat, fill, wx, wy, iz, cap, rcap)
+                    counters[C_STUCK] += 1
+                    counters[C_DEPOSITED + add] += 1
+                else:
+                    px = int(math.floor(x)) % nx
+                    py = int(math.floor(y)) % ny
+                    pz = int(math.floor(z))
+                    if 0 <= pz < nz:
+                        mat[px, py, pz, add] += 1
+                        _refill(mat, fill, px, py, pz, cap, rcap)
+                        counters[C_STUCK] += 1
+                        counters[C_DEPOSITED + add] += 1
+                    else:
+                        counters[C_DROPPED] += 1
+                return tail
+            y_val = yield_physical(yield_model[chosen], yield_params[chosen], energy, cos_inc)
+            k = stochastic_round(y_val)
+            have = mat[wx, wy, iz, tgt]
+            nrem = k if k < have else have
+            if act == ACT_REACT:
+                dst = conv_to[chosen]
+                mat[wx, wy, iz, tgt] -= nrem
+                mat[wx, wy, iz, dst] += nrem
+                counters[C_CONV_FROM + tgt] += nrem
+                counters[C_CONV_TO + dst] += nrem
+                if tgt == 4 or dst == 4:
+                    _refill(mat, fill, wx, wy, iz, cap, rcap)
+                return tail
+            if act == ACT_REMOVE:
+                mat[wx, wy, iz, tgt] -= nrem
+                counters[C_REMOVED + tgt] += nrem
+                _refill(mat, fill, wx, wy, iz, cap, rcap)
+                for j in range(product_species.shape[0]):
+                    coef = prod_coef[chosen, j]
+                    if coef <= 0.0:
+                        continue
+                    if prod_is_yield[chosen, j]:
+                        amount = coef * nrem
+                    else:
+                        amount = coef if nrem > 0 else 0.0
+                    n_emit = stochastic_round(amount)
+                    for _ in range(n_emit):
+                        ex, ey, ez = cosine_about(nnx, nny, nnz)
+                        for _try in range(8):
+                            if ex * fnx + ey * fny + ez * fnz > 0.0:
+                                break
+                            ex, ey, ez = cosine_about(nnx, nny, nnz)
+                        if ex * fnx + ey * fny + ez * fnz <= 0.0:
+                            ex, ey, ez = cosine_about(fnx, fny, fnz)
+                        new_tail = _push(
+                            queue, tail, head, x, y, z, ex, ey, ez, product_species[j], product_energy
+                        )
+                        if new_tail == tail:
+                            counters[C_DROPPED] += 1
+                        else:
+                            counters[C_PRODUCTS] += 1
+                        tail = new_tail
+            return tail
+        # ---------------- no reaction: reflect ----------------
+        if is_ion[species]:
+            m1 = proj_mass[species]
+            m2 = target_mass[tgt]
+            ratio = (m1 - m2) / (m1 + m2)
+            c2 = cos_inc * cos_inc
+            energy *= (1.0 - c2) + c2 * ratio * ratio
+            rx = dx - 2.0 * ddotn * nnx
+            ry = dy - 2.0 * ddotn * nny
+            rz = dz - 2.0 * ddotn * nnz
+            if rx * fnx + ry * fny + rz * fnz <= 1e-9:
+                dotf = dx * fnx + dy * fny + dz * fnz
+                rx = dx - 2.0 * dotf * fnx
+                ry = dy - 2.0 * dotf * fny
+                rz = dz - 2.0 * dotf * fnz
+            norm = math.sqrt(rx * rx + ry * ry + rz * rz)
+            dx = rx / norm
+            dy = ry / norm
+            dz = rz / norm
+        else:
+            ex, ey, ez = cosine_about(nnx, nny, nnz)
+            for _try in range(8):
+                if ex * fnx + ey * fny + ez * fnz > 0.0:
+                    break
+                ex, ey, ez = cosine_about(nnx, nny, nnz)
+            if ex * fnx + ey * fny + ez * fnz <= 0.0:
+                ex, ey, ez = cosine_about(fnx, fny, fnz)
+            dx = ex
+            dy = ey
+            dz = ez
+        if steps >= max_steps:
+            counters[C_STEPS] += steps
+            counters[C_STEP_LIMIT] += 1
+            return tail
+
+
+@numba.njit(cache=True)
+def run_particles(
+    mat: np.ndarray, fill: np.ndarray, cap: float, rcap: float, n_target: int, count_ions: bool,
+    src_species: np.ndarray, src_cum: np.ndarray, src_m: np.ndarray, src_emean: np.ndarray,
+    src_estd: np.ndarray,
+    pair_start: np.ndarray, pair_count: np.ndarray, pair_events: np.ndarray, action: np.ndarray,
+    conv_to: np.ndarray, prob_model: np.ndarray, prob_params: np.ndarray, angle_kind: np.ndarray,
+    yield_model: np.ndarray, yield_params: np.ndarray, s_dep: np.ndarray, prod_coef: np.ndarray,
+    prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
+    target_mass: np.ndarray, neutral_energy: float, product_energy: float, max_steps: int,
+    queue: np.ndarray, pbuf: np.ndarray, counters: np.ndarray, event_counts: np.ndarray, seed: int,
+) -> None:  # fmt: skip
+    """Launch primaries until ``n_target`` ions (``count_ions``) or primaries have been processed.
+
+    Args:
+      mat: (nx, ny, nz, 5) int32 species amounts; fill: (nx, ny, nz) float64 (both mutated).
+      cap, rcap: Si-class and resist units per full voxel.
+      src_*: (K,) incident sources: projectile index, cumulative normalized rate, cos-power exponent m,
+        energy mean and std [eV] (ions; ignored for neutrals).
+      the event tables: see ``events.EventTables``.
+      queue: (Q, 8) float64 product ring buffer; pbuf: (max_channels,) scratch; counters: (N_COUNTERS,)
+        int64; event_counts: (E,) int64 (both accumulated).
+      seed: seeds numba's generator for this call.
+    """
+    np.random.seed(seed)
+    nx, ny, nz = fill.shape
+    n_src = src_species.shape[0]
+    done = 0
+    while done < n_target:
+        u = np.random.random()
+        ks = n_src - 1
+        for q in range(n_src):
+            if u < src_cum[q]:
+                ks = q
+                break
+        s = src_species[ks]
+        counters[C_PRIMARY] += 1
+        if is_ion[s]:
+            counters[C_IONS] += 1
+            energy = max(src_emean[ks] + src_estd[ks] * np.random.standard_normal(), 0.0)
+            if count_ions:
+                done += 1
+        else:
+            counters[C_NEUTRALS] += 1
+            energy = neutral_energy
+        if not count_ions:
+            done += 1
+        ct = cos_power_polar(src_m[ks])
+        st = math.sqrt(max(0.0, 1.0 - ct * ct))
+        ph = 2.0 * math.pi * np.random.random()
+        x0 = np.random.random() * nx
+        y0 = np.random.random() * ny
+        z0 = nz - _FACE_EPS
+        head = 0
+        tail = fly(
+            s, energy, x0, y0, z0, st * math.cos(ph), st * math.sin(ph), -ct,
+            mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
+            prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
+            product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
+            queue, head, 0, pbuf, counters, event_counts,
+        )  # fmt: skip
+        # drain the FIFO of secondary products (they may not emit further products, but could)
+        while head != tail:
+            qx = queue[head, _Q_X]
+            qy = queue[head, _Q_Y]
+            qz = queue[head, _Q_Z]
+            qdx = queue[head, _Q_DX]
+            qdy = queue[head, _Q_DY]
+            qdz = queue[head, _Q_DZ]
+            qs = int(queue[head, _Q_SPECIES])
+            qe = queue[head, _Q_ENERGY]
+            head = (head + 1) % queue.shape[0]
+            tail = fly(
+                qs, qe, qx, qy, qz, qdx, qdy, qdz,
+                mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
+                prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
+                product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
+                queue, head, tail, pbuf, counters, event_counts,
+            )  # fmt: skip
+

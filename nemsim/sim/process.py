@@ -1,0 +1,192 @@
+"""One trajectory: controls -> 101 normalized two-channel SDF states [supp_simulator, supp_data_generation].
+
+``simulate_trajectory(scene, rules, controls, rng, config)`` is the library entry point; ``run_trajectory``
+returns the same states plus the bookkeeping (particle/event counters, final voxel state) used by the
+tests and benchmarks.
+
+Time stepping ([supp_simulator], "Flux-Triggered Morphology Evolution"): the horizon is cut into macro
+steps of ``scene.macro_dt_s`` (0.02 s); a macro step processes ``floor(R_ion dt + carry)`` incident ions
+(neutrals interleaved by species sampling, so their number varies); the fractional remainder is carried
+to the next macro step so the long-run ion count is exact (the paper says "approximately
+floor(R_ion dt)"). With zero ion flux a macro step processes floor(R dt + carry) neutrals instead. A state
+is recorded every ``macro_steps_per_snapshot`` macro steps (0.1 s) through Psi (``sdf.psi``): 101 states
+for the 10 s horizon. Controls are one vector (14,) for the whole trajectory or a recipe (T, 14) with one
+vector per transition. Every macro step seeds the kernel from ``rng``, so a trajectory is a
+deterministic function of (scene, rules, controls, config, rng state).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from nemsim.rules.compile import RuleTensors
+from nemsim.scenes import Scene
+
+from .config import SimConfig
+from .domain import Domain, initial_domain
+from .events import EventTables, build_event_tables
+from .kernels import COUNTER_NAMES, N_COUNTERS, run_particles
+from .sdf import psi
+
+log = logging.getLogger(__name__)
+
+N_CONTROLS = 14
+
+
+@dataclass
+class TrajectoryResult:
+    """Output of ``run_trajectory``.
+
+    states: (n_states, 2, D, H, W) float32 normalized SDF (channel 0 mask, 1 Si).
+    counters: name -> total over the trajectory (see ``kernels.COUNTER_NAMES``).
+    event_counts: (E,) int64 realized events per rule.
+    domain: final voxel state; initial_totals / final_totals: (5,) species amounts.
+    wall_s: wall-clock seconds.
+    """
+
+    states: np.ndarray
+    counters: dict[str, int]
+    event_counts: np.ndarray
+    domain: Domain
+    initial_totals: np.ndarray
+    final_totals: np.ndarray
+    wall_s: float
+
+
+def check_controls(controls_raw: np.ndarray, scene: Scene) -> np.ndarray:
+    """Validate (14,) or (T, 14) raw controls; returns a (T, 14) float64 schedule (T = n_transitions)."""
+    u = np.asarray(controls_raw, dtype=np.float64)
+    if u.ndim == 1:
+        if u.shape != (N_CONTROLS,):
+            raise ValueError(f"controls must have shape (14,) or ({scene.n_transitions}, 14), got {u.shape}")
+        u = np.broadcast_to(u, (scene.n_transitions, N_CONTROLS))
+    elif u.shape != (scene.n_transitions, N_CONTROLS):
+        raise ValueError(
+            f"a control recipe must have one vector per transition: shape ({scene.n_transitions}, 14), "
+            f"got {u.shape}"
+        )
+    if not np.all(np.isfinite(u)):
+        raise ValueError("controls contain NaN or infinite values")
+    if np.any(u < 0):
+        bad = sorted({int(j) for j in np.argwhere(u < 0)[:, -1]})
+        raise ValueError(f"controls must be >= 0 (fluxes, exponents, energies); negative at indices {bad}")
+    return np.ascontiguousarray(u)
+
+
+def _sources(tables: EventTables, u: np.ndarray, rate_per_flux: float) -> tuple[np.ndarray, ...]:
+    """Per-source (rate [1/s], m, E_mean, E_std) from one raw control vector."""
+    ctrl = tables.src_ctrl  # (K, 4)
+
+    def pick(col: int, default: float) -> np.ndarray:
+        idx = ctrl[:, col]
+        return np.where(idx >= 0, u[np.maximum(idx, 0)], default).astype(np.float64)
+
+    return pick(0, 0.0) * rate_per_flux, pick(1, 0.0), pick(2, 0.0), pick(3, 0.0)
+
+
+def initial_state(scene: Scene, config: SimConfig | None = None) -> np.ndarray:
+    """x_0: (2, D, H, W) float32 normalized SDF (Ψ) of the scene's initial geometry, identical to every
+    trajectory's first state. The surrogate's rollouts (service, counterfactual) start from it."""
+    cfg = (config or SimConfig()).resolved(scene)
+    assert cfg.capacity is not None and cfg.resist_capacity is not None
+    dom = initial_domain(scene, cfg.capacity, cfg.resist_capacity)
+    return psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
+
+
+def run_trajectory(
+    scene: Scene,
+    rules: RuleTensors,
+    controls_raw: np.ndarray,
+    rng: np.random.Generator,
+    config: SimConfig | None = None,
+    *,
+    tables: EventTables | None = None,
+    n_transitions: int | None = None,
+) -> TrajectoryResult:
+    """Simulate one trajectory (module docstring).
+
+    Args:
+      scene: geometry, grid and horizon. rules: compiled Event Rules Library (the only reaction table).
+      controls_raw: (14,) raw controls (CONTROL_NAMES order, physical units) or a (T, 14) recipe.
+      rng: generator the per-macro-step kernel seeds are drawn from. config: simulator constants.
+      tables: prebuilt ``build_event_tables(rules, config)`` (saves a few ms per call).
+      n_transitions: stop after this many transitions (default: the scene's horizon, 100).
+    Returns: ``TrajectoryResult`` with states (n + 1, 2, D, H, W) float32.
+    """
+    t0 = time.perf_counter()
+    cfg = (config or SimConfig()).resolved(scene)
+    assert cfg.capacity is not None and cfg.resist_capacity is not None
+    schedule = check_controls(controls_raw, scene)
+    n_tr = scene.n_transitions if n_transitions is None else int(n_transitions)
+    if not 0 <= n_tr <= scene.n_transitions:
+        raise ValueError(f"n_transitions must be in [0, {scene.n_transitions}], got {n_transitions}")
+    tables = tables if tables is not None else build_event_tables(rules, cfg)
+    rate_per_flux = cfg.particle_rate_per_flux(scene)
+
+    dom = initial_domain(scene, cfg.capacity, cfg.resist_capacity)
+    initial_totals = dom.totals()
+    states = np.empty((n_tr + 1, *scene.state_shape), dtype=np.float32)
+    states[0] = psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
+
+    queue = np.zeros((cfg.queue_capacity, 8), dtype=np.float64)
+    pbuf = np.zeros(tables.max_channels, dtype=np.float64)
+    counters = np.zeros(N_COUNTERS, dtype=np.int64)
+    event_counts = np.zeros(len(rules.names), dtype=np.int64)
+    carry = 0.0
+    dt = scene.macro_dt_s
+    for t in range(n_tr):
+        rate, m, e_mean, e_std = _sources(tables, schedule[t], rate_per_flux)
+        total = float(rate.sum())
+        ion_rate = float(rate[tables.is_ion[tables.src_species]].sum())
+        for _ in range(scene.macro_steps_per_snapshot):
+            seed = int(rng.integers(0, 2**32))
+            if total <= 0.0:
+                continue
+            count_ions = ion_rate > 0.0
+            expected = (ion_rate if count_ions else total) * dt + carry
+            n_target = int(math.floor(expected))
+            carry = expected - n_target
+            if n_target == 0:
+                continue
+            run_particles(
+                dom.mat, dom.fill, float(cfg.capacity), float(cfg.resist_capacity), n_target, count_ions,
+                tables.src_species, np.cumsum(rate) / total, m, e_mean, e_std,
+                tables.pair_start, tables.pair_count, tables.pair_events, tables.action, tables.conv_to,
+                tables.prob_model, tables.prob_params, tables.angle_kind, tables.yield_model,
+                tables.yield_params, tables.s_dep, tables.prod_coef, tables.prod_is_yield,
+                tables.product_species, tables.is_ion, tables.proj_mass, tables.target_mass,
+                cfg.neutral_energy_ev, cfg.product_energy_ev, cfg.max_steps,
+                queue, pbuf, counters, event_counts, seed,
+            )  # fmt: skip
+        states[t + 1] = psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
+    wall = time.perf_counter() - t0
+    result = TrajectoryResult(
+        states=states,
+        counters={name: int(v) for name, v in zip(COUNTER_NAMES, counters)},
+        event_counts=event_counts,
+        domain=dom,
+        initial_totals=initial_totals,
+        final_totals=dom.totals(),
+        wall_s=wall,
+    )
+    log.debug("trajectory: %.2f s, %d primaries", wall, result.counters["primary"])
+    return result
+
+
+def simulate_trajectory(
+    scene: Scene,
+    rules: RuleTensors,
+    controls_raw: np.ndarray,
+    rng: np.random.Generator,
+    config: SimConfig | None = None,
+) -> np.ndarray:
+    """Simulate one trajectory; returns (n_states, 2, D, H, W) float32 normalized, padded, transposed SDFs.
+
+    Args: see ``run_trajectory``. ``controls_raw`` is (14,) (constant) or (n_transitions, 14) (recipe).
+    """
+    return run_trajectory(scene, rules, controls_raw, rng, config).states
