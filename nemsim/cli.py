@@ -318,7 +318,8 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
     rules = compile_rules(load_rules())
     design = lhs_design()[: args.cases]
     out = {}
-    print(f"{'scene':<7} {'cases':>5} {'median s/traj':>14} {'median cpu s':>13} {'primaries/s':>12}")  # noqa: T201
+    header = f"{'scene':<7} {'cases':>5} {'median s/traj':>14} {'median cpu s':>13} {'primaries/s':>12}"
+    print(header)  # noqa: T201
     for scene in scenes:
         rep = bench_speed(scene, rules, design, config)
         med = rep["median"]
@@ -352,7 +353,8 @@ def _cmd_bench_noise(args: argparse.Namespace) -> int:
     scene = get_scene(args.scene)
     rules = compile_rules(load_rules())
     rep = bench_noise(scene, rules, lhs_design()[: args.cases], _sim_config(args.overrides), seeds)
-    print(f"noise floor ({scene.name}, {rep['n_cases']} design cases, seeds {seeds[0]} vs {seeds[1]}):")  # noqa: T201
+    title = f"noise floor ({scene.name}, {rep['n_cases']} design cases, seeds {seeds[0]} vs {seeds[1]}):"
+    print(title)  # noqa: T201
     print(f"  Avg RMSE   {rep['avg_rmse']:.5f}   (mask {rep['per_channel_avg_rmse'][0]:.5f}, "  # noqa: T201
           f"Si {rep['per_channel_avg_rmse'][1]:.5f})")
     print(f"  Final RMSE {rep['final_rmse']:.5f}")  # noqa: T201
@@ -657,6 +659,109 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
     return 0
 
 
+# ==== section: stress, bench rollout (owner: stress/speed) ======================================
+
+
+def _add_stress(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stress", help="hard-case stability: sub-box corners, angles, long and noisy rollouts")
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
+    p.add_argument("--steps", type=int, default=300, help="rollout length (default 300; trained horizon 100)")
+    p.add_argument("--max-corners", type=int, default=None,
+                   help="evenly spaced subset of the 128 flux/energy corners (default: all)")
+    p.add_argument("--noise-cases", type=int, default=4, help="cases with noisy state and controls")
+    p.add_argument("--batch-size", type=int, default=16, help="cases rolled out together")
+    p.add_argument("--seed", type=int, default=0, help="noise seed")
+    p.add_argument("--abs-bound", type=float, default=1.5,
+                   help="|value| above this is a blow-up (default 1.5)")
+    p.add_argument("--json", dest="json_out", default=None, help="write the full report to this JSON file")
+    p.set_defaults(handler=_cmd_stress)
+    p = _bench_subparsers(sub).add_parser(
+        "rollout", help="100-step rollout wall time: fp32 vs bf16 vs channels_last, with max |Δ| vs fp32"
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", help="checkpoint .pt")
+    src.add_argument("--scene", help="untrained NEMSim on this scene (seed 0), e.g. small")
+    p.add_argument("--steps", type=int, default=100, help="transitions per rollout (default 100)")
+    p.add_argument("--batch", type=int, default=1, help="trajectories per rollout (default 1)")
+    p.add_argument("--repeats", type=int, default=5, help="timed rollouts per variant (default 5)")
+    p.add_argument("--variants", default="fp32,fp32-percall,bf16,channels_last",
+                   help="comma-separated subset of fp32, fp32-percall, bf16, channels_last")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
+    p.set_defaults(handler=_cmd_bench_rollout)
+
+
+def _cmd_stress(args: argparse.Namespace) -> int:
+    import json
+
+    from nemsim.evaluation.stress import StressConfig, format_table, initial_state, run_stress
+    from nemsim.training.checkpoint import load_checkpoint
+
+    if args.steps < 1 or args.batch_size < 1 or args.noise_cases < 0:
+        raise UserError("--steps and --batch-size must be >= 1, --noise-cases >= 0")
+    if args.max_corners is not None and args.max_corners < 2:
+        raise UserError(f"--max-corners must be >= 2, got {args.max_corners}")
+    try:
+        loaded = load_checkpoint(args.checkpoint)
+    except (FileNotFoundError, ValueError) as exc:
+        raise UserError(str(exc)) from exc
+    cfg = StressConfig(steps=args.steps, max_corners=args.max_corners, noise_cases=args.noise_cases,
+                       batch_size=args.batch_size, seed=args.seed, abs_bound=args.abs_bound)
+    report = run_stress(loaded.model, loaded.scene, initial_state(loaded.scene), cfg)
+    report["checkpoint"] = str(args.checkpoint)
+    print(format_table(report))  # noqa: T201
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(report, f, indent=2)
+    return 0 if report["summary"]["passed"] else 1
+
+
+def _cmd_bench_rollout(args: argparse.Namespace) -> int:
+    import json
+
+    import torch
+
+    from nemsim.evaluation.bench import VARIANTS, bench_rollout, format_bench
+    from nemsim.evaluation.stress import initial_state
+
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad:
+        raise UserError(f"unknown variant(s) {bad}; choose from {list(VARIANTS)}")
+    if args.steps < 1 or args.batch < 1 or args.repeats < 1:
+        raise UserError("--steps, --batch and --repeats must be >= 1")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.checkpoint:
+        from nemsim.training.checkpoint import load_checkpoint
+
+        try:
+            loaded = load_checkpoint(args.checkpoint)
+        except (FileNotFoundError, ValueError) as exc:
+            raise UserError(str(exc)) from exc
+        model, scene = loaded.model, loaded.scene
+    else:
+        from nemsim.model.registry import build_model
+        from nemsim.rules.compile import compile_rules
+        from nemsim.rules.schema import load_rules
+        from nemsim.scenes import get_scene
+
+        try:
+            scene = get_scene(args.scene)
+        except (KeyError, ValueError) as exc:
+            raise UserError(str(exc)) from exc
+        torch.manual_seed(0)
+        model = build_model("nemsim", scene, compile_rules(load_rules()))
+    report = bench_rollout(model, initial_state(scene), steps=args.steps, batch=args.batch,
+                           repeats=args.repeats, variants=variants)
+    report["source"] = args.checkpoint or f"untrained nemsim on {scene.name}"
+    print(format_bench(report))  # noqa: T201
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(report, f, indent=2)
+    return 0
+
+
 # ------------------------------------------------------------------------------------------------
 
 
@@ -671,7 +776,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service):
+    for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress):
         add(sub)
     return parser
 

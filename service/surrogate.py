@@ -54,6 +54,33 @@ class RolloutResult:
     times_s: list[float]  # (T+1,)
     rollout_ms: float
     metrics_ms: float
+    warnings: tuple[str, ...] = ()  # stability guard findings (non-finite or out-of-range states)
+
+
+STATE_BOUND = 1.5  # |normalized SDF| above this is outside anything the model learned (data are in [-1, 1])
+
+
+def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str]:
+    """Readable warnings for a predicted trajectory (T+1, 2, D, H, W): the first step whose state is not
+    finite, and the first step whose |value| exceeds ``bound`` (`nemsim stress` measures the same)."""
+    flat = traj.reshape(traj.shape[0], -1)
+    finite = np.isfinite(flat).all(axis=1)  # (T+1,)
+    out: list[str] = []
+    if not finite.all():
+        k = int(np.argmin(finite))
+        out.append(
+            f"the prediction is not finite from step {k} on (NaN/Inf): states and metrics from there on "
+            "are unusable"
+        )
+    peak = np.abs(np.where(np.isfinite(flat), flat, 0.0)).max(axis=1)  # (T+1,)
+    if (peak > bound).any():
+        k = int(np.argmax(peak > bound))
+        out.append(
+            f"the predicted field leaves the signed-distance range from step {k} on (|value| up to "
+            f"{float(peak.max()):.3g}, data lie in [-1, 1]): the surrogate is unstable for these controls; "
+            "treat later steps as unreliable"
+        )
+    return out
 
 
 @dataclass
@@ -246,6 +273,9 @@ class Surrogate:
         t1 = time.perf_counter()
         metrics = {k: [float(v) for v in vals] for k, vals in profile_metrics_batch(traj, self.scene).items()}
         t2 = time.perf_counter()
+        guard = stability_warnings(traj)
+        if guard:
+            log.warning("rollout %s: %s", rid, "; ".join(guard))
         dt = float(self.scene.snapshot_dt_s)
         return RolloutResult(
             id=rid,
@@ -257,6 +287,7 @@ class Surrogate:
             times_s=[round(k * dt, 6) for k in range(steps + 1)],
             rollout_ms=1e3 * (t1 - t0),
             metrics_ms=1e3 * (t2 - t1),
+            warnings=tuple(guard),
         )
 
     def warm_up(self, steps: int) -> None:

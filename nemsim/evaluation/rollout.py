@@ -3,6 +3,11 @@
 x̂_0 = x_0 (ground truth), x̂_{t+1} = G_θ(x̂_t, u_t) for t = 0..T-1. Every prediction is fed back as it
 is: no teacher forcing, no correction, no reinitialization, no clipping of states or controls.
 Controls may vary per transition (a recipe); a constant control is the same vector repeated.
+
+Fast path ("model only what a scene needs"): a model with ``precompute(u) -> cache`` and
+``step(x, cache) -> x_next`` (NEMSim) gets its control-only part (rule kinetics, static anchor, MRC
+signature) computed once per distinct control vector instead of once per step; the prediction is the same
+as ``model(x, u_t)`` (same operations). Other models are called as ``model(x, u_t)``.
 """
 
 from __future__ import annotations
@@ -56,8 +61,17 @@ def rollout(
     u = u.to(device=x0.device, dtype=x0.dtype)
     traj = [x0] if keep else None
     x = x0
+    fast = callable(getattr(model, "precompute", None)) and callable(getattr(model, "step", None))
+    if fast:  # steps whose controls differ from the previous step's (recipes); one comparison up front
+        changed = [True] + (u[:, 1:T] != u[:, : T - 1]).flatten(2).any(dim=2).any(dim=0).tolist()
+    cache = None
     for t in range(T):
-        x = model(x, u[:, t])  # (B, 2, D, H, W)
+        if fast:
+            if changed[t]:
+                cache = model.precompute(u[:, t])
+            x = model.step(x, cache)  # (B, 2, D, H, W)
+        else:
+            x = model(x, u[:, t])  # (B, 2, D, H, W)
         if keep:
             traj.append(x)
         if on_step is not None:

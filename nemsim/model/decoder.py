@@ -10,9 +10,10 @@ no convolution runs at full resolution.
 
 ``unshuffle`` / ``shuffle`` are the 3-D space-to-depth / depth-to-space rearrangements (2x2x2 blocks),
 so x enters at full detail and Δx has per-voxel values. Up-sampling 1/4 -> 1/2 is nearest-neighbour
-(applied after the 1x1x1 mix, with which it commutes). The last convolution is initialized with weights
-scaled by ``out_scale`` (0.1) and zero bias: the initial prediction is close to persistence (x̂ ≈ x) while
-gradients still reach every layer.
+(applied after the 1x1x1 mix, with which it commutes). Conv1x1(unshuffle(x)) is computed as the equivalent
+2x2x2 stride-2 convolution of x (same weights, no permuted copy of the full-resolution state).
+The last convolution is initialized with weights scaled by ``out_scale`` (0.1) and zero bias: the initial
+prediction is close to persistence (x̂ ≈ x) while gradients still reach every layer.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from nemsim.model.layers import Conv3d, ConvGNAct, ResBlock3d
+from nemsim.model.layers import Conv3d, ConvGNAct, ResBlock3d, conv3d
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,23 @@ class ResidualDecoder(nn.Module):
     def forward(self, z_next: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """Δx (B, 2, D, H, W) from z̃ (B, C_z, d, h, w), b (B, 12, D/2, H/2, W/2), x (B, 2, D, H, W)."""
         h = self.mix_latent(self.coarse(z_next))  # (B, 16, d, h, w)
-        h = F.interpolate(h, size=tuple(b.shape[2:]), mode="nearest")  # (B, 16, D/2, H/2, W/2)
-        g = F.silu(h + self.mix_skip(b) + self.mix_state(space_to_depth(x.to(b.dtype))))  # (B, 16, D/2, ..)
+        h = upsample2(h, tuple(b.shape[2:]))  # (B, 16, D/2, H/2, W/2)
+        g = F.silu(h + self.mix_skip(b) + self._mix_state(x.to(b.dtype)))  # (B, 16, D/2, H/2, W/2)
         return depth_to_space(self.out(g))  # (B, 2, D, H, W)
+
+    def _mix_state(self, x: torch.Tensor) -> torch.Tensor:
+        """mix_state(space_to_depth(x)) computed as the equivalent 2x2x2 stride-2 convolution of x
+        (same weights viewed as (16, C, 2, 2, 2): no permuted copy of the full-resolution state)."""
+        w = self.mix_state.weight  # (16, 8C, 1, 1, 1), channel index c*8 + (dz*4 + dy*2 + dx)
+        kernel = w.reshape(w.shape[0], x.shape[1], 2, 2, 2)  # (16, C, 2, 2, 2)
+        return conv3d(x, kernel, self.mix_state.bias, stride=2)
+
+
+def upsample2(h: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
+    """Nearest-neighbour up-sampling to ``size``; an exact 2x factor is a broadcast copy (several times
+    faster than ``F.interpolate`` on CPU at these sizes, identical values)."""
+    B, C, d, hh, w = h.shape
+    if size != (2 * d, 2 * hh, 2 * w) or not h.is_contiguous():  # channels-last: interpolate keeps it
+        return F.interpolate(h, size=size, mode="nearest")
+    h = h[:, :, :, None, :, None, :, None].expand(B, C, d, 2, hh, 2, w, 2)  # (B, C, d, 2, h, 2, w, 2)
+    return h.reshape(B, C, *size)

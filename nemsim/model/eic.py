@@ -64,10 +64,18 @@ class EventIntensityCompiler(nn.Module):
 
     def log_rate(self, z_bar: torch.Tensor, u: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
         """Δℓ (B, E) from z̄ (B, K), u (B, U) and the rate descriptors ψ (E, 7)."""
+        s, d = self._modulation(u)
+        return self._log_rate(z_bar, u, s, d, psi)
+
+    def _modulation(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Control-only branches s = γ tanh(h_s(u)), d = γ h_d(u), each (B, K)."""
         g = self.cfg.gamma
+        return g * torch.tanh(self.h_s(u)), g * self.h_d(u)
+
+    def _log_rate(
+        self, z_bar: torch.Tensor, u: torch.Tensor, s: torch.Tensor, d: torch.Tensor, psi: torch.Tensor
+    ) -> torch.Tensor:
         a_z = self.h_z(z_bar)  # (B, K)
-        s = g * torch.tanh(self.h_s(u))  # (B, K)
-        d = g * self.h_d(u)  # (B, K)
         gate = torch.sigmoid(self.h_g(torch.cat([z_bar, u], dim=1)))  # (B, K)
         a = torch.tanh(a_z * (1.0 + s) + d) * gate  # (B, K)
         c = self.h_c(a)  # (B, K_c)
@@ -76,18 +84,36 @@ class EventIntensityCompiler(nn.Module):
         q = torch.cat([c[:, None, :].expand(B, E, -1), psi_b], dim=2)  # (B, E, K_c + 7)
         return self.cfg.delta_max * torch.tanh(self.h_rate(q).squeeze(-1))  # (B, E)
 
-    def forward(self, z_bar: torch.Tensor, u: torch.Tensor, rules) -> dict[str, torch.Tensor]:
-        """Returns dict with ``lam`` (B, E) ≥ 0, ``lam_p``, ``lam_d``, ``pool`` (B, S), ``dl`` (B, E)."""
-        # Kinetics in fp32 (smooth gates and thresholds are not bf16-friendly).
+    def precompute(self, u: torch.Tensor, rules) -> dict[str, torch.Tensor]:
+        """Everything that depends on the controls only, (B, ·) tensors in fp32: the rule kinetics
+        (Y, λ^{p,b}), the control-modulation branches (s, d) and the fp32 rule buffers. Reused by
+        ``forward(..., cache=...)`` across the steps of a rollout with constant controls."""
         with torch.autocast(device_type=u.device.type, enabled=False):
             u32 = u.float()
-            f, p, Y = kinetics.primary_terms(u32, rules)  # each (B, E), zero where d_e = 1 or dropped
-            lam_pb = f * p * Y  # (B, E)  λ^{p,b} = (1 - d_e) λᵇ
-            dl = self.log_rate(z_bar.float(), u32, rules.psi)  # (B, E)
+            # fp32 rule tensors on u's device, converted once (kinetics accepts the dict as ``rules``)
+            bufs = {k: v.to(u32.device) for k, v in rules.torch_buffers(torch.float32).items()}
+            f, p, Y = kinetics.primary_terms(u32, bufs)  # each (B, E), zero where d_e = 1 or dropped
+            s, d = self._modulation(u32)  # (B, K) each
+            return {"u": u32, "Y": Y, "lam_pb": f * p * Y, "s": s, "d": d, "rules": bufs}
+
+    def forward(
+        self, z_bar: torch.Tensor, u: torch.Tensor, rules, cache: dict | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Returns dict with ``lam`` (B, E) ≥ 0, ``lam_p``, ``lam_d``, ``pool`` (B, S), ``dl`` (B, E).
+
+        ``cache``: ``precompute(u, rules)`` for these controls (same result, the control-only part skipped).
+        """
+        # Kinetics in fp32 (smooth gates and thresholds are not bf16-friendly).
+        if cache is None:
+            cache = self.precompute(u, rules)
+        with torch.autocast(device_type=z_bar.device.type, enabled=False):
+            bufs = cache["rules"]
+            lam_pb = cache["lam_pb"]  # (B, E)  λ^{p,b} = (1 - d_e) λᵇ
+            dl = self._log_rate(z_bar.float(), cache["u"], cache["s"], cache["d"], bufs["psi"])  # (B, E)
             scale = torch.exp(dl)  # (B, E)
             lam_p = lam_pb * scale  # (B, E)
-            pool = kinetics.product_pool(lam_p, Y, rules)  # (B, S)
-            lam_db = kinetics.dependency_base(pool, rules)  # (B, E), d_e p_stick pool_q(e)
+            pool = kinetics.product_pool(lam_p, cache["Y"], bufs)  # (B, S)
+            lam_db = kinetics.dependency_base(pool, bufs)  # (B, E), d_e p_stick pool_q(e)
             lam_d = lam_db * scale  # (B, E)
             lam = lam_p + lam_d  # (B, E)
         return {"lam": lam, "lam_p": lam_p, "lam_d": lam_d, "pool": pool, "dl": dl}
@@ -100,7 +126,12 @@ class UnstructuredIntensity(nn.Module):
         super().__init__()
         self.net = mlp(cfg.context_dim + cfg.n_controls, cfg.fused_dim, n_events)
 
-    def forward(self, z_bar: torch.Tensor, u: torch.Tensor, rules) -> dict[str, torch.Tensor]:
+    def precompute(self, u: torch.Tensor, rules) -> dict[str, torch.Tensor]:
+        return {}
+
+    def forward(
+        self, z_bar: torch.Tensor, u: torch.Tensor, rules, cache: dict | None = None
+    ) -> dict[str, torch.Tensor]:
         lam = F.softplus(self.net(torch.cat([z_bar, u], dim=1)).float())  # (B, E)
         zeros = torch.zeros_like(lam)
         return {"lam": lam, "lam_p": lam, "lam_d": zeros, "pool": lam.new_zeros(lam.shape[0], 0), "dl": zeros}

@@ -110,22 +110,37 @@ class MechanismAttributionCompiler(nn.Module):
         num = beta * rules.alpha0.float()  # (E, M)
         return num / num.sum(dim=-1, keepdim=True)
 
-    def forward(self, lam: torch.Tensor, z_bar: torch.Tensor, u: torch.Tensor, rules) -> torch.Tensor:
-        """α (B, E, M) from λ (B, E), z̄ (B, K), u (B, U)."""
+    def precompute(self, rules) -> dict[str, torch.Tensor]:
+        """The state- and control-independent parts, fp32: α^anc (E, M), c_m r^mech (1, E, M), the event
+        half of h_ctx's first layer (E, hidden) and ρ. Reused across the steps of a rollout."""
+        if not self.enabled:
+            return {}
+        with torch.autocast(device_type=rules.phi.device.type, enabled=False):
+            r_bar = rules.phi.float()[:, : self.cfg.param_dim]  # (E, 18)
+            return {
+                "a_anc": self.anchor(rules),  # (E, M)
+                "role": self.c[None, None, :] * rules.r_mech.float()[None],  # (1, E, M) c_m r^mech_{e,m}
+                "ctx_event": self.ctx_event(r_bar)[None],  # (1, E, hidden)
+                "rho": self.rho,
+            }
+
+    def forward(
+        self, lam: torch.Tensor, z_bar: torch.Tensor, u: torch.Tensor, rules, cache: dict | None = None
+    ) -> torch.Tensor:
+        """α (B, E, M) from λ (B, E), z̄ (B, K), u (B, U); ``cache``: ``precompute(rules)`` (same result)."""
         B, E = lam.shape
         M = self.cfg.n_families
         if not self.enabled:
             return lam.new_full((B, E, M), 1.0 / M)
+        if cache is None:
+            cache = self.precompute(rules)
         with torch.autocast(device_type=lam.device.type, enabled=False):
             lam = lam.float()
-            a_anc = self.anchor(rules)  # (E, M)
             intensity = bounded_intensity(lam, self.cfg.eps)  # (B, E)
-            role = self.c[None, None, :] * rules.r_mech.float()[None]  # (1, E, M) c_m r^mech_{e,m}
-            b_rule = intensity[:, :, None] * role  # (B, E, M)
-            r_bar = rules.phi.float()[:, : self.cfg.param_dim]  # (E, 18)
+            b_rule = intensity[:, :, None] * cache["role"]  # (B, E, M)
             zu = torch.cat([z_bar, u], 1).float()  # (B, K + U)
-            hidden = self.ctx_event(r_bar)[None] + self.ctx_state(zu)[:, None]  # (B, E, hidden)
+            hidden = cache["ctx_event"] + self.ctx_state(zu)[:, None]  # (B, E, hidden)
             b_ctx = self.ctx_out(F.silu(hidden))  # (B, E, M)
             delta = torch.tanh(b_rule + self.cfg.kappa * b_ctx)  # (B, E, M)
-            v = a_anc[None] * torch.exp(self.rho * delta)  # (B, E, M)
+            v = cache["a_anc"][None] * torch.exp(cache["rho"] * delta)  # (B, E, M)
             return v / v.sum(dim=-1, keepdim=True)

@@ -84,21 +84,72 @@ class MechanismResponseCompiler(nn.Module):
     def saturation(self) -> torch.Tensor:
         return F.softplus(self.k_raw) + self.cfg.eps  # K (M, R)
 
+    def precompute(self, rules, fused: bool = False) -> dict[str, torch.Tensor]:
+        """The state- and control-independent parts: S (E, M, R), A and K (M, R), fp32; with ``fused``
+        also the head products of ``fused_increment`` (then ``forward`` takes that path)."""
+        out: dict[str, torch.Tensor] = {}
+        with torch.autocast(device_type=rules.phi.device.type, enabled=False):
+            if self.enabled:
+                out.update(S=self.signature(rules), A=self.capacity, K=self.saturation)
+            if fused:
+                MR, C = self.cfg.n_families * self.cfg.n_modes, self.cfg.latent_channels
+                W = self.heads.weight.float().reshape(MR, C, -1)  # (M·R, C, F)
+                b = self.heads.bias.float().reshape(MR, C)  # (M·R, C)
+                out.update(
+                    head_w=W, head_b=b,
+                    head_wtw=torch.einsum("kcf,kcg->kfg", W, W),  # (M·R, F, F)
+                    head_wtb=torch.einsum("kcf,kc->kf", W, b),  # (M·R, F)
+                    head_btb=(b * b).sum(-1),  # (M·R,)
+                )
+        return out
+
+    def fused_increment(self, z: torch.Tensor, coef: torch.Tensor, cache: dict) -> torch.Tensor:
+        """Δz = Σ_k coef_k B_k (B, C, d, h, w) without materializing the M·R mode fields (inference path;
+        equal to ``modes`` + sum up to float rounding). The heads are 1x1x1, so B̃_k = W_k H + b_k and
+
+            ν_k² = mean_{c,v} (W_k H_v + b_k)² = [tr(W_kᵀW_k H Hᵀ) + 2 (W_kᵀ b_k)ᵀ Σ_v H_v + N |b_k|²] / (C N)
+            Δz   = (Σ_k a_k W_k) H + Σ_k a_k b_k,   a_k = coef_k / sqrt(ν_k² + ε)
+
+        from the F x F Gram matrix of the trunk features H (B, F, N).
+        """
+        H = self.trunk(z)  # (B, F, d, h, w)
+        Bsz, Fw, d, h, w = H.shape
+        N, C = d * h * w, self.cfg.latent_channels
+        with torch.autocast(device_type=z.device.type, enabled=False):
+            Hf = H.float().reshape(Bsz, Fw, N)  # (B, F, N)
+            gram = Hf @ Hf.transpose(1, 2)  # (B, F, F)
+            total = Hf.sum(dim=2)  # (B, F)
+            sq = (
+                torch.einsum("kfg,bfg->bk", cache["head_wtw"], gram)
+                + 2.0 * total @ cache["head_wtb"].T
+                + N * cache["head_btb"]
+            )  # (B, M·R)  Σ_{c,v} B̃²
+            nu = torch.sqrt(sq.clamp_min(0) / (C * N) + self.cfg.eps)  # (B, M·R)
+            a = coef.float() / nu  # (B, M·R)
+            w_eff = torch.einsum("bk,kcf->bcf", a, cache["head_w"])  # (B, C, F)
+            b_eff = a @ cache["head_b"]  # (B, C)
+            dz = torch.baddbmm(b_eff[:, :, None], w_eff, Hf)  # (B, C, N)
+        return dz.reshape(Bsz, C, d, h, w).to(H.dtype)
+
     def amplitudes(
-        self, z_bar: torch.Tensor, u: torch.Tensor, T: torch.Tensor, rules
+        self, z_bar: torch.Tensor, u: torch.Tensor, T: torch.Tensor, rules, cache: dict | None = None
     ) -> dict[str, torch.Tensor | None]:
-        """w (B, M, R) and the intermediate S, P, G (None under the w/o-MRC ablation)."""
+        """w (B, M, R) and the intermediate S, P, G (None under the w/o-MRC ablation).
+
+        ``cache``: ``precompute(rules)`` (same result, S, A and K not recomputed)."""
         B = T.shape[0]
         M, R = self.cfg.n_families, self.cfg.n_modes
         zu = torch.cat([z_bar, u], dim=1).float()  # (B, K + U)
         if not self.enabled:
             w = self.h_direct(torch.cat([zu, T.reshape(B, -1)], dim=1)).view(B, M, R)  # (B, M, R)
             return {"w": w, "S": None, "P": None, "G": None}
-        S = self.signature(rules)  # (E, M, R)
+        if cache is None:
+            cache = self.precompute(rules)
+        S = cache["S"]  # (E, M, R)
         P = torch.einsum("bem,emr->bmr", T, S)  # (B, M, R)
         G = torch.sigmoid(self.h_gate(zu)).view(B, M, R)  # (B, M, R)
         eps = self.cfg.eps
-        w = self.capacity * P / (self.saturation + P + eps) * G  # (B, M, R)
+        w = cache["A"] * P / (cache["K"] + P + eps) * G  # (B, M, R)
         return {"w": w, "S": S, "P": P, "G": G}
 
     def modes(self, z: torch.Tensor) -> torch.Tensor:
@@ -110,12 +161,15 @@ class MechanismResponseCompiler(nn.Module):
         return fields / nu.to(fields.dtype)
 
     def forward(
-        self, z: torch.Tensor, z_bar: torch.Tensor, u: torch.Tensor, T: torch.Tensor, rules
+        self, z: torch.Tensor, z_bar: torch.Tensor, u: torch.Tensor, T: torch.Tensor, rules,
+        cache: dict | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor | None]]:
         with torch.autocast(device_type=z.device.type, enabled=False):
-            amp = self.amplitudes(z_bar.float(), u.float(), T.float(), rules)
-        basis = self.modes(z)  # (B, M·R, C, d, h, w)
+            amp = self.amplitudes(z_bar.float(), u.float(), T.float(), rules, cache)
         Bsz = z.shape[0]
+        if cache is not None and "head_w" in cache:
+            return self.fused_increment(z, amp["w"].reshape(Bsz, -1), cache), amp
+        basis = self.modes(z)  # (B, M·R, C, d, h, w)
         coef = amp["w"].reshape(Bsz, -1).to(basis.dtype)  # (B, M·R)
         dz = torch.einsum("bk,bkcdhw->bcdhw", coef, basis)  # (B, C, d, h, w)
         return dz, amp

@@ -75,6 +75,7 @@ async def post_rollout(
         result, cached = await run_in_threadpool(surrogate.rollout, schedule)
     except ServiceBusy as exc:
         busy(exc)
+    warnings.extend(result.warnings)
 
     t0 = time.perf_counter()
     fields = None

@@ -1,0 +1,126 @@
+"""Rollout speed of a one-step surrogate at several precisions, side by side (`nemsim bench rollout`).
+
+Each variant rolls out the same ``steps``-step trajectories (batch ``batch``, seeded controls uniform in the
+normalized design box, the scene's initial state) ``repeats`` times after one warm-up rollout; reported:
+median and min wall seconds per rollout, and max |Δ| of the whole trajectory against fp32 (normalized SDF
+units), so the fastest precision that keeps the error is visible. Variants are interleaved (fp32, bf16,
+channels_last, fp32, ...) so that load from other processes on the machine hits them alike.
+
+Variants:
+  * ``fp32``: the model as loaded (NEMSim: the cached-control fast path of ``rollout``);
+  * ``fp32-percall``: the same model called as ``model(x, u_t)`` every step (no control cache), the
+    reference for what the cache saves;
+  * ``bf16``: ``torch.autocast("cpu", torch.bfloat16)`` around the rollout (the rule side stays fp32);
+  * ``channels_last``: a copy of the model and the state in ``torch.channels_last_3d`` memory format.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import statistics
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from nemsim.controls import N_CONTROLS
+from nemsim.evaluation.rollout import rollout
+
+VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last")
+
+
+class _PerCall(nn.Module):
+    """Hides ``precompute``/``step`` so ``rollout`` calls ``model(x, u_t)`` every step."""
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return self.model(x, u)
+
+
+def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[nn.Module, torch.Tensor, Any]:
+    """(model, x0, context manager factory) of one variant."""
+    if name == "fp32":
+        return model, x0, contextlib.nullcontext
+    if name == "fp32-percall":
+        return _PerCall(model), x0, contextlib.nullcontext
+    if name == "bf16":
+        return model, x0, lambda: torch.autocast("cpu", dtype=torch.bfloat16)
+    if name == "channels_last":
+        cl = copy.deepcopy(model).to(memory_format=torch.channels_last_3d)
+        return cl, x0.contiguous(memory_format=torch.channels_last_3d), contextlib.nullcontext
+    raise ValueError(f"unknown variant {name!r}; expected one of {VARIANTS}")
+
+
+def bench_rollout(
+    model: nn.Module,
+    x0: np.ndarray | torch.Tensor,
+    *,
+    steps: int = 100,
+    batch: int = 1,
+    repeats: int = 5,
+    variants: Sequence[str] = VARIANTS,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Time ``steps``-step rollouts of ``model`` from x0 (2, D, H, W) for each variant (CPU).
+
+    Returns {"steps", "batch", "repeats", "threads", "variants": {name: {"median_s", "min_s", "times_s",
+    "max_abs_diff_vs_fp32"}}}; ``max_abs_diff_vs_fp32`` is max |x̂ - x̂_fp32| over the whole trajectory.
+    """
+    if steps < 1 or batch < 1 or repeats < 1:
+        raise ValueError(f"steps, batch and repeats must be >= 1, got {steps}, {batch}, {repeats}")
+    variants = list(variants)
+    if "fp32" not in variants:
+        variants.insert(0, "fp32")
+    model = model.eval()
+    x = torch.as_tensor(np.asarray(x0), dtype=torch.float32)[None].repeat(batch, 1, 1, 1, 1)  # (B,2,D,H,W)
+    g = torch.Generator().manual_seed(seed)
+    u = torch.rand(batch, N_CONTROLS, generator=g) * 2 - 1  # (B, 14) normalized
+    setups = {name: _variant(model, x, name) for name in variants}
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    trajs: dict[str, torch.Tensor] = {}
+    with torch.inference_mode():
+        for name, (m, xv, ctx) in setups.items():  # warm-up, and the trajectory for the error figure
+            with ctx():
+                trajs[name] = rollout(m, xv, u, steps).float().contiguous()
+        for _ in range(repeats):
+            for name, (m, xv, ctx) in setups.items():
+                with ctx():
+                    t0 = time.perf_counter()
+                    rollout(m, xv, u, steps)
+                    times[name].append(time.perf_counter() - t0)
+    ref = trajs["fp32"]
+    return {
+        "steps": steps,
+        "batch": batch,
+        "repeats": repeats,
+        "threads": torch.get_num_threads(),
+        "variants": {
+            name: {
+                "median_s": statistics.median(times[name]),
+                "min_s": min(times[name]),
+                "times_s": times[name],
+                "max_abs_diff_vs_fp32": float((trajs[name] - ref).abs().max()),
+            }
+            for name in variants
+        },
+    }
+
+
+def format_bench(report: dict[str, Any]) -> str:
+    lines = [
+        f"{report['steps']}-step rollout, batch {report['batch']}, {report['repeats']} repeats, "
+        f"{report['threads']} thread(s):",
+        f"  {'variant':14s} {'median s':>9s} {'min s':>8s} {'max|Δ| vs fp32':>15s}",
+    ]
+    for name, v in report["variants"].items():
+        lines.append(
+            f"  {name:14s} {v['median_s']:9.3f} {v['min_s']:8.3f} {v['max_abs_diff_vs_fp32']:15.2e}"
+        )
+    return "\n".join(lines)
