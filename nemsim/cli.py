@@ -762,6 +762,124 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     return 0
 
 
+# ==== section: bench speed-error, bench collect (owner: speed-error / results) ==================
+
+
+def _add_speed_error(sub: argparse._SubParsersAction) -> None:
+    bench_sub = _bench_subparsers(sub)
+    p = bench_sub.add_parser(
+        "speed-error",
+        help="wall time per trajectory against error: simulator budgets 1, 1/4, 1/16 and checkpoints",
+        description=(
+            "On the setting's first N test cases, time one trajectory of the simulator at full, 1/4 and 1/16 "
+            "particle budget and of every checkpoint in fp32 and bf16, and score each against an "
+            "independent full-budget simulator run (the file's own trajectory vs that run is the noise "
+            "floor). Writes speed_error.{json,md,png} to --out."
+        ),
+    )
+    p.add_argument("--data", required=True, metavar="FILE.h5", help="trajectory file (nemsim generate)")
+    p.add_argument("--setting", default="control-id", help="split setting (default control-id)")
+    p.add_argument("--checkpoints", nargs="+", default=[], metavar="CKPT", help="checkpoint .pt files")
+    p.add_argument("--splits", default=None, metavar="DIR",
+                   help="directory of <setting>.json manifests (default: <data dir>/splits, else computed)")
+    p.add_argument("--cases", type=int, default=5, help="first N test cases (default 5)")
+    p.add_argument("--budgets", default="1,0.25,0.0625",
+                   help="simulator particle budgets (default 1,0.25,0.0625)")  # fmt: skip
+    p.add_argument("--precisions", default="fp32,bf16", help="model precisions (default fp32,bf16)")
+    p.add_argument("--seed", type=int, default=1, help="entropy of the reference reruns (default 1)")
+    p.add_argument("--steps", type=int, default=None, help="transitions (default: the scene's horizon)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads (default 1: the simulator is single-threaded too)")
+    p.add_argument("--out", default="benchmarks/small", metavar="DIR", help="output directory")
+    p.set_defaults(handler=_cmd_bench_speed_error)
+
+    p = bench_sub.add_parser(
+        "collect",
+        help="assemble results.json and the README table from training runs and a speed-error report",
+    )
+    p.add_argument("--runs", nargs="+", required=True, metavar="DIR", help="run dirs with test_metrics.json")
+    p.add_argument("--speed-error", default=None, metavar="FILE.json",
+                   help="speed_error.json of `nemsim bench speed-error` (noise floor and speed)")
+    p.add_argument("--out", default="benchmarks/small/results.json", metavar="FILE.json", help="output JSON")
+    p.add_argument("--readme", default=None, metavar="FILE.md",
+                   help="Markdown file for the table (default: README.md next to --out)")
+    p.set_defaults(handler=_cmd_bench_collect)
+
+
+def _load_setting_manifest(data: str, setting: str, splits: str | None) -> dict:
+    from pathlib import Path
+
+    from nemsim.data import splits as splits_mod
+
+    directory = Path(splits) if splits else Path(data).parent / "splits"
+    if splits or (directory / f"{setting}.json").is_file():
+        try:
+            return splits_mod.load_manifest(directory, setting)
+        except (OSError, ValueError) as exc:
+            raise UserError(str(exc)) from None
+    from nemsim.data.hdf5 import open_trajectories
+
+    with open_trajectories(data) as tf:
+        manifests = splits_mod.make_manifests(tf.controls_raw, tf.case_ids,
+                                              n_transitions=tf.scene.n_transitions)  # fmt: skip
+    if setting not in manifests:
+        raise UserError(f"unknown setting {setting!r}; expected one of {sorted(manifests)}")
+    return manifests[setting]
+
+
+def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
+    import os
+
+    import torch
+
+    from nemsim.evaluation.speed_error import (
+        SpeedErrorConfig,
+        format_markdown,
+        run_speed_error,
+        write_speed_error,
+    )
+
+    if not os.path.isfile(args.data):
+        raise UserError(f"no such file: {args.data}")
+    missing = [c for c in args.checkpoints if not os.path.isfile(c)]
+    if missing:
+        raise UserError(f"no such checkpoint: {missing[0]}")
+    if args.cases < 1 or args.threads < 1:
+        raise UserError("--cases and --threads must be >= 1")
+    try:
+        budgets = tuple(float(b) for b in args.budgets.split(",") if b.strip())
+    except ValueError:
+        raise UserError(f"--budgets {args.budgets!r}: expected numbers, e.g. 1,0.25") from None
+    if any(not 0 < b <= 1 for b in budgets):
+        raise UserError(f"--budgets {args.budgets!r}: each budget must be in (0, 1]")
+    precisions = tuple(p.strip() for p in args.precisions.split(",") if p.strip())
+    torch.set_num_threads(args.threads)
+    manifest = _load_setting_manifest(args.data, args.setting, args.splits)
+    cfg = SpeedErrorConfig(cases=args.cases, budgets=budgets, precisions=precisions, seed=args.seed,
+                           steps=args.steps)  # fmt: skip
+    try:
+        report = run_speed_error(args.data, args.checkpoints, manifest, cfg)
+    except (KeyError, ValueError) as exc:
+        raise UserError(str(exc).splitlines()[0]) from exc
+    paths = write_speed_error(report, args.out)
+    print(format_markdown(report))  # noqa: T201
+    print(f"wrote {paths['json']}, {paths['md']}, {paths['png']}")  # noqa: T201
+    return 0
+
+
+def _cmd_bench_collect(args: argparse.Namespace) -> int:
+    from nemsim.evaluation.results import collect_results, results_markdown, write_results
+
+    try:
+        results = collect_results(args.runs, args.speed_error)
+    except (OSError, ValueError) as exc:
+        raise UserError(str(exc)) from exc
+    out, readme = write_results(results, args.out, args.readme)
+    print(results_markdown(results))  # noqa: T201
+    print(f"wrote {out} and {readme}")  # noqa: T201
+    return 0
+
+
 # ------------------------------------------------------------------------------------------------
 
 
@@ -776,7 +894,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress):
+    for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress,
+                _add_speed_error):
         add(sub)
     return parser
 

@@ -19,7 +19,11 @@ Choices where the paper is silent:
   * the latent z lives on the 1/4-resolution grid, the encoder's deepest level at 1/8, its support
     feature b at 1/2; no convolution runs at full resolution (see encoder.py, decoder.py);
   * rule-side computations (EIC, MAC, the amplitude part of MRC) run in fp32 even under bf16 autocast;
-  * aux also carries ``S`` (signature, E x M x R), ``lambda_p``, ``lambda_d``, ``pool`` and ``delta_l``.
+  * aux also carries ``S`` (signature, E x M x R), ``lambda_p``, ``lambda_d``, ``pool`` and ``delta_l``;
+  * ``clamp_input``: the network reads clamp(x, -1, 1). Every valid state is already in [-1, 1] (SDF/d_max
+    clipped), so training is unaffected; in long or out-of-range rollouts it stops a drifted value from being
+    amplified by the network (``nemsim stress`` found exponential growth without it). The rollout state itself
+    is never clipped: x̂ = x + Dec(...), as the protocol requires.
 
 Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
 the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,

@@ -29,6 +29,29 @@ Calibration (``small``; measured on 25 design cases = every 20th row of the 500-
 Values were chosen by short sweeps (kappa 1.0 -> 0.7 -> 0.6; resist ratio 1.0 / 0.75 / 0.5; capacity 16
 vs 32, which did not lower the noise of the fast-etching cases - their seed-to-seed spread is in the
 etch-front position, not in voxel-scale roughness).
+
+Particle budget (``particle_budget`` = b, used by ``nemsim bench speed-error``): the simulator traces b
+times the calibrated number of particles, and every simulated particle becomes a *super-particle* of
+weight w = 1/b: it stands for w particles of the full-budget run. The weight is applied to what a surface
+event moves, never to the geometry or the units:
+  * removal / conversion: k = stochastic_round(w Y) units (Y the rule's yield) instead of
+    stochastic_round(Y) - the expected material change per unit of real flux is unchanged;
+  * deposition (product sticking): stochastic_round(w) units (what does not fit in the hit voxel goes to
+    the vacuum voxel in front of it);
+  * emitted SiCl_x products are super-particles of the same weight: coef x removed / w of them for
+    yield-proportional products, coef min(Y, 1) removed / (w Y) for fixed per-event products (a real
+    event emits those iff it removed something, probability min(Y, 1)), so product transport is also
+    cut by b and their deposit carries w units each.
+Why not the alternatives: keeping one unit per event with b times fewer particles would etch b times less
+(wrong physics); coarsening the capacity to b x capacity units per voxel would leave 1 unit per voxel at
+b = 1/16 on ``small`` and break the resist/Si density ratio and Psi's sub-voxel fractions. With weights the
+voxel resolution, capacities and Psi stay as calibrated; only the Monte Carlo variance grows (~1/b in the
+number of events). An event moves at most the target species present in the hit voxel (min(k, available),
+as at budget 1); at b < 1 a capped event does not lose the rest: the unused fraction (k - moved)/k of the
+particle's weight flies on along the same path (the real particles it stands for did not find material
+there), otherwise w Y ~ 16 units at b = 1/16 against 16-unit voxels would slow the etch by about a third.
+Budget 1 runs exactly the calibrated simulator (same random stream, bit-identical states), and the field
+is not written into ``to_meta`` at 1 so data files made before it existed stay resumable.
 """
 
 from __future__ import annotations
@@ -65,6 +88,7 @@ class SimConfig:
     resist_density_ratio: float = 0.75  # resist units per voxel / Si units per voxel (calibrated)
     si_atoms_per_nm3: float = 50.0  # Si atomic density [nm^-3]: real atoms in one Si unit = n V / capacity
     flux_scale: float = 0.6  # kappa: simulated particles per (real particle / atoms per unit); calibrated
+    particle_budget: float = 1.0  # b: fraction of the calibrated particle count; each weighs 1/b (docstring)
     max_steps: int = 10_000  # steps (voxel crossings + surface hits) per particle [supp_simulator]
     neutral_energy_ev: float = 0.2  # incident energy of neutral Cl [supp_simulator]
     product_energy_ev: float = 2.0  # energy of emitted SiCl_x products [supp_simulator]
@@ -80,6 +104,11 @@ class SimConfig:
             value = getattr(self, name)
             if value is not None and not (1 <= value <= 30_000):
                 raise ValueError(f"{name} must be in [1, 30000] units per voxel, got {value}")
+        if not (self.particle_budget > 0 and math.isfinite(self.particle_budget)):
+            raise ValueError(
+                f"particle_budget must be a finite number > 0 (1 = full budget, 0.25 = a quarter), "
+                f"got {self.particle_budget}"
+            )
         if self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
         if self.psi_sigma_vox < 0:
@@ -97,10 +126,15 @@ class SimConfig:
         return replace(self, capacity=cap, resist_capacity=rcap)
 
     def particles_per_real(self, scene: Scene) -> float:
-        """Simulated particles per real incident particle, w (module docstring)."""
+        """Simulated particles per real incident particle, w (module docstring), times the particle budget."""
         cap = self.resolved(scene).capacity
         assert cap is not None
-        return self.flux_scale * cap / (self.si_atoms_per_nm3 * scene.voxel_nm**3)
+        return self.flux_scale * cap / (self.si_atoms_per_nm3 * scene.voxel_nm**3) * self.particle_budget
+
+    @property
+    def particle_weight(self) -> float:
+        """1 / particle_budget: full-budget particles one simulated particle stands for (module docstring)."""
+        return 1.0 / self.particle_budget
 
     def particle_rate_per_flux(self, scene: Scene) -> float:
         """Simulated particles per second per unit flux (1 mol m^-2 s^-1) through the top plane."""
@@ -110,6 +144,8 @@ class SimConfig:
         """JSON-able record of every constant (resolved for ``scene`` when given)."""
         cfg = self.resolved(scene) if scene is not None else self
         out = asdict(cfg)
+        if cfg.particle_budget == 1.0:  # keeps files generated before the field existed resumable
+            del out["particle_budget"]
         out["projectile_mass_amu"] = dict(cfg.projectile_mass_amu)
         out["target_mass_amu"] = dict(cfg.target_mass_amu)
         if scene is not None:

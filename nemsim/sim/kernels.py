@@ -38,6 +38,11 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
     vacuum voxel in front of the hit face; on a solid voxel they stick with the rule's p_stick (adding one
     unit of their species to the hit voxel, or to the vacuum voxel in front of it when the hit voxel is
     full), otherwise reflect diffusely.
+  * particle budget: every particle carries ``weight`` = 1/budget (1 by default); a surface event moves
+    stochastic_round(weight x units) and emitted products carry the same weight (``config`` module
+    docstring, "Particle budget"). When such an event is capped by the target present in the voxel
+    (k > available), the unused fraction (k - removed)/k of the weight flies on along the same path
+    (budget < 1 only; at weight 1 the calibrated simulator is unchanged and draws no extra numbers).
 """
 
 from __future__ import annotations
@@ -200,15 +205,18 @@ def fly(
     prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
     target_mass: np.ndarray, product_energy: float, max_steps: int,
     queue: np.ndarray, head: int, tail: int, pbuf: np.ndarray, counters: np.ndarray,
-    event_counts: np.ndarray,
+    event_counts: np.ndarray, weight: float = 1.0,
 ) -> int:  # fmt: skip
     """Transport one particle until it reacts, escapes or runs out of steps; returns the queue tail.
 
     Mutates ``mat``/``fill`` (surface events), ``queue`` (emitted products), ``counters``, ``event_counts``.
+    ``weight`` = 1 / particle budget: the material one surface event moves, relative to budget 1
+    (module docstring).
     """
     nx, ny, nz = fill.shape
     n_t = mat.shape[3]
     steps = 0
+    w_event = weight  # weight still to be spent by this particle (< weight after a capped event)
     inf = 1e300
     while True:
         # ---------------- voxel traversal from (x, y, z) along (dx, dy, dz) ----------------
@@ -363,25 +371,41 @@ def fly(
             act = action[chosen]
             if act == ACT_DEPOSIT:
                 add = conv_to[chosen]
-                if fill[wx, wy, iz] + 1.0 / cap <= 1.0 + 1e-9:
+                # units stuck: 1 at full budget (no random draw there, so budget 1 keeps its stream)
+                n_add = 1 if w_event == 1.0 else stochastic_round(w_event)
+                if n_add == 0:
+                    return tail
+                if n_add > 1:
+                    # what fits stays in the hit voxel, the rest goes to the vacuum voxel in front of it
+                    room = int(math.floor((1.0 + 1e-9 - fill[wx, wy, iz]) * cap))
+                    here = min(max(room, 0), n_add)
+                    if here > 0:
+                        mat[wx, wy, iz, add] += here
+                        _refill(mat, fill, wx, wy, iz, cap, rcap)
+                        counters[C_STUCK] += here
+                        counters[C_DEPOSITED + add] += here
+                    n_add -= here
+                    if n_add == 0:
+                        return tail
+                elif fill[wx, wy, iz] + 1.0 / cap <= 1.0 + 1e-9:
                     mat[wx, wy, iz, add] += 1
                     _refill(mat, fill, wx, wy, iz, cap, rcap)
                     counters[C_STUCK] += 1
                     counters[C_DEPOSITED + add] += 1
+                    return tail
+                px = int(math.floor(x)) % nx
+                py = int(math.floor(y)) % ny
+                pz = int(math.floor(z))
+                if 0 <= pz < nz:
+                    mat[px, py, pz, add] += n_add
+                    _refill(mat, fill, px, py, pz, cap, rcap)
+                    counters[C_STUCK] += n_add
+                    counters[C_DEPOSITED + add] += n_add
                 else:
-                    px = int(math.floor(x)) % nx
-                    py = int(math.floor(y)) % ny
-                    pz = int(math.floor(z))
-                    if 0 <= pz < nz:
-                        mat[px, py, pz, add] += 1
-                        _refill(mat, fill, px, py, pz, cap, rcap)
-                        counters[C_STUCK] += 1
-                        counters[C_DEPOSITED + add] += 1
-                    else:
-                        counters[C_DROPPED] += 1
+                    counters[C_DROPPED] += 1
                 return tail
             y_val = yield_physical(yield_model[chosen], yield_params[chosen], energy, cos_inc)
-            k = stochastic_round(y_val)
+            k = stochastic_round(y_val * w_event)  # units this (weighted) event moves
             have = mat[wx, wy, iz, tgt]
             nrem = k if k < have else have
             if act == ACT_REACT:
@@ -392,7 +416,12 @@ def fly(
                 counters[C_CONV_TO + dst] += nrem
                 if tgt == 4 or dst == 4:
                     _refill(mat, fill, wx, wy, iz, cap, rcap)
-                return tail
+                if weight == 1.0 or nrem >= k:
+                    return tail
+                # capped super-particle: the unused part flies on (budget < 1 only)
+                w_event *= (k - nrem) / k
+                counters[C_STEPS] -= steps  # counted again where the particle ends
+                continue
             if act == ACT_REMOVE:
                 mat[wx, wy, iz, tgt] -= nrem
                 counters[C_REMOVED + tgt] += nrem
@@ -402,9 +431,15 @@ def fly(
                     if coef <= 0.0:
                         continue
                     if prod_is_yield[chosen, j]:
-                        amount = coef * nrem
-                    else:
+                        amount = coef * nrem / weight  # emitted products carry the same weight
+                    elif weight == 1.0:
                         amount = coef if nrem > 0 else 0.0
+                    elif nrem > 0:
+                        # per real event: coef with P(k >= 1) = min(y, 1); nrem / (y w) corrects for the
+                        # rounding and the cap of this weighted event (expectation 1 when uncapped)
+                        amount = coef * min(y_val, 1.0) * nrem / (y_val * weight)
+                    else:
+                        amount = 0.0
                     n_emit = stochastic_round(amount)
                     for _ in range(n_emit):
                         ex, ey, ez = cosine_about(nnx, nny, nnz)
@@ -422,7 +457,13 @@ def fly(
                         else:
                             counters[C_PRODUCTS] += 1
                         tail = new_tail
-            return tail
+            if weight == 1.0 or nrem >= k:
+                return tail
+            # capped super-particle (budget < 1): the real particles it still stands for did not find
+            # material here; they fly on along the same path with the unused weight
+            w_event *= (k - nrem) / k
+            counters[C_STEPS] -= steps  # counted again where the particle ends
+            continue
         # ---------------- no reaction: reflect ----------------
         if is_ion[species]:
             m1 = proj_mass[species]
@@ -470,6 +511,7 @@ def run_particles(
     prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
     target_mass: np.ndarray, neutral_energy: float, product_energy: float, max_steps: int,
     queue: np.ndarray, pbuf: np.ndarray, counters: np.ndarray, event_counts: np.ndarray, seed: int,
+    weight: float = 1.0,
 ) -> None:  # fmt: skip
     """Launch primaries until ``n_target`` ions (``count_ions``) or primaries have been processed.
 
@@ -482,6 +524,7 @@ def run_particles(
       queue: (Q, 8) float64 product ring buffer; pbuf: (max_channels,) scratch; counters: (N_COUNTERS,)
         int64; event_counts: (E,) int64 (both accumulated).
       seed: seeds numba's generator for this call.
+      weight: 1 / particle budget, the material one simulated particle moves (module docstring).
     """
     np.random.seed(seed)
     nx, ny, nz = fill.shape
@@ -518,7 +561,7 @@ def run_particles(
             mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
             prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
             product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-            queue, head, 0, pbuf, counters, event_counts,
+            queue, head, 0, pbuf, counters, event_counts, weight,
         )  # fmt: skip
         # drain the FIFO of secondary products (they may not emit further products, but could)
         while head != tail:
@@ -536,6 +579,6 @@ def run_particles(
                 mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
                 prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
                 product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-                queue, head, tail, pbuf, counters, event_counts,
+                queue, head, tail, pbuf, counters, event_counts, weight,
             )  # fmt: skip
 

@@ -10,9 +10,11 @@ steps of ``scene.macro_dt_s`` (0.02 s); a macro step processes ``floor(R_ion dt 
 to the next macro step so the long-run ion count is exact (the paper says "approximately
 floor(R_ion dt)"). With zero ion flux a macro step processes floor(R dt + carry) neutrals instead. A state
 is recorded every ``macro_steps_per_snapshot`` macro steps (0.1 s) through Psi (``sdf.psi``): 101 states
-for the 10 s horizon. Controls are one vector (14,) for the whole trajectory or a recipe (T, 14) with one
-vector per transition. Every macro step seeds the kernel from ``rng``, so a trajectory is a
-deterministic function of (scene, rules, controls, config, rng state).
+for the 10 s horizon. With ``config.particle_budget`` = b < 1 the rates (and so the ion counts) are b
+times the calibrated ones and each particle carries weight 1/b (``config`` module docstring). Controls
+are one vector (14,) for the whole trajectory or a recipe (T, 14) with one vector per transition. Every
+macro step seeds the kernel from ``rng``, so a trajectory is a deterministic function of (scene, rules,
+controls, config, rng state).
 """
 
 from __future__ import annotations
@@ -161,7 +163,7 @@ def run_trajectory(
                 tables.yield_params, tables.s_dep, tables.prod_coef, tables.prod_is_yield,
                 tables.product_species, tables.is_ion, tables.proj_mass, tables.target_mass,
                 cfg.neutral_energy_ev, cfg.product_energy_ev, cfg.max_steps,
-                queue, pbuf, counters, event_counts, seed,
+                queue, pbuf, counters, event_counts, seed, cfg.particle_weight,
             )  # fmt: skip
         states[t + 1] = psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
     wall = time.perf_counter() - t0
