@@ -28,16 +28,43 @@ class UserError(Exception):
 
 
 def _add_rules(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("rules", help="validate and compile an Event Rules Library (rules/*.yaml)")
+    p = sub.add_parser(
+        "rules",
+        help="validate and compile an Event Rules Library (rules/*.yaml)",
+        description=(
+            "Tools for the Event Rules Library, the YAML file of surface events (projectile, target, "
+            "probability and yield models, products) that the simulator and the models read. "
+            "`check` validates a file and prints its events; `compile` writes the fixed tensors. "
+            "Example: nemsim rules check rules/cl_si.yaml"
+        ),
+    )
     rsub = p.add_subparsers(dest="rules_command", metavar="ACTION")
     rsub.required = True
-    c = rsub.add_parser("check", help="validate a rules file and print a summary table")
+    c = rsub.add_parser(
+        "check",
+        help="validate a rules file and print a summary table",
+        description=(
+            "Validate a rules YAML file against the schema and the species/controls vocabulary, then "
+            "print one row per event (family, projectile, target, probability and yield model, products "
+            "or deposition pool) and the library's sha256. Writes nothing. Exit code 0 if the file is "
+            "valid, 2 (with the first error on stderr) if not. Example: nemsim rules check"
+        ),
+    )
     c.add_argument("path", nargs="?", default=None, help="rules YAML (default: the repo's rules/cl_si.yaml)")
     c.set_defaults(handler=_cmd_rules_check)
-    k = rsub.add_parser("compile", help="compile a rules file to fixed tensors (.npz)")
+    k = rsub.add_parser(
+        "compile",
+        help="compile a rules file to fixed tensors (.npz)",
+        description=(
+            "Validate a rules YAML file and compile it to the fixed tensors the simulator and the models "
+            "use; write them as one NumPy .npz file (arrays R, phi, psi, alpha0, r_mech, w_src, w_sink, "
+            "s_dep, plus the event names and the library sha256) and print their shapes. "
+            "Example: nemsim rules compile --out rules.npz"
+        ),
+    )
     k.add_argument("path", nargs="?", default=None, help="rules YAML (default: the repo's rules/cl_si.yaml)")
-    k.add_argument("--out", required=True, help="output .npz (arrays R, phi, psi, alpha0, r_mech, w_src, "
-                   "w_sink, s_dep, plus names and sha256)")  # fmt: skip
+    k.add_argument("--out", required=True, metavar="FILE.npz", help="output .npz (arrays R, phi, psi, alpha0,"
+                   " r_mech, w_src, w_sink, s_dep, plus names and sha256)")  # fmt: skip
     k.set_defaults(handler=_cmd_rules_compile)
 
 
@@ -93,30 +120,62 @@ def _cmd_rules_compile(args: argparse.Namespace) -> int:
 
 
 def _add_data(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("design", help="write the Latin-hypercube control design as CSV ([supp_data_generation])",
-                       description="Header = the 14 control names; one row per case (id = row index) in "
-                       "physical units.")
+    p = sub.add_parser(
+        "design",
+        help="write the Latin-hypercube control design as CSV ([supp_data_generation])",
+        description=(
+            "Draw the Latin-hypercube design of the 14 process controls and write it as CSV: header = "
+            "the 14 control names, one row per case (case id = row index), in physical units (fluxes "
+            "in mol m^-2 s^-1, cosine-power exponents as integers, ion-energy means and spreads in eV). "
+            "The defaults reproduce the paper's 500-case design. "
+            "Example: nemsim design --out data/design.csv"
+        ),
+    )
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
-    p.add_argument("--seed", type=int, default=42, help="LHS seed (default 42)")
-    p.add_argument("--out", required=True, help="output CSV")
+    p.add_argument("--seed", type=int, default=42, help="LHS seed (default 42, the paper's design)")
+    p.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV (overwritten)")
     p.set_defaults(handler=_cmd_design)
 
-    p = sub.add_parser("splits", help="write one split manifest JSON per setting ([supp_protocols])",
-                       description="control-id, ood-ar, ood-cl, ood-joint, vis-50, vis-60 as DIR/<setting>.json "
-                       "(with nested data-efficiency subsets); prints the table of set sizes.")
-    p.add_argument("--design", required=True, help="design CSV (from `nemsim design`); case id = row index")
-    p.add_argument("--out", required=True, help="output directory")
+    p = sub.add_parser(
+        "splits",
+        help="write one split manifest JSON per setting ([supp_protocols])",
+        description=(
+            "Partition the cases of a design CSV into train/val/test for every evaluation setting "
+            "(control-id, ood-ar, ood-cl, ood-joint, vis-50, vis-60) and write DIR/<setting>.json, each "
+            "with its nested data-efficiency training subsets (10/20/50/100 %); print the table of set "
+            "sizes. `nemsim train` and `nemsim evaluate` read these from <data dir>/splits by default. "
+            "Example: nemsim splits --design data/design.csv --out data/splits"
+        ),
+    )
+    p.add_argument("--design", required=True, metavar="FILE.csv",
+                   help="design CSV (from `nemsim design`); case id = row index")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     p.add_argument("--seed", type=int, default=0, help="partition seed (default 0)")
     p.add_argument("--transitions", type=int, default=100, help="transitions per trajectory (default 100)")
     p.set_defaults(handler=_cmd_splits)
 
-    p = sub.add_parser("data", help="trajectory-file tools")
+    p = sub.add_parser(
+        "data",
+        help="trajectory-file tools",
+        description="Tools for trajectory HDF5 files written by `nemsim generate`. "
+        "Example: nemsim data check data/small.h5",
+    )
     dsub = p.add_subparsers(dest="data_command", metavar="ACTION")
     dsub.required = True
-    c = dsub.add_parser("check", help="integrity checks of a trajectory HDF5 file ([supp_dataset_statistics]); "
-                        "exit 2 on failure")
-    c.add_argument("file", metavar="FILE", help="trajectory .h5")
-    c.add_argument("--allow-incomplete", action="store_true", help="unfinished cases are a warning, not a failure")
+    c = dsub.add_parser(
+        "check",
+        help="integrity checks of a trajectory HDF5 file ([supp_dataset_statistics]); exit 2 on failure",
+        description=(
+            "Run the integrity checks of a trajectory file: layout and format version, scene, control "
+            "and channel names, state shape and dtype, timestamps, completeness and seeds of every case, "
+            "unique case ids and controls, control ranges and transforms, and finite, bounded states "
+            "(reads every state, so large files take a while). Prints one line per check; writes "
+            "nothing. Exit code 0 if all pass, 2 otherwise. Example: nemsim data check data/small.h5"
+        ),
+    )
+    c.add_argument("file", metavar="FILE", help="trajectory .h5 (from `nemsim generate`)")
+    c.add_argument("--allow-incomplete", action="store_true",
+                   help="unfinished cases are a warning, not a failure (e.g. while generation runs)")
     c.set_defaults(handler=_cmd_data_check)
 
 
@@ -176,17 +235,22 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         description=(
             "Run the Monte Carlo simulator on cases 0..N-1 of the 500-case design (or on the rows of "
             "--controls) and write one HDF5 trajectory file. Rerunning the same command resumes: finished "
-            "cases are kept, a half-written case is redone. The file is validated on close."
+            "cases are kept, a half-written case is redone. The file is validated on close. "
+            "Example: nemsim generate --scene small --n 20 --workers 2 --out data/small.h5"
         ),
     )
-    p.add_argument("--scene", default="small", choices=("tiny", "small", "paper"), help="default: small")
-    p.add_argument("--n", type=int, default=None, help="first N design cases (default: all 500)")
-    p.add_argument("--seed", type=int, default=0, help="base simulator seed (per-case seeds derive from it)")
+    p.add_argument("--scene", default="small", choices=("tiny", "small", "paper"),
+                   help="grid: paper 2 nm, small 4 nm, tiny 8 nm voxels (tests only); default: small")
+    p.add_argument("--n", type=int, default=None,
+                   help="first N cases of the design or of --controls (default: all; the design has 500)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="base simulator seed; per-case seeds derive from it and the case id (default 0)")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output trajectory file")
     p.add_argument("--controls", metavar="FILE.csv", default=None,
                    help="simulate these control rows instead of the design (header as `nemsim design`)")
-    p.add_argument("--cases", metavar="A-B", default=None, help="only rows A..B (inclusive) of the cases")
-    p.add_argument("--workers", type=int, default=1, help="parallel simulations (default 1)")
+    p.add_argument("--cases", metavar="A-B", default=None,
+                   help="only rows A..B (0-based, inclusive) of the selected cases, e.g. 0-9 (default: all)")
+    p.add_argument("--workers", type=int, default=1, help="parallel simulations, one core each (default 1)")
     p.add_argument("--executor", default="process", choices=("process", "ray"),
                    help="local process pool (default) or a Ray cluster ($RAY_ADDRESS, else a local Ray)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -195,15 +259,35 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=_cmd_generate)
 
     bench_sub = _bench_subparsers(sub)
-    p = bench_sub.add_parser("sim", help="simulator speed: median s/trajectory and primaries/s")
-    p.add_argument("--scenes", default="small,paper", help="comma-separated scenes (default small,paper)")
+    p = bench_sub.add_parser(
+        "sim",
+        help="simulator speed: median s/trajectory and primaries/s",
+        description=(
+            "Time the Monte Carlo simulator on the first design cases of each scene, one core, after a "
+            "JIT warm-up, and print per scene the median wall and CPU seconds per full trajectory and "
+            "the primary particles traced per second. Writes nothing unless --json is given. "
+            "Example: nemsim bench sim --scenes small --cases 3"
+        ),
+    )
+    p.add_argument("--scenes", default="small,paper",
+                   help="comma-separated scenes from tiny, small, paper (default small,paper)")
     p.add_argument("--cases", type=int, default=5, help="first design cases to time (default 5)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a SimConfig constant (repeatable)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_sim)
-    p = bench_sub.add_parser("noise", help="Monte Carlo noise floor: Avg RMSE between two seeds")
-    p.add_argument("--scene", default="small", choices=("tiny", "small", "paper"), help="default: small")
+    p = bench_sub.add_parser(
+        "noise",
+        help="Monte Carlo noise floor: Avg RMSE between two seeds",
+        description=(
+            "Simulate the first design cases twice with two different seeds and print the Avg RMSE "
+            "(overall and per channel: mask, Si), the Final RMSE and the per-case Avg RMSE between the "
+            "two runs, in normalized SDF units: the error floor no surrogate can be expected to beat. "
+            "Writes nothing unless --json is given. Example: nemsim bench noise --scene small --cases 3"
+        ),
+    )
+    p.add_argument("--scene", default="small", choices=("tiny", "small", "paper"),
+                   help="grid: paper 2 nm, small 4 nm, tiny 8 nm voxels; default: small")
     p.add_argument("--cases", type=int, default=5, help="first design cases (default 5)")
     p.add_argument("--seeds", default="1,2", help="the two seeds, comma-separated (default 1,2)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -279,7 +363,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     if args.cases:
         lo, hi = _parse_range(args.cases, len(controls))
         controls, case_ids = controls[lo : hi + 1], case_ids[lo : hi + 1]
-    for cid, row in zip(case_ids, controls):
+    for cid, row in zip(case_ids, controls, strict=True):
         bad = check_admissible(row)
         if bad:
             raise UserError(f"case {cid}: {bad[0]}")
@@ -373,41 +457,93 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
 
     from nemsim.train import SETTINGS, add_train_arguments
 
-    p = sub.add_parser("train", help="train a model on one-step transitions ([supp_training])",
-                       description="Train with one-step MSE; best.pt by validation rollout; resumable. "
-                       "For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS.")
+    p = sub.add_parser(
+        "train",
+        help="train a model on one-step transitions ([supp_training])",
+        description=(
+            "Train a registered model with the one-step MSE on the train split of a setting; every "
+            "val_every epochs roll out the validation trajectories and keep the best as OUT/best.pt "
+            "(early stop after `patience` rounds without improvement). Writes OUT/best.pt, OUT/last.pt "
+            "(resume with --resume), OUT/metrics.csv, OUT/train.log and, unless --no-test, "
+            "OUT/test_metrics.json. For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS. "
+            "Example: nemsim train --model nemsim --data data/small.h5 --setting control-id --out runs/nemsim"
+        ),
+    )
     add_train_arguments(p)
     p.set_defaults(handler=_cmd_train)
 
-    p = sub.add_parser("evaluate", help="100-step autoregressive evaluation of a checkpoint ([supp_protocols])")
-    p.add_argument("--checkpoint", required=True, type=Path)
+    p = sub.add_parser(
+        "evaluate",
+        help="100-step autoregressive evaluation of a checkpoint ([supp_protocols])",
+        description=(
+            "Roll a checkpoint out autoregressively from x_0 over the full horizon on one split of a "
+            "setting and print Avg RMSE, Final RMSE (normalized SDF units), the final-step Chamfer "
+            "distance (voxels), the parameter count and the rollout time per trajectory. Writes a PNG "
+            "figure (see --plot) and optionally the metrics as JSON and the predictions as HDF5. "
+            "Example: nemsim evaluate --checkpoint runs/nemsim/best.pt --data data/small.h5 "
+            "--setting control-id --json runs/nemsim/eval.json"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, type=Path,
+                   help="checkpoint .pt (e.g. OUT/best.pt of `nemsim train`); its scene must match --data")
     p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file")
-    p.add_argument("--setting", required=True, choices=SETTINGS)
-    p.add_argument("--split", default="test", choices=("train", "val", "test"))
-    p.add_argument("--splits", type=Path, help="directory of split manifests <setting>.json")
+    p.add_argument("--setting", required=True, choices=SETTINGS, help="split setting whose cases are scored")
+    p.add_argument("--split", default="test", choices=("train", "val", "test"),
+                   help="which part of the setting (default test)")
+    p.add_argument("--splits", type=Path,
+                   help="directory of split manifests <setting>.json (default: <data dir>/splits if present, "
+                   "else computed from the data file)")
     p.add_argument("--json", type=Path, help="write the metrics as JSON here")
     p.add_argument("--save-rollouts", type=Path, help="write predictions (N, T+1, 2, D, H, W) to this HDF5")
-    p.add_argument("--plot", type=Path, help="PNG path (default: next to --json, else next to the checkpoint)")
-    p.add_argument("--steps", type=int, help="rollout length (default: full horizon)")
-    p.add_argument("--batch-size", type=int, default=1, help="trajectories rolled out together")
-    p.add_argument("--no-cd", action="store_true", help="skip the Chamfer distance")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--plot", type=Path,
+                   help="PNG path (default: --json with .png, else eval_<setting>.png next to the "
+                   "checkpoint)")
+    p.add_argument("--steps", type=int, help="rollout length in transitions (default: full horizon, 100)")
+    p.add_argument("--batch-size", type=int, default=1,
+                   help="trajectories rolled out together (default 1, the paper's per-trajectory timing)")
+    p.add_argument("--no-cd", action="store_true", help="skip the Chamfer distance (the slowest metric)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N")
     p.set_defaults(handler=_cmd_evaluate)
 
-    p = sub.add_parser("models", help="list registered models with their trainable-parameter counts")
-    p.add_argument("--scene", default="small", help="scene name (paper, small, tiny)")
+    p = sub.add_parser(
+        "models",
+        help="list registered models with their trainable-parameter counts",
+        description=(
+            "Build every registered model (NEMSim and the baselines) for a scene with the default rules "
+            "library and print its name and trainable-parameter count; the names are what "
+            "`nemsim train --model` accepts. Writes nothing unless --json is given. "
+            "Example: nemsim models --scene small"
+        ),
+    )
+    p.add_argument("--scene", default="small", help="scene name: paper, small or tiny (default small)")
     p.add_argument("--json", type=Path, help='write {name: {"params": int}} here')
     p.set_defaults(handler=_cmd_models)
 
-    p = sub.add_parser("counterfactual", help="Cl+/Cl flux interventions vs mechanism response "
-                       "([supp_mechanism_alignment])")
-    p.add_argument("--checkpoint", required=True, type=Path)
+    p = sub.add_parser(
+        "counterfactual",
+        help="Cl+/Cl flux interventions vs mechanism response ([supp_mechanism_alignment])",
+        description=(
+            "For each case of the split, scale the Cl+ and neutral-Cl fluxes by {0.5, 1, 1.5} (eight "
+            "interventions), predict one step from the case's initial state, and relate the change of "
+            "each mechanism family's response (ΔM, %) to the change of Si removal (ΔR, %) with "
+            "per-group Pearson correlations. Prints the table and writes counterfactual.json, "
+            "counterfactual_table.csv and counterfactual.png to --out. Runs on the CPU. "
+            "Example: nemsim counterfactual --checkpoint runs/nemsim/best.pt --data data/small.h5"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, type=Path,
+                   help="checkpoint .pt of a NEMSim model (needs its mechanism outputs); scene must match "
+                   "--data")
     p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file")
-    p.add_argument("--setting", default="control-id", choices=SETTINGS)
-    p.add_argument("--split", default="test", choices=("train", "val", "test"))
-    p.add_argument("--splits", type=Path, help="directory of split manifests <setting>.json")
+    p.add_argument("--setting", default="control-id", choices=SETTINGS,
+                   help="split setting whose cases are used (default control-id)")
+    p.add_argument("--split", default="test", choices=("train", "val", "test"),
+                   help="which part of the setting (default test)")
+    p.add_argument("--splits", type=Path,
+                   help="directory of split manifests <setting>.json (default: <data dir>/splits if present, "
+                   "else computed from the data file)")
     p.add_argument("--out", type=Path, help="output directory (default: <checkpoint dir>/counterfactual)")
-    p.add_argument("--max-cases", type=int, help="analyse only the first N cases of the split")
+    p.add_argument("--max-cases", type=int, help="analyse only the first N cases of the split (default: all)")
     p.set_defaults(handler=_cmd_counterfactual)
 
 
@@ -466,7 +602,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     print(f"  Params     {result.params} ({result.params / 1e6:.3f} M)")  # noqa: T201
     print(f"  Rollout    {result.rollout_seconds:.2f} s total, "  # noqa: T201
           f"{result.rollout_seconds_per_case:.3f} s per trajectory")
-    extra = {"setting": args.setting, "split": args.split, "model": loaded.name, "checkpoint": str(args.checkpoint)}
+    extra = {"setting": args.setting, "split": args.split, "model": loaded.name,
+             "checkpoint": str(args.checkpoint)}
     if args.json:
         write_json(result, args.json, extra)
     plot = args.plot or (args.json.with_suffix(".png") if args.json
@@ -533,7 +670,8 @@ def _add_metrics(sub: argparse._SubParsersAction) -> None:
         description=(
             "Importance score I = 0.7|beta| + 0.3|rho| ([supp_protocols], eq:supp_control_importance) of "
             "each control for etch depth, top-opening width, neck width, bottom width and bowing at the "
-            "final state, averaged over the quantities; printed as a ranked table with percentages."
+            "final state, averaged over the quantities; printed as a ranked table with percentages. "
+            "Writes nothing unless --json is given. Example: nemsim sensitivity data/small.h5"
         ),
     )
     p.add_argument("file", metavar="FILE", help="trajectory file (.h5) written by `nemsim generate`")
@@ -564,13 +702,24 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
 
 
 def _add_service(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help="serve a checkpoint over HTTP (FastAPI; OpenAPI docs at /docs)")
+    p = sub.add_parser(
+        "serve",
+        help="serve a checkpoint over HTTP (FastAPI; OpenAPI docs at /docs)",
+        description=(
+            "Serve a trained checkpoint with uvicorn: POST /rollout (controls -> trajectory metrics and "
+            "surface meshes), GET /mechanisms, /health, /ready and /model; interactive OpenAPI docs at "
+            "/docs. Runs until interrupted; writes nothing. Other settings come from NEMSIM_* "
+            "environment variables. Example: nemsim serve --checkpoint runs/nemsim/best.pt --port 8000"
+        ),
+    )
     p.add_argument(
         "--checkpoint", default=None, help="checkpoint .pt (default: $NEMSIM_CHECKPOINT or checkpoints/*.pt)"
     )
-    p.add_argument("--host", default="127.0.0.1", help="bind address (containers: 0.0.0.0)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="bind address (default 127.0.0.1; containers: 0.0.0.0)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
-    p.add_argument("--workers", type=int, default=1, help="worker processes, each with its own model copy")
+    p.add_argument("--workers", type=int, default=1,
+                   help="worker processes, each with its own model copy (default 1)")
     p.set_defaults(handler=_cmd_serve)
     _add_bench_service(_bench_subparsers(sub))
 
@@ -579,7 +728,15 @@ def _bench_subparsers(sub: argparse._SubParsersAction) -> argparse._SubParsersAc
     """The `bench` group's sub-subparsers: the one `_add_sim` made, or a new group if it made none."""
     bench = sub.choices.get("bench")
     if bench is None:
-        bench = sub.add_parser("bench", help="benchmarks")
+        bench = sub.add_parser(
+            "bench",
+            help="benchmarks",
+            description=(
+                "Benchmarks of the simulator (sim, noise), the surrogate (rollout, speed-error), the HTTP "
+                "service (service) and the results table (collect). Each prints its figures; most also "
+                "write them as JSON with --json. Example: nemsim bench sim --scenes small"
+            ),
+        )
         group = bench.add_subparsers(dest="bench", metavar="BENCH")
         group.required = True
         return group
@@ -590,12 +747,24 @@ def _bench_subparsers(sub: argparse._SubParsersAction) -> argparse._SubParsersAc
 
 
 def _add_bench_service(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("service", help="p50/p95 latency of POST /rollout, uncached and cached")
-    p.add_argument("--checkpoint", default=None, help="checkpoint .pt (default: checkpoints/*.pt)")
+    p = bench_sub.add_parser(
+        "service",
+        help="p50/p95 latency of POST /rollout, uncached and cached",
+        description=(
+            "Time POST /rollout (metrics only) through the whole app stack with an in-process ASGI "
+            "client (no network): uncached requests with distinct random controls, then one request "
+            "repeated from the cache; print p50/p95 latency in ms. Writes nothing unless --json is "
+            "given. Example: nemsim bench service --checkpoint runs/nemsim/best.pt -n 10"
+        ),
+    )
+    p.add_argument("--checkpoint", default=None,
+                   help="checkpoint .pt (default: $NEMSIM_CHECKPOINT or checkpoints/*.pt)")
     p.add_argument("--steps", type=int, default=100, help="transitions per rollout (default 100)")
-    p.add_argument("-n", "--requests", type=int, default=20, help="uncached requests (distinct controls)")
-    p.add_argument("--cached-requests", type=int, default=200, help="repeats of one cached request")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random controls")
+    p.add_argument("-n", "--requests", type=int, default=20,
+                   help="uncached requests, each with distinct controls (default 20)")
+    p.add_argument("--cached-requests", type=int, default=200,
+                   help="repeats of one cached request (default 200)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random controls (default 0)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_service)
 
@@ -663,29 +832,51 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
 
 
 def _add_stress(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("stress", help="hard-case stability: sub-box corners, angles, long and noisy rollouts")
+    p = sub.add_parser(
+        "stress",
+        help="hard-case stability: sub-box corners, angles, long and noisy rollouts",
+        description=(
+            "Roll a checkpoint out from the scene's initial state past its trained horizon on hard "
+            "controls: the design-range centre, the corners of the flux/ion-energy sub-box, extreme "
+            "angle exponents, and noisy states and controls. Per case check that values stay finite and "
+            "bounded, that the etch depth never decreases and how the state norm grows; print the table. "
+            "Exit code 0 if every case passes, 1 if any fails. Writes nothing unless --json is given. "
+            "Example: nemsim stress --checkpoint runs/nemsim/best.pt --max-corners 16"
+        ),
+    )
     p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
     p.add_argument("--steps", type=int, default=300, help="rollout length (default 300; trained horizon 100)")
     p.add_argument("--max-corners", type=int, default=None,
-                   help="evenly spaced subset of the 128 flux/energy corners (default: all)")
-    p.add_argument("--noise-cases", type=int, default=4, help="cases with noisy state and controls")
-    p.add_argument("--batch-size", type=int, default=16, help="cases rolled out together")
-    p.add_argument("--seed", type=int, default=0, help="noise seed")
+                   help="evenly spaced subset (>= 2) of the 128 flux/energy corners (default: all)")
+    p.add_argument("--noise-cases", type=int, default=4,
+                   help="cases with noisy state and controls (default 4)")
+    p.add_argument("--batch-size", type=int, default=16, help="cases rolled out together (default 16)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--abs-bound", type=float, default=1.5,
-                   help="|value| above this is a blow-up (default 1.5)")
+                   help="|value| above this, in normalized SDF units (data lie in [-1, 1]), is a blow-up "
+                   "(default 1.5)")
     p.add_argument("--json", dest="json_out", default=None, help="write the full report to this JSON file")
     p.set_defaults(handler=_cmd_stress)
     p = _bench_subparsers(sub).add_parser(
-        "rollout", help="100-step rollout wall time: fp32 vs bf16 vs channels_last, with max |Δ| vs fp32"
+        "rollout",
+        help="100-step rollout wall time: fp32 vs bf16 vs channels_last, with max |Δ| vs fp32",
+        description=(
+            "Time the same autoregressive rollouts of a model under each precision/memory-format "
+            "variant (one warm-up, then --repeats timed runs, interleaved) and print median and min wall "
+            "seconds per rollout and the max |Δ| of the trajectory against fp32 (normalized SDF units). "
+            "Writes nothing unless --json is given. "
+            "Example: nemsim bench rollout --scene small --variants fp32,bf16 --threads 1"
+        ),
     )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--checkpoint", help="checkpoint .pt")
-    src.add_argument("--scene", help="untrained NEMSim on this scene (seed 0), e.g. small")
+    src.add_argument("--checkpoint", help="checkpoint .pt (one of --checkpoint and --scene is required)")
+    src.add_argument("--scene", help="untrained NEMSim on this scene (seed 0): paper, small or tiny")
     p.add_argument("--steps", type=int, default=100, help="transitions per rollout (default 100)")
     p.add_argument("--batch", type=int, default=1, help="trajectories per rollout (default 1)")
     p.add_argument("--repeats", type=int, default=5, help="timed rollouts per variant (default 5)")
     p.add_argument("--variants", default="fp32,fp32-percall,bf16,channels_last",
-                   help="comma-separated subset of fp32, fp32-percall, bf16, channels_last")
+                   help="comma-separated subset of fp32, fp32-percall, bf16, channels_last "
+                   "(default: all four)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_rollout)
@@ -774,33 +965,47 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
             "On the setting's first N test cases, time one trajectory of the simulator at full, 1/4 and 1/16 "
             "particle budget and of every checkpoint in fp32 and bf16, and score each against an "
             "independent full-budget simulator run (the file's own trajectory vs that run is the noise "
-            "floor). Writes speed_error.{json,md,png} to --out."
+            "floor). Prints the Markdown table and writes speed_error.{json,md,png} to --out. "
+            "Example: nemsim bench speed-error --data data/small.h5 --checkpoints runs/nemsim/best.pt"
         ),
     )
     p.add_argument("--data", required=True, metavar="FILE.h5", help="trajectory file (nemsim generate)")
     p.add_argument("--setting", default="control-id", help="split setting (default control-id)")
-    p.add_argument("--checkpoints", nargs="+", default=[], metavar="CKPT", help="checkpoint .pt files")
+    p.add_argument("--checkpoints", nargs="+", default=[], metavar="CKPT",
+                   help="checkpoint .pt files to time and score (default: none, simulator only)")
     p.add_argument("--splits", default=None, metavar="DIR",
                    help="directory of <setting>.json manifests (default: <data dir>/splits, else computed)")
     p.add_argument("--cases", type=int, default=5, help="first N test cases (default 5)")
     p.add_argument("--budgets", default="1,0.25,0.0625",
-                   help="simulator particle budgets (default 1,0.25,0.0625)")  # fmt: skip
+                   help="simulator particle budgets, fractions in (0, 1] of the full budget "
+                   "(default 1,0.25,0.0625)")  # fmt: skip
     p.add_argument("--precisions", default="fp32,bf16", help="model precisions (default fp32,bf16)")
     p.add_argument("--seed", type=int, default=1, help="entropy of the reference reruns (default 1)")
     p.add_argument("--steps", type=int, default=None, help="transitions (default: the scene's horizon)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1: the simulator is single-threaded too)")
-    p.add_argument("--out", default="benchmarks/small", metavar="DIR", help="output directory")
+    p.add_argument("--out", default="benchmarks/small", metavar="DIR",
+                   help="output directory (default benchmarks/small)")
     p.set_defaults(handler=_cmd_bench_speed_error)
 
     p = bench_sub.add_parser(
         "collect",
         help="assemble results.json and the README table from training runs and a speed-error report",
+        description=(
+            "Read test_metrics.json (and the model name from best.pt) of each training run directory "
+            "and, if given, the noise floor and speed figures of `nemsim bench speed-error`; write "
+            "results.json (per setting and model: Avg/Final RMSE, CD, params, rollout s) and put the "
+            "Markdown table between its markers in the README (other text is kept). Two runs of the "
+            "same setting and model are refused. "
+            "Example: nemsim bench collect --runs runs/* --speed-error benchmarks/small/speed_error.json"
+        ),
     )
-    p.add_argument("--runs", nargs="+", required=True, metavar="DIR", help="run dirs with test_metrics.json")
+    p.add_argument("--runs", nargs="+", required=True, metavar="DIR",
+                   help="run dirs with test_metrics.json (from `nemsim train`)")
     p.add_argument("--speed-error", default=None, metavar="FILE.json",
                    help="speed_error.json of `nemsim bench speed-error` (noise floor and speed)")
-    p.add_argument("--out", default="benchmarks/small/results.json", metavar="FILE.json", help="output JSON")
+    p.add_argument("--out", default="benchmarks/small/results.json", metavar="FILE.json",
+                   help="output JSON (default benchmarks/small/results.json)")
     p.add_argument("--readme", default=None, metavar="FILE.md",
                    help="Markdown file for the table (default: README.md next to --out)")
     p.set_defaults(handler=_cmd_bench_collect)
@@ -888,7 +1093,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="nemsim",
         description=(
             "NEMSim: Event Rules Library, Monte Carlo etch simulator, neural surrogate and service. "
-            "Run `nemsim COMMAND --help` for each command."
+            "Typical workflow: design -> splits -> generate -> data check -> train -> evaluate -> serve. "
+            "Run `nemsim COMMAND --help` for each command. Exit codes: 0 success, 1 `stress` found a failing "
+            "case, 2 bad input or failed check (one line on stderr), 130 interrupted."
         ),
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")

@@ -17,7 +17,6 @@ Choices where the paper is silent:
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass
 
 

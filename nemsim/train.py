@@ -1,4 +1,4 @@
-"""Training entry point: ``nemsim train ...`` or, for DDP, ``torchrun --nproc-per-node 2 -m nemsim.train ...``.
+"""Training entry point: ``nemsim train ...`` or, for DDP, ``torchrun --nproc-per-node 2 -m nemsim.train``.
 
 Reads the data file and split manifest, seeds, builds the model from the registry, calls
 ``nemsim.training.loop.train`` and finally evaluates ``best.pt`` on the test split (stored in best.pt as
@@ -17,7 +17,6 @@ Choices where the paper is silent:
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -37,24 +36,33 @@ class TrainInputError(ValueError):
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, help="registered model name (see `nemsim models`)")
-    p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file")
+    p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file (from `nemsim generate`)")
     p.add_argument("--setting", required=True, choices=SETTINGS, help="split setting")
-    p.add_argument("--out", required=True, type=Path, help="output directory (best.pt, last.pt, logs)")
-    p.add_argument("--config", type=Path, help="YAML/JSON: TrainConfig fields; model overrides under `model:`")
-    p.add_argument("--epochs", type=int, help="epoch budget (overrides max_epochs)")
-    p.add_argument("--fraction", type=float, help="train on this data-efficiency fraction of the train split")
-    p.add_argument("--resume", action="store_true", help="continue from DIR/last.pt")
-    p.add_argument("--splits", type=Path, help="directory of split manifests <setting>.json")
+    p.add_argument("--out", required=True, type=Path,
+                   help="output directory (best.pt, last.pt, metrics.csv, train.log, test_metrics.json)")
+    p.add_argument("--config", type=Path,
+                   help="YAML/JSON: TrainConfig fields (lr, batch_size, ...); model overrides under `model:` "
+                        "(default: the paper's values)")
+    p.add_argument("--epochs", type=int, help="epoch budget (overrides max_epochs; default 350)")
+    p.add_argument("--fraction", type=float,
+                   help="train on this data-efficiency fraction of the train split: 0.1, 0.2, 0.5 or 1 "
+                        "(default 1)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--splits", type=Path,
+                   help="directory of split manifests <setting>.json (default: <data dir>/splits if present, "
+                        "else computed from the data file)")
     p.add_argument("--seed", type=int, help="override the seed (default 0)")
-    p.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None, help="bfloat16 autocast")
+    p.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=None,
+                   help="bfloat16 autocast for the training forward pass (default on; rollouts stay fp32)")
     p.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
-                   help="channels_last_3d memory format")
-    p.add_argument("--device", help="auto (default), cpu, cuda, cuda:N")
-    p.add_argument("--rollout-steps", type=int, help="validation rollout length (default: full horizon)")
+                   help="channels_last_3d memory format (default off)")
+    p.add_argument("--device", help="auto (default: cuda if available, else cpu), cpu, cuda, cuda:N")
+    p.add_argument("--rollout-steps", type=int,
+                   help="validation rollout length in transitions (default: full horizon, 100)")
     p.add_argument("--perturb", default="none",
-                   help="rule-library perturbation: none, structure-only, mechanism-shuffle, event-drop, "
-                        "rate-noise")
-    p.add_argument("--perturb-seed", type=int, default=0, help="seed of the rule perturbation")
+                   help="rule-library perturbation (ablation): none (default), structure-only, "
+                        "mechanism-shuffle, event-drop, rate-noise")
+    p.add_argument("--perturb-seed", type=int, default=0, help="seed of the rule perturbation (default 0)")
     p.add_argument("--no-test", action="store_true", help="skip the final test evaluation of best.pt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -93,7 +101,9 @@ def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
         subsets = data_efficiency_subsets(manifest, raw)
     key = min(subsets, key=lambda k: abs(float(k) - fraction))
     if abs(float(key) - fraction) > 1e-9:
-        raise TrainInputError(f"--fraction {fraction} is not a data-efficiency subset; choose from {sorted(subsets)}")
+        raise TrainInputError(
+            f"--fraction {fraction} is not a data-efficiency subset; choose from {sorted(subsets)}"
+        )
     return {**manifest, "train": list(subsets[key])}
 
 

@@ -28,8 +28,8 @@ def bench_service(
 ) -> dict[str, Any]:
     """Time `n` uncached and `n_cached` cached POST /rollout calls (metrics only) on `checkpoint`."""
     from fastapi.testclient import TestClient
-    from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized
 
+    from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized
     from service.config import Settings
     from service.main import create_app
 

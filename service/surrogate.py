@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import torch
+
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, to_normalized
 
 log = logging.getLogger(__name__)

@@ -6,8 +6,8 @@ import math
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
-from nemsim.controls import CONTROL_SPECS
 
+from nemsim.controls import CONTROL_SPECS
 from service.deps import SettingsDep, SurrogateDep
 from service.schemas import ControlInfo, Health, ModelInfo, jsonable
 

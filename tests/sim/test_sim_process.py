@@ -13,6 +13,7 @@ import pytest
 from nemsim.sim import SimConfig, run_trajectory, simulate_trajectory
 from nemsim.sim.domain import SI_CLASS
 
+
 def _etch_depth_nm(res, scene) -> float:
     """Si removed from the core of the opening, as a depth (micro state; exact bookkeeping, no SDF)."""
     si = res.domain.mat[..., list(SI_CLASS)].sum(-1) / res.domain.capacity
