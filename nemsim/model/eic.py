@@ -62,11 +62,6 @@ class EventIntensityCompiler(nn.Module):
         self.h_c = nn.Linear(K, cfg.proj_dim)
         self.h_rate = mlp(cfg.proj_dim + n_rate_desc, cfg.rate_hidden, 1, zero_last=True)
 
-    def log_rate(self, z_bar: torch.Tensor, u: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
-        """Δℓ (B, E) from z̄ (B, K), u (B, U) and the rate descriptors ψ (E, 7)."""
-        s, d = self._modulation(u)
-        return self._log_rate(z_bar, u, s, d, psi)
-
     def _modulation(self, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Control-only branches s = γ tanh(h_s(u)), d = γ h_d(u), each (B, K)."""
         g = self.cfg.gamma

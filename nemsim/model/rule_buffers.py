@@ -41,7 +41,3 @@ class RuleBuffers(nn.Module):
     @property
     def n_events(self) -> int:
         return int(self.phi.shape[0])  # E
-
-    @property
-    def n_species(self) -> int:
-        return int(self.w_src.shape[1])  # S
