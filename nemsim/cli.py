@@ -806,6 +806,7 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
 
     from service.bench import bench_service
 
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would drown the report
     if args.steps < 1 or args.requests < 1 or args.cached_requests < 1:
         raise UserError("--steps, --requests and --cached-requests must be >= 1")
     report = bench_service(

@@ -131,7 +131,7 @@ def results_markdown(results: dict) -> str:
     if sp.get("simulator_s") is not None and sp.get("nemsim_s"):
         lines.append(
             f"Speed: simulator {sp['simulator_s']:.3g} s per trajectory, NEMSim {sp['nemsim_s']:.3g} s "
-            f"({sp.get('nemsim_precision') or 'fp32'}), {sp['simulator_s'] / sp['nemsim_s']:.0f}x faster."
+            f"({sp.get('nemsim_precision') or 'fp32'}), {sp['simulator_s'] / sp['nemsim_s']:.1f}x faster."
         )
     lines += ["", TABLE_END]
     return "\n".join(lines) + "\n"
