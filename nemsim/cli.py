@@ -19,6 +19,14 @@ class UserError(Exception):
     """Bad input from the command line: printed as one line, exit code 2."""
 
 
+def _write_json(path: str, obj: object) -> None:
+    """Write a report as indented JSON (the --json option of several commands)."""
+    import json
+
+    with open(path, "w") as fh:
+        json.dump(obj, fh, indent=2)
+
+
 # ------------------------------------------------------------------------------------------------
 # Each _add_* function registers one group of subcommands. Keep handlers thin: parse, call the
 # library, print a short report.
@@ -385,7 +393,6 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_sim(args: argparse.Namespace) -> int:
-    import json
 
     from nemsim.controls import lhs_design
     from nemsim.rules import compile_rules, load_rules
@@ -413,13 +420,11 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
             f"{med['primaries_per_s']:>12.3g}"
         )
     if args.json_out:
-        with open(args.json_out, "w") as fh:
-            json.dump(out, fh, indent=2)
+        _write_json(args.json_out, out)
     return 0
 
 
 def _cmd_bench_noise(args: argparse.Namespace) -> int:
-    import json
 
     from nemsim.controls import lhs_design
     from nemsim.rules import compile_rules, load_rules
@@ -444,8 +449,7 @@ def _cmd_bench_noise(args: argparse.Namespace) -> int:
     print(f"  Final RMSE {rep['final_rmse']:.5f}")  # noqa: T201
     print("  per case   " + "  ".join(f"{v:.5f}" for v in rep["per_case_avg_rmse"]))  # noqa: T201
     if args.json_out:
-        with open(args.json_out, "w") as fh:
-            json.dump(rep, fh, indent=2)
+        _write_json(args.json_out, rep)
     return 0
 
 
@@ -680,7 +684,6 @@ def _add_metrics(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_sensitivity(args: argparse.Namespace) -> int:
-    import json
     import os
 
     from nemsim.analysis.sensitivity import sensitivity_from_file
@@ -693,8 +696,7 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
         raise UserError(f"{args.file}: {exc}") from exc
     print(result.table())  # noqa: T201
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(result.to_dict(), fh, indent=2)
+        _write_json(args.json, result.to_dict())
     return 0
 
 
@@ -802,7 +804,6 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_service(args: argparse.Namespace) -> int:
-    import json
 
     from service.bench import bench_service
 
@@ -824,8 +825,7 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
         f"  cached:   p50 {c['p50_ms']:.2f} ms  p95 {c['p95_ms']:.2f} ms  (n={c['n']})"
     )
     if args.json_out:
-        with open(args.json_out, "w") as f:
-            json.dump(report, f, indent=2)
+        _write_json(args.json_out, report)
     return 0
 
 
@@ -884,7 +884,6 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_stress(args: argparse.Namespace) -> int:
-    import json
 
     from nemsim.evaluation.stress import StressConfig, format_table, initial_state, run_stress
     from nemsim.training.checkpoint import load_checkpoint
@@ -903,13 +902,11 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     report["checkpoint"] = str(args.checkpoint)
     print(format_table(report))  # noqa: T201
     if args.json_out:
-        with open(args.json_out, "w") as f:
-            json.dump(report, f, indent=2)
+        _write_json(args.json_out, report)
     return 0 if report["summary"]["passed"] else 1
 
 
 def _cmd_bench_rollout(args: argparse.Namespace) -> int:
-    import json
 
     import torch
 
@@ -949,8 +946,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     report["source"] = args.checkpoint or f"untrained nemsim on {scene.name}"
     print(format_bench(report))  # noqa: T201
     if args.json_out:
-        with open(args.json_out, "w") as f:
-            json.dump(report, f, indent=2)
+        _write_json(args.json_out, report)
     return 0
 
 
