@@ -31,7 +31,7 @@ MESH_FORMATS: tuple[str, ...] = ("glb", "ply", "obj", "stl")
 MEDIA_TYPES = {
     "glb": "model/gltf-binary",
     "ply": "application/octet-stream",
-    "obj": "text/plain",
+    "obj": "model/obj",
     "stl": "model/stl",
 }
 

@@ -10,6 +10,7 @@ from fastapi import APIRouter, HTTPException, Path, Query
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
+from nemsim.geometry.mesh import MEDIA_TYPES
 from service.deps import SettingsDep, SurrogateDep, busy, reject
 from service.schemas import (
     Channel,
@@ -24,14 +25,6 @@ from service.schemas import (
 from service.surrogate import RolloutResult, ServiceBusy, Surrogate, UnknownRollout
 
 router = APIRouter(tags=["rollouts"])
-
-MEDIA_TYPES = {
-    "glb": "model/gltf-binary",
-    "ply": "application/octet-stream",
-    "obj": "model/obj",
-    "stl": "model/stl",
-}
-
 
 def _mesh_url(rollout_id: str, step: int, channel: str, fmt: str) -> str:
     return f"/rollouts/{rollout_id}/mesh?step={step}&channel={channel}&format={fmt}"
