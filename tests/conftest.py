@@ -16,3 +16,30 @@ def tiny_scene():
     from nemsim.scenes import TINY
 
     return TINY
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory, tiny_scene):
+    """An untrained NEMSim checkpoint on `tiny`, written with the real save_checkpoint."""
+    import torch
+
+    from nemsim.model.registry import build_model
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+    from nemsim.training.checkpoint import save_checkpoint
+
+    rules = compile_rules(load_rules())
+    torch.manual_seed(0)
+    model = build_model("nemsim", tiny_scene, rules)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny_nemsim.pt"
+    save_checkpoint(
+        path,
+        model,
+        model_name="nemsim",
+        model_config={},
+        scene=tiny_scene,
+        rules=rules,
+        summary={"note": "untrained, for tests"},
+        metrics={"avg_rmse": 0.5},
+    )
+    return path

@@ -40,25 +40,12 @@ def tiny_sim_data(tmp_path_factory, tiny_scene, rules):
 
 
 @pytest.fixture(scope="module")
-def tiny_ckpt(tmp_path_factory, tiny_scene, rules):
-    from nemsim.model.registry import build_model
-    from nemsim.training.checkpoint import save_checkpoint
-
-    torch.manual_seed(0)
-    model = build_model("nemsim", tiny_scene, rules)
-    path = tmp_path_factory.mktemp("ckpt") / "tiny_nemsim.pt"
-    save_checkpoint(path, model, model_name="nemsim", model_config={}, scene=tiny_scene, rules=rules,
-                    summary={"note": "untrained, for tests"}, metrics={})  # fmt: skip
-    return path
-
-
-@pytest.fixture(scope="module")
-def speed_error_out(tmp_path_factory, tiny_sim_data, tiny_ckpt):
+def speed_error_out(tmp_path_factory, tiny_sim_data, tiny_checkpoint):
     from nemsim.cli import main
 
     out = tmp_path_factory.mktemp("bench")
     rc = main(["bench", "speed-error", "--data", str(tiny_sim_data), "--setting", "control-id",
-               "--checkpoints", str(tiny_ckpt), "--cases", "1", "--out", str(out)])  # fmt: skip
+               "--checkpoints", str(tiny_checkpoint), "--cases", "1", "--out", str(out)])  # fmt: skip
     assert rc == 0
     return out
 

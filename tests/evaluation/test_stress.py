@@ -15,26 +15,10 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="module")
-def tiny_ckpt(tmp_path_factory, tiny_scene):
-    from nemsim.model.registry import build_model
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-    from nemsim.training.checkpoint import save_checkpoint
-
-    rules = compile_rules(load_rules())
-    torch.manual_seed(0)
-    model = build_model("nemsim", tiny_scene, rules)
-    path = tmp_path_factory.mktemp("stress") / "tiny_untrained.pt"
-    save_checkpoint(path, model, model_name="nemsim", model_config={}, scene=tiny_scene, rules=rules,
-                    summary={"note": "untrained, for tests"})
-    return path
-
-
-@pytest.fixture(scope="module")
-def loaded(tiny_ckpt):
+def loaded(tiny_checkpoint):
     from nemsim.training.checkpoint import load_checkpoint
 
-    return load_checkpoint(tiny_ckpt)
+    return load_checkpoint(tiny_checkpoint)
 
 
 @pytest.fixture(scope="module")
@@ -138,26 +122,26 @@ def test_fast_path_matches_forward(loaded, x0):
         model.load_state_dict(load_checkpoint(loaded.path).model.state_dict())
 
 
-def test_cli_stress(tiny_ckpt, tmp_path, monkeypatch, x0):
+def test_cli_stress(tiny_checkpoint, tmp_path, monkeypatch, x0):
     import nemsim.evaluation.stress as stress
     from nemsim.cli import main
 
     monkeypatch.setattr(stress, "initial_state", lambda scene: x0)
     out = tmp_path / "stress.json"
-    rc = main(["stress", "--checkpoint", str(tiny_ckpt), "--steps", "3", "--max-corners", "2",
+    rc = main(["stress", "--checkpoint", str(tiny_checkpoint), "--steps", "3", "--max-corners", "2",
                "--noise-cases", "1", "--abs-bound", "3", "--json", str(out)])
     assert rc == 0
     rep = json.loads(out.read_text())
     assert rep["summary"]["n_cases"] == 6 and rep["summary"]["passed"]
 
 
-def test_cli_bench_rollout(tiny_ckpt, tmp_path, monkeypatch, x0, capsys):
+def test_cli_bench_rollout(tiny_checkpoint, tmp_path, monkeypatch, x0, capsys):
     import nemsim.evaluation.stress as stress
     from nemsim.cli import main
 
     monkeypatch.setattr(stress, "initial_state", lambda scene: x0)
     out = tmp_path / "bench.json"
-    rc = main(["bench", "rollout", "--checkpoint", str(tiny_ckpt), "--steps", "3", "--repeats", "1",
+    rc = main(["bench", "rollout", "--checkpoint", str(tiny_checkpoint), "--steps", "3", "--repeats", "1",
                "--json", str(out)])
     assert rc == 0
     rep = json.loads(out.read_text())
