@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from nemsim.baselines.common import ControlField, check_inputs, coordinate_grid
-from nemsim.baselines.rulefeat import RuleFeat
+from nemsim.baselines.rulefeat import RuleFeat, prior_projection
 
 _SLOPE = 0.01  # LeakyReLU negative slope
 
@@ -132,13 +132,7 @@ class CNO3d(nn.Module):
         c_in = 2 + cfg.control_channels + 3
         self.rulefeat: RuleFeat | None = None
         if cfg.rulefeat:
-            if rules is None:
-                raise ValueError("CNO+Prior (rulefeat=True) needs the compiled rules")
-            self.rulefeat = RuleFeat(rules)
-            self.rule_proj = nn.Sequential(
-                nn.Linear(self.rulefeat.dim, cfg.rulefeat_hidden), nn.GELU(),
-                nn.Linear(cfg.rulefeat_hidden, cfg.rulefeat_channels),
-            )
+            self.rulefeat, self.rule_proj = prior_projection(rules, cfg.rulefeat_hidden, cfg.rulefeat_channels, "CNO")
             c_in += cfg.rulefeat_channels
         self.lift = LiftProject(c_in, w[0], cfg.lift_latent)
         self.encoder = nn.ModuleList(CNOBlock(w[i], w[i + 1], cfg.oversampling) for i in range(n_levels))

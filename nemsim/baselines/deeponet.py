@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from nemsim.baselines.common import check_inputs, coordinate_grid
-from nemsim.baselines.rulefeat import RuleFeat
+from nemsim.baselines.rulefeat import RuleFeat, prior_projection
 
 
 @dataclass(frozen=True)
@@ -60,13 +60,7 @@ class DeepONet3d(nn.Module):
         n_cond_in = 14
         self.rulefeat: RuleFeat | None = None
         if cfg.rulefeat:
-            if rules is None:
-                raise ValueError("DeepONet+Prior (rulefeat=True) needs the compiled rules")
-            self.rulefeat = RuleFeat(rules)
-            self.rule_proj = nn.Sequential(
-                nn.Linear(self.rulefeat.dim, cfg.rulefeat_hidden), nn.GELU(),
-                nn.Linear(cfg.rulefeat_hidden, cfg.rulefeat_dim),
-            )
+            self.rulefeat, self.rule_proj = prior_projection(rules, cfg.rulefeat_hidden, cfg.rulefeat_dim, "DeepONet")
             n_cond_in += cfg.rulefeat_dim
         self.cond = nn.Sequential(
             nn.Linear(n_cond_in, cfg.cond_hidden), nn.GELU(), nn.Linear(cfg.cond_hidden, cfg.cond_channels)

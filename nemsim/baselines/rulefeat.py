@@ -41,3 +41,12 @@ class RuleFeat(nn.Module):
         alpha0 = self.rules.alpha0.to(lam.dtype)  # (E, M)
         g = lam[:, :, None] * alpha0[None]  # (B, E, M)
         return torch.cat([lam, g.flatten(1)], dim=1).to(torch.float32)  # (B, E (1 + M))
+
+
+def prior_projection(rules, hidden: int, out: int, model: str) -> tuple[RuleFeat, nn.Sequential]:
+    """The +Prior branch shared by CNO+Prior and DeepONet+Prior: RuleFeat (148-d, no parameters) and its
+    148 -> hidden -> out GELU projection ([supp_rulefeat]). ``model`` names the caller in the error."""
+    if rules is None:
+        raise ValueError(f"{model}+Prior (rulefeat=True) needs the compiled rules")
+    feat = RuleFeat(rules)
+    return feat, nn.Sequential(nn.Linear(feat.dim, hidden), nn.GELU(), nn.Linear(hidden, out))

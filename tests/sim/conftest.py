@@ -57,3 +57,20 @@ def tiny_run(rules):
         return run_trajectory(TINY, rules, controls(**dict(key)), np.random.default_rng(seed), SimConfig())
 
     return run
+
+
+def _etch_depth_nm(res, scene) -> float:
+    """Si removed from the core of the opening, as a depth (micro state; exact bookkeeping, no SDF)."""
+    from nemsim.sim.domain import SI_CLASS
+
+    si = res.domain.mat[..., list(SI_CLASS)].sum(-1) / res.domain.capacity
+    cx, cy = scene.opening_centre
+    ii, jj = np.meshgrid(np.arange(scene.nx), np.arange(scene.ny), indexing="ij")
+    core = np.hypot(ii - cx, jj - cy) <= 1.0
+    return float((scene.si_top - si[core].sum(-1).mean()) * scene.voxel_nm)
+
+
+@pytest.fixture(scope="session")
+def etch_depth_nm():
+    """(TrajectoryResult, scene) -> etch depth in nm on the opening's core, from the voxel contents."""
+    return _etch_depth_nm

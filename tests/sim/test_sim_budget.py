@@ -6,20 +6,11 @@ import numpy as np
 import pytest
 
 from nemsim.sim import SimConfig, run_trajectory
-from nemsim.sim.domain import SI_CLASS
 
 
-def _etch_depth_nm(res, scene) -> float:
-    """Si removed from the core of the opening, as a depth (micro state, no SDF)."""
-    si = res.domain.mat[..., list(SI_CLASS)].sum(-1) / res.domain.capacity
-    cx, cy = scene.opening_centre
-    ii, jj = np.meshgrid(np.arange(scene.nx), np.arange(scene.ny), indexing="ij")
-    core = np.hypot(ii - cx, jj - cy) <= 1.0
-    return float((scene.si_top - si[core].sum(-1).mean()) * scene.voxel_nm)
-
-
-def test_quarter_budget_traces_a_quarter_of_the_particles_and_etches_as_deep(tiny_scene, rules, make_controls,
-                                                                             tiny_run):  # fmt: skip
+def test_quarter_budget_traces_a_quarter_of_the_particles_and_etches_as_deep(
+    etch_depth_nm, tiny_scene, rules, make_controls, tiny_run
+):
     u = make_controls()
     full = [tiny_run((), s) for s in (1, 2)]  # shared with the other tests of the session
     quarter = [
@@ -28,8 +19,8 @@ def test_quarter_budget_traces_a_quarter_of_the_particles_and_etches_as_deep(tin
     ]
     ratio = np.mean([q.counters["primary"] for q in quarter]) / np.mean([f.counters["primary"] for f in full])
     assert 0.22 < ratio < 0.28, ratio
-    d_full = [_etch_depth_nm(r, tiny_scene) for r in full]
-    d_quarter = [_etch_depth_nm(r, tiny_scene) for r in quarter]
+    d_full = [etch_depth_nm(r, tiny_scene) for r in full]
+    d_quarter = [etch_depth_nm(r, tiny_scene) for r in quarter]
     # seed-to-seed spread is ~2 nm at full and ~3 nm at 1/4 budget (4 seeds, calibration); one voxel = 8 nm
     assert abs(np.mean(d_quarter) - np.mean(d_full)) < 8.0, (d_full, d_quarter)
     # the bookkeeping still balances with weighted events

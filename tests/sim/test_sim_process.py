@@ -14,15 +14,6 @@ from nemsim.sim import SimConfig, run_trajectory, simulate_trajectory
 from nemsim.sim.domain import SI_CLASS
 
 
-def _etch_depth_nm(res, scene) -> float:
-    """Si removed from the core of the opening, as a depth (micro state; exact bookkeeping, no SDF)."""
-    si = res.domain.mat[..., list(SI_CLASS)].sum(-1) / res.domain.capacity
-    cx, cy = scene.opening_centre
-    ii, jj = np.meshgrid(np.arange(scene.nx), np.arange(scene.ny), indexing="ij")
-    core = np.hypot(ii - cx, jj - cy) <= 1.0
-    return float((scene.si_top - si[core].sum(-1).mean()) * scene.voxel_nm)
-
-
 def _mask_loss_nm(res, scene) -> float:
     from nemsim.geometry.profile import profile_metrics
 
@@ -89,12 +80,12 @@ def test_bad_controls_are_rejected(tiny_scene, rules, make_controls):
 
 
 @pytest.mark.slow
-def test_neutral_chlorine_alone_barely_etches(tiny_scene, tiny_run):
+def test_neutral_chlorine_alone_barely_etches(etch_depth_nm, tiny_scene, tiny_run):
     cl_only = (("flux_ar_plus", 0.0), ("flux_cl_plus", 0.0), ("flux_cl2_plus", 0.0), ("flux_cl", 2e-2))
     res = tiny_run(cl_only, 1)
     assert res.counters["neutrals"] > 0 and res.counters["ions"] == 0
-    assert _etch_depth_nm(res, tiny_scene) < 1.0  # < 1/8 of a voxel
-    assert _etch_depth_nm(tiny_run((), 1), tiny_scene) > 20.0  # while the base condition etches
+    assert etch_depth_nm(res, tiny_scene) < 1.0  # < 1/8 of a voxel
+    assert etch_depth_nm(tiny_run((), 1), tiny_scene) > 20.0  # while the base condition etches
 
 
 def _ordered(run, low_key: tuple, high_key: tuple, metric, scene, margin: float) -> None:
@@ -114,8 +105,8 @@ def _ordered(run, low_key: tuple, high_key: tuple, metric, scene, margin: float)
          (("energy_mean_cl_plus", 490), ("energy_mean_cl2_plus", 490), ("energy_mean_ar_plus", 490)), 5.0),
     ],
 )  # fmt: skip
-def test_etch_depth_rises_with(tiny_scene, tiny_run, name, low, high, margin):
-    _ordered(tiny_run, low, high, _etch_depth_nm, tiny_scene, margin)
+def test_etch_depth_rises_with(etch_depth_nm, tiny_scene, tiny_run, name, low, high, margin):
+    _ordered(tiny_run, low, high, etch_depth_nm, tiny_scene, margin)
 
 
 @pytest.mark.slow
