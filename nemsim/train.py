@@ -44,6 +44,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="YAML/JSON: TrainConfig fields (lr, batch_size, ...); model overrides under `model:` "
                         "(default: the paper's values)")
     p.add_argument("--epochs", type=int, help="epoch budget (overrides max_epochs; default 350)")
+    p.add_argument("--max-steps", type=int,
+                   help="optimizer-step budget (overrides max_steps; default none): ends training there, "
+                        "validates, and the learning-rate cosine spans it")
     p.add_argument("--fraction", type=float,
                    help="train on this data-efficiency fraction of the train split: 0.1, 0.2, 0.5 or 1 "
                         "(default 1)")
@@ -137,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
             raise TrainInputError(f"data file {args.data} does not exist")
         cfg, model_overrides = read_config_file(args.config) if args.config else (TrainConfig(), {})
         changes: dict[str, Any] = {}
-        for arg, key in (("epochs", "max_epochs"), ("seed", "seed"), ("bf16", "bf16"),
+        for arg, key in (("epochs", "max_epochs"), ("max_steps", "max_steps"), ("seed", "seed"), ("bf16", "bf16"),
                          ("channels_last", "channels_last"), ("device", "device"),
                          ("rollout_steps", "rollout_steps")):
             if getattr(args, arg, None) is not None:
@@ -161,9 +164,13 @@ def run(args: argparse.Namespace) -> int:
         manifest = _load_manifest(Path(args.data), args.setting, args.splits, tf)
         if args.fraction is not None:
             manifest = _apply_fraction(manifest, args.fraction, tf)
+        for split, limit in (("val", cfg.val_cases), ("test", cfg.test_cases)):
+            if limit is not None and split in manifest:
+                manifest = {**manifest, split: list(manifest[split])[:limit]}
         visible = manifest.get("visible_transitions")
         data = TrainData(
-            train=TransitionDataset(args.data, manifest, "train", visible_transitions=visible),
+            train=TransitionDataset(args.data, manifest, "train", visible_transitions=visible,
+                                    unroll=cfg.unroll_steps),
             val=TrajectoryDataset(args.data, manifest, "val"),
         )
 

@@ -106,8 +106,11 @@ class TransitionDataset(_H5Backed):
         manifest: split manifest dict (``nemsim.data.splits``) or None for every complete case.
         split: "train" | "val" | "test" | "unused".
         visible_transitions: only t = 0..V-1 of each case (Vis-p%); None = all T-1 transitions.
+        unroll: transitions per item (k). 1 = the paper's one-step samples; k > 1 gives k consecutive
+            transitions for a pushforward loss (``TrainConfig.unroll_steps``), t = 0..V-k.
     Items:
-        (x_t (2, D, H, W) float32, u_t (14,) float32 normalized, x_{t+1} (2, D, H, W) float32) tensors.
+        unroll 1: (x_t (2, D, H, W) float32, u_t (14,) float32 normalized, x_{t+1} (2, D, H, W) float32);
+        unroll k: (x_t (2, D, H, W), u_{t..t+k-1} (k, 14), x_{t+1..t+k} (k, 2, D, H, W)).
     """
 
     def __init__(
@@ -116,30 +119,38 @@ class TransitionDataset(_H5Backed):
         manifest: dict | None = None,
         split: str = "train",
         visible_transitions: int | None = None,
+        unroll: int = 1,
     ) -> None:
         super().__init__(path, manifest, split)
         n_trans = self.n_states - 1
         v = n_trans if visible_transitions is None else int(visible_transitions)
         if not 1 <= v <= n_trans:
             raise ValueError(f"visible_transitions={visible_transitions} must be in [1, {n_trans}]")
+        if not 1 <= unroll <= v:
+            raise ValueError(f"unroll={unroll} must be in [1, visible transitions {v}]")
         self.visible_transitions = v
+        self.unroll = int(unroll)
+        self._starts = v - self.unroll + 1  # start times per case
 
     def __len__(self) -> int:
-        return len(self.rows) * self.visible_transitions
+        return len(self.rows) * self._starts
 
     def index(self, i: int) -> tuple[int, int]:
         """(case id, t) of item i."""
-        k, t = divmod(int(i), self.visible_transitions)
+        k, t = divmod(int(i), self._starts)
         return int(self.case_ids[k]), t
 
     def __getitem__(self, i: int):
         if not -len(self) <= i < len(self):
             raise IndexError(f"index {i} out of range for {len(self)} transitions")
         i = int(i) % len(self)
-        k, t = divmod(i, self.visible_transitions)
-        pair = self._dataset()[int(self.rows[k]), t : t + 2]  # (2, C, D, H, W): x_t, x_{t+1}
-        pair = torch.from_numpy(np.ascontiguousarray(pair, dtype=np.float32))
-        return pair[0], torch.from_numpy(np.array(self.u[k, t])), pair[1]
+        k, t = divmod(i, self._starts)
+        n = self.unroll
+        run = self._dataset()[int(self.rows[k]), t : t + n + 1]  # (n+1, C, D, H, W): x_t .. x_{t+n}
+        run = torch.from_numpy(np.ascontiguousarray(run, dtype=np.float32))
+        if n == 1:
+            return run[0], torch.from_numpy(np.array(self.u[k, t])), run[1]
+        return run[0], torch.from_numpy(np.array(self.u[k, t : t + n])), run[1:]
 
 
 class TrajectoryDataset(_H5Backed):

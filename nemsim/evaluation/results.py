@@ -8,7 +8,9 @@ Format (issue 7)::
 
 Sources: each training run directory's ``test_metrics.json`` (written by ``nemsim train``: EvalResult fields
 plus ``setting``; ``rollout_s`` = its ``rollout_seconds_per_case``, batch 1) and the model name from the run's
-``best.pt`` (``model_name``; the directory name when there is no checkpoint); the noise floor and the speed
+``best.pt`` (``model_name``; the directory name when there is no checkpoint). A run trained on a step budget
+(``max_steps`` in the ``train_config`` stored in best.pt) is filed under its own setting key
+"<setting>, <S> steps x batch <B>" so equal-budget comparisons sit in one table. The noise floor and the speed
 from the JSON of ``nemsim bench speed-error`` (its ``noise_floor`` and ``speed`` blocks; ``nemsim_s`` is
 NEMSim's fastest precision that keeps its fp32 error). Extra keys (``n_cases``, ``run``, ``scene``,
 ``speed.nemsim_precision``) are informational. Two runs for the same (setting, model) are refused.
@@ -27,15 +29,23 @@ TABLE_BEGIN = "<!-- results-table:begin (nemsim bench collect) -->"
 TABLE_END = "<!-- results-table:end -->"
 
 
-def _model_name(run_dir: Path) -> str:
+def _run_info(run_dir: Path) -> tuple[str, dict[str, Any]]:
+    """(model name, training summary) from the run's best.pt; (directory name, {}) without one."""
     ckpt = run_dir / "best.pt"
     if ckpt.is_file():
         from nemsim.training.checkpoint import read_checkpoint
 
-        name = read_checkpoint(ckpt).get("model_name")
-        if name:
-            return str(name)
-    return run_dir.name
+        c = read_checkpoint(ckpt)
+        return str(c.get("model_name") or run_dir.name), dict(c.get("summary") or {})
+    return run_dir.name, {}
+
+
+def setting_key(setting: str, summary: dict[str, Any]) -> str:
+    """A step-budget run (train_config.max_steps set) is its own table: "<setting>, <S> steps x batch <B>"."""
+    tc = summary.get("train_config") or {}
+    if tc.get("max_steps") is None:
+        return setting
+    return f"{setting}, {tc['max_steps']} steps x batch {tc.get('batch_size')}"
 
 
 def collect_results(run_dirs: Sequence[str | Path], speed_error: str | Path | dict | None = None) -> dict:
@@ -55,7 +65,8 @@ def collect_results(run_dirs: Sequence[str | Path], speed_error: str | Path | di
         setting = m.get("setting")
         if not setting:
             raise ValueError(f"{f}: no 'setting' key")
-        model = _model_name(d)
+        model, summary = _run_info(d)
+        setting = setting_key(setting, summary)
         key = (setting, model)
         if key in sources:
             raise ValueError(f"two runs for setting {setting!r}, model {model!r}: {sources[key]} and {d}")

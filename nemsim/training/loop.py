@@ -67,14 +67,39 @@ class ModelMeta:
     rules_perturbation: dict[str, Any] | None = None
 
 
+def total_steps(steps_per_epoch: int, cfg: TrainConfig) -> int:
+    """The run's optimizer-step budget: max_epochs epochs, or max_steps if that is smaller."""
+    total = cfg.max_epochs * steps_per_epoch
+    return total if cfg.max_steps is None else min(total, cfg.max_steps)
+
+
 def lr_at(step: int, steps_per_epoch: int, cfg: TrainConfig) -> float:
-    """Linear warm-up over ``warmup_epochs`` then half-cosine from lr to min_lr at ``max_epochs``."""
-    warm = cfg.warmup_epochs * steps_per_epoch
-    total = max(cfg.max_epochs * steps_per_epoch, warm + 1)
+    """Linear warm-up (``warmup_steps``, else ``warmup_epochs``) then half-cosine from lr to min_lr at the
+    end of the budget (``total_steps``)."""
+    warm = cfg.warmup_steps if cfg.warmup_steps is not None else cfg.warmup_epochs * steps_per_epoch
+    total = max(total_steps(steps_per_epoch, cfg), warm + 1)
     if step < warm:
         return cfg.lr * (step + 1) / warm
     progress = min((step - warm) / max(total - warm, 1), 1.0)
     return cfg.min_lr + 0.5 * (cfg.lr - cfg.min_lr) * (1.0 + math.cos(math.pi * progress))
+
+
+def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, autocast,
+                     memory_format=torch.contiguous_format) -> torch.Tensor:
+    """Mean of k one-step MSEs along a k-transition window, each step fed the previous detached prediction.
+
+    x (B, 2, D, H, W) = x_t; u (B, k, 14); y (B, k, 2, D, H, W) = x_{t+1..t+k}. Gradients flow only
+    through each single step (no backpropagation through time): cost and memory are those of k steps.
+    """
+    k = u.shape[1]
+    state, total = x, 0.0
+    for j in range(k):
+        with autocast:
+            pred = model(state.contiguous(memory_format=memory_format), u[:, j])
+        pred = pred.float()
+        total = total + torch.mean((pred - y[:, j]) ** 2)
+        state = pred.detach()
+    return total / k
 
 
 def pick_device(name: str) -> torch.device:
@@ -137,6 +162,9 @@ def train(
         resume: continue from out_dir/last.pt if present (else start fresh).
     """
     out_dir = Path(out_dir)
+    if getattr(data.train, "unroll", 1) != cfg.unroll_steps:
+        raise ValueError(f"unroll_steps={cfg.unroll_steps} needs a train dataset of {cfg.unroll_steps}-transition "
+                         f"items; got unroll={getattr(data.train, 'unroll', 1)}")
     distributed = dist.is_available() and dist.is_initialized()
     rank, world = (dist.get_rank(), dist.get_world_size()) if distributed else (0, 1)
     is_main = rank == 0
@@ -172,6 +200,8 @@ def train(
 
     # ---- state, optionally resumed ---------------------------------------------------------------
     start_epoch, step, best, best_epoch, bad_rounds = 0, 0, math.inf, -1, 0
+    epoch_loss = (0.0, 0.0)  # (Σ loss·n, n) of a partly trained epoch (mid-epoch last.pt)
+    skip = 0  # batches of the resumed epoch already trained (mid-epoch last.pt)
     history: list[dict[str, Any]] = []
     last_path, best_path = out_dir / "last.pt", out_dir / "best.pt"
     if resume and last_path.is_file():
@@ -182,6 +212,11 @@ def train(
         start_epoch, step = ts["epoch"], ts["schedule_step"]
         best, best_epoch, bad_rounds = ts["best"], ts["best_epoch"], ts["bad_rounds"]
         history = list(ts["history"])
+        epoch_loss = tuple(ts.get("epoch_loss", (0.0, 0.0)))
+        # count stored since mid-epoch checkpoints; epoch-end checkpoints resume at batch 0 even when the
+        # steps per epoch change (e.g. a continuation with another unroll_steps)
+        partly = epoch_loss[1] > 0  # only mid-epoch checkpoints carry the sums of an unfinished epoch
+        skip = int(ts.get("epoch_batches", step - start_epoch * steps_per_epoch if partly else 0))
         _set_rng_state(ts["rng"])
         log.info("resumed from %s at epoch %d (best %.5g at epoch %d)", last_path, start_epoch, best, best_epoch)
     elif resume:
@@ -192,38 +227,59 @@ def train(
         # The compiled rule tensors are fixed buffers: nothing to broadcast after construction.
         train_model = nn.parallel.DistributedDataParallel(model, device_ids=ids, broadcast_buffers=False)
 
+    budget = total_steps(steps_per_epoch, cfg)  # for the bar; epochs bound the loop, max_steps the steps
+    step_cap = cfg.max_steps if cfg.max_steps is not None else math.inf
     stopped_early = bad_rounds >= cfg.patience
     t_start = time.perf_counter()
     bar = None
     if is_main and cfg.progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=cfg.max_epochs * steps_per_epoch, initial=start_epoch * steps_per_epoch,
-                   unit="step", dynamic_ncols=True)
-    log.info("training %s: %d transitions, %d steps/epoch x %d epochs, %d ranks, device %s, bf16=%s, "
-             "channels_last=%s", meta.name, len(data.train), steps_per_epoch, cfg.max_epochs, world, device,
-             cfg.bf16, cfg.channels_last)
+        bar = tqdm(total=budget, initial=min(step, budget), unit="step", dynamic_ncols=True)
+
+    def save_last(epoch_done: int, partial: torch.Tensor | None = None, batches: int = 0) -> None:
+        """last.pt with everything needed to resume; ``partial`` = loss sums of an unfinished epoch of which
+        ``batches`` batches are trained."""
+        train_state = {"optimizer": optimizer.state_dict(), "epoch": epoch_done, "schedule_step": step,
+                       "best": best, "best_epoch": best_epoch, "bad_rounds": bad_rounds,
+                       "history": history, "rng": _rng_state(),
+                       "epoch_loss": (0.0, 0.0) if partial is None else tuple(float(v) for v in partial),
+                       "epoch_batches": batches}
+        ckpt = _ckpt(model, meta, cfg, history, best, best_epoch, epoch_done, t_start, stopped_early)
+        ckpt["train_state"] = train_state
+        write_checkpoint_dict(last_path, ckpt)
+    log.info("training %s: %d transitions, %d steps/epoch x %d epochs (budget %d steps), %d ranks, device %s, "
+             "bf16=%s, channels_last=%s", meta.name, len(data.train), steps_per_epoch, cfg.max_epochs, budget,
+             world, device, cfg.bf16, cfg.channels_last)
 
     epoch = start_epoch
     for epoch in range(start_epoch, cfg.max_epochs):
-        if stopped_early:
+        if stopped_early or step >= step_cap:
             break
         # ---- one epoch of one-step MSE (eq. training_loss) ----------------------------------------
         t_epoch = time.perf_counter()
         sampler.set_epoch(epoch)
         train_model.train()
-        loss_sum = torch.zeros(2, dtype=torch.float64, device=device)  # (Σ loss·n, n)
+        loss_sum = torch.tensor(epoch_loss, dtype=torch.float64, device=device)  # (Σ loss·n, n)
+        epoch_loss = (0.0, 0.0)
         lr = cfg.lr
-        for x, u, y in loader:
+        for i, (x, u, y) in enumerate(loader):
+            if i < skip:
+                continue
+            if step >= step_cap:
+                break
             lr = lr_at(step, steps_per_epoch, cfg)
             for group in optimizer.param_groups:
                 group["lr"] = lr
             x = x.to(device, non_blocking=True).contiguous(memory_format=memory_format)  # (B, 2, D, H, W)
-            y = y.to(device, non_blocking=True).contiguous(memory_format=memory_format)
-            u = u.to(device, non_blocking=True)  # (B, 14)
-            with autocast:
-                pred = train_model(x, u)
-            loss = torch.mean((pred.float() - y) ** 2)
+            if cfg.unroll_steps == 1:
+                y = y.to(device, non_blocking=True).contiguous(memory_format=memory_format)
+                u = u.to(device, non_blocking=True)  # (B, 14)
+                with autocast:
+                    pred = train_model(x, u)
+                loss = torch.mean((pred.float() - y) ** 2)
+            else:  # u (B, k, 14), y (B, k, 2, D, H, W): pushforward over k transitions
+                loss = pushforward_loss(train_model, x, u.to(device), y.to(device), autocast, memory_format)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -234,14 +290,18 @@ def train(
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(epoch=epoch + 1, loss=f"{loss.item():.3e}", lr=f"{lr:.2e}")
+            if (is_main and cfg.checkpoint_every and step % cfg.checkpoint_every == 0
+                    and step < step_cap and (i + 1) < steps_per_epoch):
+                save_last(epoch, loss_sum, batches=i + 1)
+        skip = 0
         if distributed:
             dist.all_reduce(loss_sum)
         train_loss = float(loss_sum[0] / max(loss_sum[1], 1))
         row: dict[str, Any] = {"epoch": epoch + 1, "step": step, "lr": lr, "train_loss": train_loss,
                                "epoch_seconds": time.perf_counter() - t_epoch}
 
-        # ---- validation rollout every val_every epochs and at the last epoch ----------------------
-        if (epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.max_epochs:
+        # ---- validation rollout every val_every epochs and at the end of the budget ---------------
+        if (epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.max_epochs or step >= step_cap:
             t_val = time.perf_counter()
             model.eval()
             if val_index:  # streamed: one batch of trajectories in memory at a time
@@ -281,12 +341,7 @@ def train(
 
         # ---- last.pt: everything needed to resume --------------------------------------------------
         if is_main:
-            train_state = {"optimizer": optimizer.state_dict(), "epoch": epoch + 1, "schedule_step": step,
-                           "best": best, "best_epoch": best_epoch, "bad_rounds": bad_rounds,
-                           "history": history, "rng": _rng_state()}
-            ckpt = _ckpt(model, meta, cfg, history, best, best_epoch, epoch + 1, t_start, stopped_early)
-            ckpt["train_state"] = train_state
-            write_checkpoint_dict(last_path, ckpt)
+            save_last(epoch + 1)
             _write_csv(out_dir / "metrics.csv", history)
         if distributed:
             dist.barrier()

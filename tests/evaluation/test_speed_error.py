@@ -127,3 +127,12 @@ def test_collect_builds_results_json_and_readme(tmp_path, speed_error_out):
     assert readme.read_text().count("### control-id") == 1
     # the same (setting, model) twice is refused with exit code 2
     assert main(["bench", "collect", "--runs", runs[0], runs[0], "--out", str(out)]) == 2
+
+
+def test_step_budget_runs_get_their_own_table():
+    from nemsim.evaluation.results import setting_key
+
+    assert setting_key("control-id", {}) == "control-id"
+    assert setting_key("control-id", {"train_config": {"max_steps": None, "batch_size": 24}}) == "control-id"
+    assert setting_key("control-id", {"train_config": {"max_steps": 250, "batch_size": 24}}) == \
+        "control-id, 250 steps x batch 24"

@@ -41,3 +41,17 @@ def test_unknown_keys_and_bad_values(tmp_path):
     f.write_text("max_epochs: 3\nbetas: [0.8, 0.9]\nmodel:\n  width: 2\n")
     cfg, model = read_config_file(f)
     assert cfg.max_epochs == 3 and cfg.betas == (0.8, 0.9) and model == {"width": 2}
+
+
+def test_step_budget_schedule():
+    """max_steps shortens the cosine to the budget; warmup_steps replaces the epoch-based warm-up."""
+    c = TrainConfig(max_steps=250, warmup_steps=25)
+    spe = 1250
+    assert lr_at(0, spe, c) == pytest.approx(c.lr / 25)
+    assert lr_at(24, spe, c) == pytest.approx(c.lr)
+    assert lr_at(250, spe, c) == pytest.approx(c.min_lr)
+    assert lr_at(25 + 225 // 2, spe, c) == pytest.approx(c.min_lr + 0.5 * (c.lr - c.min_lr), rel=1e-2)
+    # an epoch budget smaller than max_steps still wins
+    assert lr_at(2 * 7, 7, TrainConfig(max_epochs=2, warmup_epochs=1, max_steps=10**6)) == pytest.approx(c.min_lr)
+    with pytest.raises(ValueError, match="max_steps"):
+        TrainConfig(max_steps=0)
