@@ -22,8 +22,14 @@ Choices where the paper is silent:
   * aux also carries ``S`` (signature, E x M x R), ``lambda_p``, ``lambda_d``, ``pool`` and ``delta_l``;
   * ``clamp_input``: the network reads clamp(x, -1, 1). Every valid state is already in [-1, 1] (SDF/d_max
     clipped), so training is unaffected; in long or out-of-range rollouts it stops a drifted value from being
-    amplified by the network (``nemsim stress`` found exponential growth without it). The rollout state itself
-    is never clipped: x̂ = x + Dec(...), as the protocol requires.
+    amplified by the network (``nemsim stress`` found exponential growth without it).
+  * ``clamp_output``: the next state is clamp(x + Dec(...), -1, 1), a projection onto the representation's range
+    (every state is SDF/d_max clipped to [-1, 1] by definition, so the projection can only move a prediction
+    closer to any valid target, voxel by voxel). The paper writes x_{t+1} = x_t + Dec(z_{t+1}) without it. With
+    the input clamp alone a voxel saturated at ±1 that receives a residual of the same sign keeps it step
+    after step, because the network sees the same clamped input: `nemsim stress` (300 steps) measured
+    |x| up to 3.8 (one-step-trained epoch 6) and 7.1 (after pushforward fine-tuning), growing linearly.
+    Default on; checkpoints written before the flag existed load with it on (set false to reproduce them).
 
 Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
 the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,
@@ -69,6 +75,7 @@ class NEMSimConfig:
     use_mac: bool = True  # False: w/o MAC ablation
     use_mrc: bool = True  # False: w/o MRC ablation
     clamp_input: bool = True  # the network sees clamp(x, -1, 1) (identity on valid states; see forward)
+    clamp_output: bool = True  # next state projected onto [-1, 1], the range of every valid state (see docstring)
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -188,7 +195,7 @@ class NEMSim(nn.Module):
         # Stability guard: states are SDF/d_max clipped to [-1, 1], so the clamp is the identity on every
         # valid state; a rollout that drifts outside no longer feeds the excess back through the network
         # (`nemsim stress`: an untrained small model grew 1.8 %/step to |x| ~ 500 in 300 steps without it).
-        # The residual x + Δx keeps the unclamped state (no clipping of the rollout itself).
+        # The output is projected onto the same range (clamp_output, see the module docstring).
         xin = x.clamp(-1.0, 1.0) if self.config.clamp_input else x
         xp = self._pad(xin)  # (B, 2, D', H', W')
         z, b, z_bar = self.encoder(xp)  # (B, C_z, d, h, w), (B, 12, D'/2, ..), (B, K)
@@ -200,6 +207,8 @@ class NEMSim(nn.Module):
         z_next = z + dz.to(z.dtype)  # eq:supp_mrc_latent_update
         dx = self.decoder(z_next, b, xp)  # (B, 2, D', H', W')
         x_next = x + dx[:, :, :D, :H, :W].to(x.dtype)  # eq:supp_mrc_state_update, cropped back
+        if self.config.clamp_output:
+            x_next = x_next.clamp(-1.0, 1.0)
         if not return_aux:
             return x_next
         aux = {

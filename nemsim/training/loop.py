@@ -1,12 +1,15 @@
 """The training loop ([supp_training], [supp_evaluation], eq. training_loss): one function, top to bottom.
 
-One-step supervision only: minimize the voxel-wise MSE between F_θ(x_t, u_t) and x_{t+1} on normalized
-fields. Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full
+One-step supervision (the paper): minimize the voxel-wise MSE between F_θ(x_t, u_t) and x_{t+1} on normalized
+fields; with ``unroll_steps`` k > 1 the mean of k one-step MSEs along k consecutive transitions, each step fed
+the previous detached prediction (``pushforward_loss``; not in the paper, see ``TrainConfig``). Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full
 horizon on the validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and
 training stops after ``patience`` validation rounds without improvement. ``last.pt`` is written after
-every epoch with the optimizer, schedule step, RNG states and history, so a killed run resumes at the
-start of the interrupted epoch and reproduces the uninterrupted run (shuffling is a pure function of
-seed and epoch through ``DistributedSampler.set_epoch``).
+every epoch (and every ``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states,
+history and the number of batches of the unfinished epoch, so a killed run resumes where it was saved and
+reproduces the uninterrupted run (shuffling is a pure function of seed and epoch through
+``DistributedSampler.set_epoch``; the resumed epoch skips the batches already trained). ``max_steps`` ends a
+run inside an epoch, with a validation rollout there.
 
 DDP: if ``torch.distributed`` is initialized (``torchrun``, see ``nemsim.train``) the model is wrapped
 in DistributedDataParallel, each rank sees a disjoint shard of every epoch (per-rank batch =
@@ -256,7 +259,7 @@ def train(
     for epoch in range(start_epoch, cfg.max_epochs):
         if stopped_early or step >= step_cap:
             break
-        # ---- one epoch of one-step MSE (eq. training_loss) ----------------------------------------
+        # ---- one epoch of one-step MSE (eq. training_loss), or its pushforward form -----------------
         t_epoch = time.perf_counter()
         sampler.set_epoch(epoch)
         train_model.train()
