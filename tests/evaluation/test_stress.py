@@ -71,6 +71,14 @@ def test_untrained_tiny_is_finite_and_bounded(report):
     assert report["summary"]["passed"]
 
 
+def test_output_projection_bounds_every_noise_free_case(report, loaded):
+    """clamp_output (default on) keeps every state of a noise-free rollout in [-1, 1], even untrained."""
+    assert loaded.model.config.clamp_output
+    for case in report["cases"]:
+        if not case["name"].startswith("noise-"):
+            assert case["max_abs"] <= 1.0 + 1e-6, case
+
+
 def test_report_is_json_and_table(report):
     text = json.dumps(report)
     assert "NaN" not in text and "Infinity" not in text

@@ -184,3 +184,18 @@ def test_param_count_paper_config(rules):
     assert 0.75 * PAPER_PARAMS <= n <= 1.25 * PAPER_PARAMS, n
     # The count does not depend on the scene: the model pads internally.
     assert n_params(build_model("nemsim", PAPER, rules)) == n_params(build_model("nemsim", SMALL, rules)) == n
+
+
+def test_output_projection(rules):
+    """clamp_output: the next state is clamp(x + Dec, -1, 1); off, it is the paper's x + Dec (same Dec)."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    on = NEMSim(rules, NEMSimConfig(decoder_out_scale=5.0)).eval()  # large steps: the projection acts
+    off = NEMSim(rules, dataclasses.replace(on.config, clamp_output=False)).eval()
+    off.load_state_dict(on.state_dict())
+    x, u = inputs(TINY)
+    with torch.no_grad():
+        y_on, y_off = on(x, u), off(x, u)
+    assert y_on.abs().max() <= 1.0 and y_off.abs().max() > 1.0
+    assert torch.equal(y_on, y_off.clamp(-1.0, 1.0))
