@@ -138,7 +138,10 @@ def run(args: argparse.Namespace) -> int:
             raise TrainInputError(f"unknown model {args.model!r}; expected one of {available_models()}")
         if not Path(args.data).is_file():
             raise TrainInputError(f"data file {args.data} does not exist")
-        cfg, model_overrides = read_config_file(args.config) if args.config else (TrainConfig(), {})
+        try:
+            cfg, model_overrides = read_config_file(args.config) if args.config else (TrainConfig(), {})
+        except (OSError, ValueError) as exc:
+            raise TrainInputError(f"--config {args.config}: {exc}") from None
         changes: dict[str, Any] = {}
         for arg, key in (("epochs", "max_epochs"), ("max_steps", "max_steps"), ("seed", "seed"), ("bf16", "bf16"),
                          ("channels_last", "channels_last"), ("device", "device"),
@@ -147,7 +150,10 @@ def run(args: argparse.Namespace) -> int:
                 changes[key] = getattr(args, arg)
         if args.no_progress or rank != 0:
             changes["progress"] = False
-        cfg = cfg.replace(**changes) if changes else cfg
+        try:
+            cfg = cfg.replace(**changes) if changes else cfg
+        except ValueError as exc:
+            raise TrainInputError(str(exc)) from None
 
         out = Path(args.out)
         if rank == 0:

@@ -84,6 +84,13 @@ def test_bad_input_exit_2(tmp_path, tiny_data, capsys):
     args[args.index("--model") + 1] = "no-such-model"
     assert main(args) == 2
     assert "no-such-model" in capsys.readouterr().err
+    # a bad budget or config value is a one-line error too, not a traceback
+    assert main(_train_args(tiny_data, tmp_path / "y") + ["--max-steps", "0"]) == 2
+    assert "max_steps" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("unroll_steps: 0\n")
+    assert main(_train_args(tiny_data, tmp_path / "z") + ["--config", str(bad)]) == 2
+    assert "unroll_steps" in capsys.readouterr().err
 
 
 @pytest.mark.slow
