@@ -24,6 +24,7 @@ entry point / here on rank 0 only.
 from __future__ import annotations
 
 import csv
+import itertools
 import logging
 import math
 import random
@@ -37,7 +38,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, Sampler
 from torch.utils.data.distributed import DistributedSampler
 
 from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
@@ -135,6 +136,23 @@ def _set_rng_state(state: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
+class _ResumableSampler(Sampler):
+    """DistributedSampler whose epoch can start ``skip`` indices in: a mid-epoch resume reads only the
+    batches still to train (the shuffled order itself is unchanged, so the remaining batches are identical)."""
+
+    def __init__(self, base: DistributedSampler) -> None:
+        self.base, self.skip = base, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.base.set_epoch(epoch)
+
+    def __iter__(self):
+        return itertools.islice(iter(self.base), self.skip, None)
+
+    def __len__(self) -> int:
+        return len(self.base) - self.skip
+
+
 def _write_csv(path: Path, history: list[dict[str, Any]]) -> None:
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("w", newline="") as f:
@@ -189,7 +207,8 @@ def train(
     if cfg.batch_size % world:
         log.warning("batch_size %d is not divisible by world size %d", cfg.batch_size, world)
     per_rank_batch = max(1, cfg.batch_size // world)
-    sampler = DistributedSampler(data.train, num_replicas=world, rank=rank, shuffle=True, seed=cfg.seed)
+    sampler = _ResumableSampler(
+        DistributedSampler(data.train, num_replicas=world, rank=rank, shuffle=True, seed=cfg.seed))
     loader = DataLoader(
         data.train,
         batch_size=per_rank_batch,
@@ -262,13 +281,12 @@ def train(
         # ---- one epoch of one-step MSE (eq. training_loss), or its pushforward form -----------------
         t_epoch = time.perf_counter()
         sampler.set_epoch(epoch)
+        sampler.skip = skip * per_rank_batch  # batches of this epoch trained before a mid-epoch resume
         train_model.train()
         loss_sum = torch.tensor(epoch_loss, dtype=torch.float64, device=device)  # (Σ loss·n, n)
         epoch_loss = (0.0, 0.0)
         lr = cfg.lr
-        for i, (x, u, y) in enumerate(loader):
-            if i < skip:
-                continue
+        for i, (x, u, y) in enumerate(loader, start=skip):
             if step >= step_cap:
                 break
             lr = lr_at(step, steps_per_epoch, cfg)
@@ -296,7 +314,7 @@ def train(
             if (is_main and cfg.checkpoint_every and step % cfg.checkpoint_every == 0
                     and step < step_cap and (i + 1) < steps_per_epoch):
                 save_last(epoch, loss_sum, batches=i + 1)
-        skip = 0
+        skip = sampler.skip = 0
         if distributed:
             dist.all_reduce(loss_sum)
         train_loss = float(loss_sum[0] / max(loss_sum[1], 1))
