@@ -3,7 +3,8 @@
 
   f_rule(u) = [ lambda^RF (E) ; vec(lambda^RF[:, None] * alpha0) (E*M) ]  in R^{E(1+M)} = R^148 for 37 events,
 
-where lambda^RF = ``nemsim.rules.kinetics.formula_intensities(u_norm, rules, kinetics)``: the rule-formula primary
+where lambda^RF = ``nemsim.rules.kinetics.formula_intensities(u_norm, rules, kinetics)``: the rule-formula
+primary
 intensities f p Y, and for product-dependent deposition events d_e p_stick pool_q evaluated on the Product
 Pool of those base intensities (the pool itself is not returned, as the paper prescribes). alpha0 is the
 static event-mechanism prior of the compiled library; vec() is row-major (event-major: e0m0, e0m1, e0m2,

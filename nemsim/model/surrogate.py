@@ -190,7 +190,8 @@ class NEMSim(nn.Module):
             "eic": self.eic.precompute(u, self.rules),
             "mac": self.mac.precompute(self.rules),
             "mrc": self.mrc.precompute(self.rules, fused=fused),
-            "gate": ion_flux_gate(u)[:, None, None, None, None] if self.config.flux_gate else None,  # (B,1,1,1,1)
+            # flux_gate: g (B, 1, 1, 1, 1) scaling the update (nemsim.model.gate)
+            "gate": ion_flux_gate(u)[:, None, None, None, None] if self.config.flux_gate else None,
         }
 
     def step(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False):

@@ -214,7 +214,8 @@ def mean_cosine(m: torch.Tensor) -> torch.Tensor:
 
 
 def expected_excess(mu: torch.Tensor, threshold: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-    """E[max(E' - threshold, 0)] for E' ~ N(mu, sigma^2): sigma (z Phi(z) + phi(z)), z = (mu - threshold)/sigma.
+    """E[max(E' - threshold, 0)] for E' ~ N(mu, sigma^2): sigma (z Phi(z) + phi(z)),
+    z = (mu - threshold)/sigma.
 
     Smooth, positive, increasing in mu, -> max(mu - threshold, 0) as sigma -> 0. Shapes broadcast."""
     z = (mu - threshold) / sigma
@@ -266,7 +267,8 @@ def _gather(u: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
 
 
 def kinetic_inputs(u_norm: torch.Tensor, rules: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """"paper": event supply f, energy E and effective cosine c, each (B, E), from normalized controls (B, 14)."""
+    """"paper": event supply f, energy E and effective cosine c, each (B, E), from normalized controls
+    (B, 14)."""
     b = _buffers(rules, u_norm)
     ctrl = b["ctrl_idx"]
     f = F.softplus(_gather(u_norm, ctrl[:, 0]))

@@ -12,9 +12,10 @@ angle theta_C = 45 deg [eq:supp_chemical_angle_constants].
   yamamura:  Y = c^-q exp(-s (1/c - 1)) [E > E_th^Y] [c > 0],
              q = -log(Y_max / max(Y0, eps)) / (log c_max + 1 - c_max + eps), s = q c_max
 
-These are the hard limits of the smooth torch gates: [E > E_th], [cos > 0], [p0 > 0] for G0 = sigmoid(p0/tau_E),
-and the C law switches at theta_C with the hard indicator. (The simulator multiplies the probability by
-``nemsim.sim.kernels.unsaturated_factor`` above E_ref; see that module's docstring.)
+These are the hard limits of the smooth torch gates: [E > E_th], [cos > 0], [p0 > 0] for
+G0 = sigmoid(p0/tau_E), and the C law switches at theta_C with the hard indicator. (The simulator
+multiplies the probability by ``nemsim.sim.kernels.unsaturated_factor`` above E_ref; see that module's
+docstring.)
 """
 
 from __future__ import annotations

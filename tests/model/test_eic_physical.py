@@ -47,7 +47,8 @@ def test_eic_at_init_is_the_physical_formula(models, rules):
 
 
 def test_eic_responds_to_energy_and_angle(models):
-    energy = recipes(("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus"), [160.0, 330.0, 500.0])
+    ion_energies = ("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus")
+    energy = recipes(ion_energies, [160.0, 330.0, 500.0])
     angle = recipes(("angle_cl_plus", "angle_cl2_plus", "angle_ar_plus"), [50.0, 3000.0])
     lam_e = intensities(models["physical"], energy)[:, ION_EVENTS]
     assert (lam_e.diff(dim=0) > 0).all() and (lam_e[-1] / lam_e[0] > 1.3).all()

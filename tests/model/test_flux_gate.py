@@ -105,5 +105,8 @@ def test_gate_reaches_training_gradients(pair, rules):
     u = normalized(median_raw())
     loss = model(x0, u).square().mean()
     loss.backward()
-    missing = [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not torch.isfinite(p.grad).all())]
+    missing = [
+        n for n, p in model.named_parameters()
+        if p.requires_grad and (p.grad is None or not torch.isfinite(p.grad).all())
+    ]  # fmt: skip
     assert not missing

@@ -38,6 +38,12 @@ def sweep(name_group: tuple[str, ...], values) -> torch.Tensor:
     return torch.from_numpy(to_normalized(raw))
 
 
+def event_laws(t, sel: slice) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(prob_model, prob_params, angle_kind) of the selected events as tensors."""
+    pm, pp, ak = t.prob_model[sel], t.prob_params[sel], t.angle_kind[sel]
+    return torch.from_numpy(pm), torch.from_numpy(pp), torch.from_numpy(ak)
+
+
 def sim_prob(t, e: int, energy: float, cos: float) -> float:
     """The simulator's probability: ``laws.prob_physical`` times ``kernels.unsaturated_factor``."""
     p = laws.prob_physical(t.prob_model[e], t.prob_params[e], t.angle_kind[e], energy, cos)
@@ -53,8 +59,7 @@ def test_physical_laws_are_the_simulators(tensors, e):
     c = torch.tensor([[cc] for _ in energies for cc in cosines], dtype=torch.float64)
     sigma = torch.full_like(mu, 2.0)  # 60 eV is >= 12 sigma above every threshold of the library
     sel = slice(e, e + 1)
-    p = K.probability_physical(mu, sigma, c, torch.from_numpy(tensors.prob_model[sel]),
-                               torch.from_numpy(tensors.prob_params[sel]), torch.from_numpy(tensors.angle_kind[sel]))  # fmt: skip
+    p = K.probability_physical(mu, sigma, c, *event_laws(tensors, sel))
     yp = torch.from_numpy(tensors.yield_params[sel])
     y = K.yield_factor(mu, c, torch.from_numpy(tensors.yield_model[sel]), yp,
                        energy_gate=torch.special.ndtr((mu - yp[:, 0]) / sigma))  # fmt: skip
@@ -70,7 +75,8 @@ def test_physical_laws_are_the_simulators(tensors, e):
 def test_primary_terms_by_hand(tensors):
     """E7 and E9 at the median recipe (Cl+ 330 eV, sigma 7.5 eV, m = 1525), from the YAML's numbers."""
     raw = median_raw()
-    assert (raw[CONTROL_INDEX["energy_mean_cl_plus"]], raw[CONTROL_INDEX["energy_std_cl_plus"]]) == (330.0, 7.5)
+    energy = (raw[CONTROL_INDEX["energy_mean_cl_plus"]], raw[CONTROL_INDEX["energy_std_cl_plus"]])
+    assert energy == (330.0, 7.5)
     assert raw[CONTROL_INDEX["angle_cl_plus"]] == 1525.0
     u = torch.from_numpy(to_normalized(raw))[None]
     f, p, y = K.primary_terms(u, tensors, "physical")
@@ -99,8 +105,7 @@ def test_below_threshold_is_smooth_and_vanishes(tensors):
     mu = torch.tensor([[0.0], [15.0], [25.0], [35.0], [60.0]], dtype=torch.float64)
     sigma = torch.full_like(mu, 5.0)
     sel = slice(E7, E7 + 1)
-    p = K.probability_physical(mu, sigma, torch.ones_like(mu), torch.from_numpy(tensors.prob_model[sel]),
-                               torch.from_numpy(tensors.prob_params[sel]), torch.from_numpy(tensors.angle_kind[sel]))  # fmt: skip
+    p = K.probability_physical(mu, sigma, torch.ones_like(mu), *event_laws(tensors, sel))
     p = p[:, 0].tolist()
     assert p[0] < 1e-5 and all(a < b for a, b in zip(p, p[1:]))  # 5 sigma below E_th
     # at the threshold: expected excess = sigma phi(0) = 5/sqrt(2 pi)
