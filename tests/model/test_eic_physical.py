@@ -9,9 +9,10 @@ import torch
 
 from nemsim.baselines.rulefeat import RuleFeat
 from nemsim.controls import CONTROL_INDEX, HIGH, IS_LOG, LOW, to_normalized
-from nemsim.model import NEMSim, NEMSimConfig
+from nemsim.model import NEMSim, NEMSimConfig, build_model
 from nemsim.rules import kinetics
 from nemsim.scenes import TINY
+from nemsim.training.checkpoint import load_checkpoint, save_checkpoint
 
 ION_EVENTS = list(range(6, 22))
 
@@ -80,3 +81,18 @@ def test_rulefeat_physical(rules):
     torch.testing.assert_close(feat[:, :E], kinetics.formula_intensities(u, rules, "physical"))
     assert feat[1, 6] / feat[0, 6] > 1.3  # Cl+ on Si follows the energy
     torch.testing.assert_close(RuleFeat(rules)(u)[:, :E], kinetics.formula_intensities(u, rules, "paper"))
+
+
+def test_config_keys_round_trip_through_a_checkpoint(rules, tmp_path):
+    """The training recipe's ``model: {kinetics: physical, flux_gate: true}`` reaches the rebuilt model."""
+    overrides = {"kinetics": "physical", "flux_gate": True}
+    model = build_model("nemsim", TINY, rules, overrides)
+    assert model.eic.kinetics == "physical" and model.config.flux_gate
+    path = save_checkpoint(tmp_path / "m.pt", model, model_name="nemsim", model_config=model.config.to_dict(),
+                           scene=TINY, rules=rules, summary={}, metrics={})  # fmt: skip
+    loaded = load_checkpoint(path).model
+    assert loaded.eic.kinetics == "physical" and loaded.config.flux_gate
+    u = recipes(("energy_mean_ar_plus",), [200.0, 400.0])
+    x = torch.zeros(2, *TINY.state_shape)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded(x, u), model.eval()(x, u))
