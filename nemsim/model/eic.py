@@ -17,7 +17,13 @@ eq:supp_final_intensity). All rule kinetics come from ``nemsim.rules.kinetics`` 
   λᵈ = λ^{d,b} exp(Δℓ)                          eq:supp_dependency_intensity
   λ = λᵖ + λᵈ                                   eq:supp_final_intensity
 
-At initialization Δℓ = 0, so λ equals ``kinetics.formula_intensities`` exactly.
+At initialization Δℓ = 0, so λ equals ``kinetics.formula_intensities(u, R, kinetics)`` exactly.
+
+``kinetics`` (constructor argument, ``NEMSimConfig.kinetics``): "paper" (default; the paper's normalized
+energy coordinates and effective cosine) or "physical" (the laws on physical eV and the mean incidence cosine
+of the cos^m source, with thresholds smoothed by the ion energy spread, as the simulator evaluates them);
+see ``nemsim.rules.kinetics``. Only λ^{p,b} and Y change; the learned branches and their parameters are the
+same, so a checkpoint's state dict loads under either.
 
 Choices where the paper is silent: h_z, h_s, h_d, h_c are single linear layers, h_g and h_rate two-layer
 SiLU MLPs; fused-context width 24, h_c output width 16; γ = 0.5; δ_max = 1.0 (a factor in [e⁻¹, e]).
@@ -36,7 +42,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from nemsim.model.layers import mlp
-from nemsim.rules import kinetics
+from nemsim.rules.kinetics import Kinetics, check_kinetics, dependency_base, primary_terms, product_pool
 
 
 @dataclass(frozen=True)
@@ -51,9 +57,10 @@ class EICConfig:
 
 
 class EventIntensityCompiler(nn.Module):
-    def __init__(self, cfg: EICConfig, n_rate_desc: int = 7) -> None:
+    def __init__(self, cfg: EICConfig, n_rate_desc: int = 7, kinetics: Kinetics = "paper") -> None:
         super().__init__()
         self.cfg = cfg
+        self.kinetics = check_kinetics(kinetics)
         K, U = cfg.fused_dim, cfg.n_controls
         self.h_z = nn.Linear(cfg.context_dim, K)
         self.h_s = nn.Linear(U, K)
@@ -87,7 +94,7 @@ class EventIntensityCompiler(nn.Module):
             u32 = u.float()
             # fp32 rule tensors on u's device, converted once (kinetics accepts the dict as ``rules``)
             bufs = {k: v.to(u32.device) for k, v in rules.torch_buffers(torch.float32).items()}
-            f, p, Y = kinetics.primary_terms(u32, bufs)  # each (B, E), zero where d_e = 1 or dropped
+            f, p, Y = primary_terms(u32, bufs, self.kinetics)  # each (B, E), zero where d_e = 1 or dropped
             s, d = self._modulation(u32)  # (B, K) each
             return {"u": u32, "Y": Y, "lam_pb": f * p * Y, "s": s, "d": d, "rules": bufs}
 
@@ -107,8 +114,8 @@ class EventIntensityCompiler(nn.Module):
             dl = self._log_rate(z_bar.float(), cache["u"], cache["s"], cache["d"], bufs["psi"])  # (B, E)
             scale = torch.exp(dl)  # (B, E)
             lam_p = lam_pb * scale  # (B, E)
-            pool = kinetics.product_pool(lam_p, cache["Y"], bufs)  # (B, S)
-            lam_db = kinetics.dependency_base(pool, bufs)  # (B, E), d_e p_stick pool_q(e)
+            pool = product_pool(lam_p, cache["Y"], bufs)  # (B, S)
+            lam_db = dependency_base(pool, bufs)  # (B, E), d_e p_stick pool_q(e)
             lam_d = lam_db * scale  # (B, E)
             lam = lam_p + lam_d  # (B, E)
         return {"lam": lam, "lam_p": lam_p, "lam_d": lam_d, "pool": pool, "dl": dl}

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -56,6 +56,7 @@ from torch import nn
 from nemsim.model.decoder import DecoderConfig, ResidualDecoder
 from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredIntensity
 from nemsim.model.encoder import EncoderConfig, StateEncoder
+from nemsim.model.gate import ion_flux_gate
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
@@ -79,6 +80,8 @@ class NEMSimConfig:
     use_mrc: bool = True  # False: w/o MRC ablation
     clamp_input: bool = True  # the network sees clamp(x, -1, 1) (identity on valid states; see forward)
     clamp_output: bool = True  # next state projected onto [-1, 1], the range of every valid state (see docstring)
+    kinetics: Literal["paper", "physical"] = "paper"  # rule kinetics of EIC (nemsim.rules.kinetics)
+    flux_gate: bool = False  # scale the update by the ion-flux gate (nemsim.model.gate): no ions, no change
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -137,7 +140,9 @@ class NEMSim(nn.Module):
         )
         eic_cfg = dataclasses.replace(cfg.eic, **shared)
         if cfg.use_eic:
-            self.eic: nn.Module = EventIntensityCompiler(eic_cfg, n_rate_desc=int(self.rules.psi.shape[1]))
+            self.eic: nn.Module = EventIntensityCompiler(
+                eic_cfg, n_rate_desc=int(self.rules.psi.shape[1]), kinetics=cfg.kinetics
+            )
         else:
             self.eic = UnstructuredIntensity(eic_cfg, E)
         self.mac = MechanismAttributionCompiler(
@@ -185,6 +190,8 @@ class NEMSim(nn.Module):
             "eic": self.eic.precompute(u, self.rules),
             "mac": self.mac.precompute(self.rules),
             "mrc": self.mrc.precompute(self.rules, fused=fused),
+            # flux_gate: g (B, 1, 1, 1, 1) scaling the update (nemsim.model.gate)
+            "gate": ion_flux_gate(u)[:, None, None, None, None] if self.config.flux_gate else None,
         }
 
     def step(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False):
@@ -209,6 +216,8 @@ class NEMSim(nn.Module):
         dz, amp = self.mrc(z, z_bar, u, T, self.rules, cache["mrc"])  # (B, C_z, d, h, w)
         z_next = z + dz.to(z.dtype)  # eq:supp_mrc_latent_update
         dx = self.decoder(z_next, b, xp)  # (B, 2, D', H', W')
+        if cache.get("gate") is not None:
+            dx = dx * cache["gate"].to(dx.dtype)  # flux_gate: zero ion flux, zero update
         x_next = x + dx[:, :, :D, :H, :W].to(x.dtype)  # eq:supp_mrc_state_update, cropped back
         if self.config.clamp_output:
             x_next = x_next.clamp(-1.0, 1.0)

@@ -7,7 +7,8 @@
     rules = compile_rules(load_rules())          # the repository's rules/cl_si.yaml
     lam = kinetics.formula_intensities(u_norm, rules)
 
-``kinetics`` (torch + numba) and ``perturb`` are imported on demand (``nemsim.rules.kinetics``).
+``laws`` (the simulator's numba laws, torch-free), ``kinetics`` (their differentiable torch forms) and
+``perturb`` are imported on demand (``nemsim.rules.kinetics``).
 """
 
 from nemsim.rules.compile import RuleTensors, compile_rules

@@ -1,16 +1,11 @@
-"""Kinetic laws of the Event Rules Library, with two entry points ([supp_kinetic_models], [supp_eic]).
+"""Kinetic laws of the Event Rules Library, model side: differentiable torch forms ([supp_kinetic_models],
+[supp_eic]) of the laws whose simulator (numpy/numba, torch-free) forms live in ``nemsim.rules.laws``; the
+constants (TAU_E, TAU_C, EPS, C_P, R_P, THETA_C, C_C, Q_P, S_P) are defined there once and re-exported here,
+as are ``prob_physical`` and ``yield_physical``.
 
-* torch (model side): differentiable, smooth gates, normalized energy coordinates
-  [eq:supp_energy_normalization]; ``primary_terms``, ``base_intensity``, ``product_pool``,
-  ``dependency_base``, ``formula_intensities`` (RuleFeat's lambda^RF [eq:rulefeat] and EIC's value at init).
-* numba (simulator side): ``prob_physical`` and ``yield_physical`` with physical eV, the real incidence
-  cosine and hard thresholds, ``@njit(cache=True)`` so the Monte Carlo particle loop can call them.
+Two kinetics, chosen by ``kinetics=`` ("paper" is the default and the paper's; KINETICS lists the choices):
 
-Constants are defined once, here: TAU_E, TAU_C [eq:supp_smooth_gate], EPS (the paper's epsilon),
-the P-law constants c_P = cos 60 deg, R_P = 1.0/0.2 [eq:supp_physical_angle_constants] and the C-law
-angle theta_C = 45 deg [eq:supp_chemical_angle_constants].
-
-Torch formulas (B batch, E events, S species):
+* "paper": normalized energy coordinates [eq:supp_energy_normalization], smooth gates of fixed temperature.
   f = softplus(u[iota_f]), E = softplus(u[iota_E]), k = softplus(u[iota_theta]), c = (k+1)/(k+2+eps)
       [eq:supp_kinetic_inputs, eq:supp_effective_cosine]
   const:     p = clip(p_const, 0, 1)
@@ -20,19 +15,46 @@ Torch formulas (B batch, E events, S species):
       w = sigmoid((theta_C - arccos c)/tau_C) (angles in radians); F^None = 1
   const Y = max(Y_const, 0); yamamura Y = c_eps^-q exp(-s(1/c_eps - 1)) G_tauE(E; E_th^Y) G_tauc(c; eps),
       q = -log(Y_max/max(Y0,eps)) / (log c_max + 1 - c_max + eps), s = q c_max
-  lambda^b = f p Y [eq:supp_kinetic_base_intensity]; pool_q = sum_e lambda^p_e xi_eq (eta_q = 1)
-  [eq:supp_product_pool]; lambda^{d,b}_e = d_e p_stick_e pool_q(e) [eq:supp_dependency_base].
-E_th, E_ref and E_th^Y are taken from ``RuleTensors.prob_params_norm`` / ``yield_params_norm`` (mapped with
-the fixed bounds of each event's energy control). Events without an energy control get E = 0; events
-without an angle control get c = 1 (neither is used by their laws).
+  E_th, E_ref and E_th^Y are taken from ``RuleTensors.prob_params_norm`` / ``yield_params_norm`` (mapped with
+  the fixed bounds of each event's energy control). With the design's energies (160-500 eV) every energy
+  gate is saturated (E = softplus(u) >= 0.31 while every normalized threshold and E_ref is < -1) and the
+  effective cosine spans only 0.57-0.70, so these laws carry no energy information and an angle response at
+  unphysical cosines.
+
+* "physical": the laws on physical units, as the simulator evaluates them ([supp_simulator]; ``laws`` and
+  ``nemsim.sim.kernels``): E = mu (eV) and sigma (eV) from the event's energy-mean and energy-spread controls,
+  recovered from the normalized controls with the fixed control ranges (``nemsim.controls.denormalize``);
+  c = (m+1)/(m+2), the mean incidence cosine of the cos^m source distribution
+  [eq:supp_particle_angular_distribution] on a flat surface (m from the event's angle control, clamped >= 0);
+  the thresholds are smoothed by the ion energy spread itself, i.e. they are the expectations of the
+  simulator's hard laws over the sampled energy E' ~ N(mu, sigma^2) [eq:supp_particle_energy_sampling]:
+      [E' > E_th]            -> Phi(z),                           z = (mu - E_th)/sigma_g
+      max(E' - E_th, 0)      -> sigma_g (z Phi(z) + phi(z))        (the expected excess energy)
+  with sigma_g = sqrt(sigma^2 + SIGMA_FLOOR_EV^2) (a 1 eV floor keeps sigma = 0 differentiable). Then
+  probModel: xbar = expected excess / (E_ref - E_th + eps) (not clipped),
+             p = clip(p0 min(xbar, 1)^n F^a(c), 0, 1) max(xbar, 1)^n [p0 > 0]
+  -- the simulator's ``prob_physical`` times its ``unsaturated_factor`` (above E_ref the simulator keeps
+  the law's x^n growth; a clipped x would again saturate every design energy); yamamura Y: the same
+  shape at c times Phi(z_Y); F^a as above (smooth C-law switch of width tau_C radians). The flux supply f
+  stays softplus(u[iota_f]) in both kinetics (the surrogate's flux trends are already right, and the raw
+  fluxes span four decades that the downstream saturating response is not scaled for). Far from
+  thresholds (every point of the design box: z >= 8) the "physical" p and Y equal the simulator's laws at
+  (mu, c) to 1e-5 relative (the C law's smoothed switch; tests/rules/test_kinetics_physical.py).
+  What it carries: across the box's 160-500 eV the ion events' rates grow by ((500 - E_th)/(160 - E_th))^n
+  (x1.8-1.9); across m = 50-3000 (mean incidence 11 deg to 1.5 deg) the sputter (P-law, Yamamura) events
+  fall by ~10 % and the chemical (C-law) ones do not move: the simulator's width response to the ion
+  angle comes from where the ions land (geometry), which no per-event rate carries.
+
+Shared: lambda^b = f p Y [eq:supp_kinetic_base_intensity]; pool_q = sum_e lambda^p_e xi_eq (eta_q = 1)
+[eq:supp_product_pool]; lambda^{d,b}_e = d_e p_stick_e pool_q(e) [eq:supp_dependency_base].
+Events without an energy control get E = 0; events without an angle control get c = 1 (neither is used by
+their laws).
 
 Choices where the paper is silent:
   * EPS = 1e-6.
   * x^n is evaluated as 0 where x = 0 (no infinite gradient at the clip boundary).
-  * The physical (numba) side uses the hard limits of every smooth gate: [E > E_th], [cos > 0], and
-    [p0 > 0] for G0 (so the torch probability equals the physical one times sigmoid(p0/tau_E) away from
-    thresholds); the C law switches at theta_C with the hard indicator. F^P, F^C and the Yamamura factor
-    use the real incidence cosine.
+  * The physical (numba) side uses the hard limits of every smooth gate (``laws`` module docstring), so the
+    paper's torch probability equals the physical one times sigmoid(p0/tau_E) away from thresholds.
   * Dropped events (``event_mask`` = 0, [supp_rule_robustness]) are zeroed before the Product Pool.
 """
 
@@ -40,56 +62,73 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Literal
 
-import numba
-import numpy as np
 import torch
 import torch.nn.functional as F
+
+from nemsim.controls import denormalize
+from nemsim.rules.laws import (
+    C_C,
+    C_P,
+    EPS,
+    Q_P,
+    R_P,
+    S_P,
+    TAU_C,
+    TAU_E,
+    THETA_C,
+    prob_physical,
+    yield_physical,
+)
 
 __all__ = [
     "C_C",
     "C_P",
     "EPS",
+    "KINETICS",
+    "Q_P",
     "R_P",
+    "S_P",
+    "SIGMA_FLOOR_EV",
     "TAU_C",
     "TAU_E",
     "THETA_C",
+    "Kinetics",
     "angle_factor",
     "base_intensity",
+    "check_kinetics",
     "dependency_base",
     "effective_cosine",
+    "expected_excess",
     "formula_intensities",
     "kinetic_inputs",
+    "mean_cosine",
+    "physical_inputs",
     "primary_terms",
     "prob_physical",
     "probability",
+    "probability_physical",
     "product_pool",
     "smooth_gate",
     "yield_factor",
     "yield_physical",
 ]
 
-TAU_E = 0.5  # energy-gate temperature
-TAU_C = 0.05  # angular-gate temperature
-EPS = 1e-6  # the paper's epsilon (denominators, c_eps, angular validity gate threshold)
-C_P = math.cos(math.radians(60.0))  # physical angular law: cosine of the maximum-yield angle
-R_P = 1.0 / 0.2  # physical angular law: peak-to-normal ratio
-THETA_C = math.radians(45.0)  # chemical angular law: transition angle
-C_C = math.cos(THETA_C)
+Kinetics = Literal["paper", "physical"]
+KINETICS: tuple[str, ...] = ("paper", "physical")
+SIGMA_FLOOR_EV = 1.0  # "physical": floor of the energy-gate width, sigma_g = sqrt(sigma^2 + floor^2) (eV)
 
 
-def _shape(c_max: float, ratio: float) -> tuple[float, float]:
-    """Yamamura-style shape (q, s) [eq:supp_physical_angle_shape, eq:supp_yield_shape_parameters]."""
-    q = -math.log(ratio) / (math.log(c_max) + 1.0 - c_max + EPS)
-    return q, q * c_max
-
-
-Q_P, S_P = _shape(C_P, R_P)
+def check_kinetics(kinetics: str) -> str:
+    """``kinetics`` if it names a kinetics, else ValueError listing the choices."""
+    if kinetics not in KINETICS:
+        raise ValueError(f"unknown kinetics {kinetics!r}; expected one of {list(KINETICS)}")
+    return kinetics
 
 
 # ================================================================================================
-# torch side (differentiable, normalized coordinates)
+# torch side (differentiable)
 # ================================================================================================
 
 
@@ -146,12 +185,14 @@ def probability(
 
 
 def yield_factor(
-    energy: torch.Tensor, c: torch.Tensor, yield_model: torch.Tensor, yield_params: torch.Tensor
-) -> torch.Tensor:
+    energy: torch.Tensor, c: torch.Tensor, yield_model: torch.Tensor, yield_params: torch.Tensor,
+    energy_gate: torch.Tensor | None = None,
+) -> torch.Tensor:  # fmt: skip
     """Yield multiplier Y (B, E) [eq:supp_constant_yield, eq:supp_yamamura_yield].
 
     Args: energy (B, E) in the coordinates of yield_params' E_th; c (B, E); yield_model (E,) int
-      (-1 none -> 0, 0 const, 1 yamamura); yield_params (E, 4) (Y_const | E_th, theta_max_deg, Y_max, Y0).
+      (-1 none -> 0, 0 const, 1 yamamura); yield_params (E, 4) (Y_const | E_th, theta_max_deg, Y_max, Y0);
+      energy_gate (B, E): the Yamamura energy gate, default the paper's G_tauE(energy; E_th).
     """
     is_ya = yield_model == 1
     y_const = yield_params[:, 0].clamp_min(0.0).expand_as(energy)
@@ -161,13 +202,53 @@ def yield_factor(
     ratio = y_max / torch.where(is_ya, yield_params[:, 3], torch.ones_like(c_max)).clamp_min(EPS)
     q = -torch.log(ratio) / (torch.log(c_max) + 1.0 - c_max + EPS)
     s = q * c_max
-    y_ya = (
-        _yamamura_shape_t(c, q, s)
-        * smooth_gate(energy, yield_params[:, 0], TAU_E)
-        * smooth_gate(c, EPS, TAU_C)
-    )
+    if energy_gate is None:
+        energy_gate = smooth_gate(energy, yield_params[:, 0], TAU_E)
+    y_ya = _yamamura_shape_t(c, q, s) * energy_gate * smooth_gate(c, EPS, TAU_C)
     zero = torch.zeros_like(energy)
     return torch.where(yield_model == 0, y_const, torch.where(is_ya, y_ya, zero))
+
+
+def mean_cosine(m: torch.Tensor) -> torch.Tensor:
+    """Mean incidence cosine (m+1)/(m+2) on a flat surface of the cos^m source distribution (m >= 0).
+
+    p(Omega) ~ cos^m theta on the hemisphere gives cos theta = U^(1/(m+1)) (``kernels.cos_power_polar``),
+    whose density is (m+1) c^m on [0, 1]."""
+    return (m + 1.0) / (m + 2.0)
+
+
+def expected_excess(mu: torch.Tensor, threshold: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """E[max(E' - threshold, 0)] for E' ~ N(mu, sigma^2): sigma (z Phi(z) + phi(z)),
+    z = (mu - threshold)/sigma.
+
+    Smooth, positive, increasing in mu, -> max(mu - threshold, 0) as sigma -> 0. Shapes broadcast."""
+    z = (mu - threshold) / sigma
+    pdf = torch.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+    return (sigma * (z * torch.special.ndtr(z) + pdf)).clamp_min(0.0)
+
+
+def probability_physical(
+    energy_ev: torch.Tensor, sigma_ev: torch.Tensor, c: torch.Tensor, prob_model: torch.Tensor,
+    prob_params: torch.Tensor, angle_kind: torch.Tensor,
+) -> torch.Tensor:  # fmt: skip
+    """Interaction probability p (B, E) of the "physical" kinetics (module docstring).
+
+    Args:
+      energy_ev, sigma_ev: (B, E) mean and spread (> 0) of the event's projectile energy, eV.
+      c: (B, E) incidence cosine. prob_model: (E,) int (-1 none -> 0, 0 const, 1 probModel).
+      prob_params: (E, 5) physical (p_const | E_th, E_ref, p0, n, angle) in eV. angle_kind: (E,) int.
+    """
+    p_const = prob_params[:, 0].clamp(0.0, 1.0).expand_as(energy_ev)
+    e_th, e_ref, p0, n = prob_params[:, 0], prob_params[:, 1], prob_params[:, 2], prob_params[:, 3]
+    x = expected_excess(energy_ev, e_th, sigma_ev) / (e_ref - e_th + EPS)  # (B, E) >= 0, not clipped
+    n_safe = torch.where(prob_model == 1, n, torch.ones_like(n))
+    x_lo = x.clamp(max=1.0)
+    x_lo_n = torch.where(x_lo > 0, x_lo.clamp_min(1e-12).pow(n_safe), torch.zeros_like(x_lo))
+    x_hi_n = x.clamp_min(1.0).pow(n_safe)  # the simulator's unsaturated factor above E_ref
+    saturated = (p0 * x_lo_n * angle_factor(c, angle_kind)).clamp(0.0, 1.0)
+    p_model = saturated * x_hi_n * (p0 > 0).to(x.dtype)
+    zero = torch.zeros_like(energy_ev)
+    return torch.where(prob_model == 0, p_const, torch.where(prob_model == 1, p_model, zero))
 
 
 def _buffers(rules: Any, like: torch.Tensor) -> Mapping[str, torch.Tensor]:
@@ -190,7 +271,8 @@ def _gather(u: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
 
 
 def kinetic_inputs(u_norm: torch.Tensor, rules: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Event supply f, energy E and effective cosine c, each (B, E), from normalized controls (B, 14)."""
+    """"paper": event supply f, energy E and effective cosine c, each (B, E), from normalized controls
+    (B, 14)."""
     b = _buffers(rules, u_norm)
     ctrl = b["ctrl_idx"]
     f = F.softplus(_gather(u_norm, ctrl[:, 0]))
@@ -203,22 +285,50 @@ def kinetic_inputs(u_norm: torch.Tensor, rules: Any) -> tuple[torch.Tensor, torc
     return f, energy, c
 
 
-def primary_terms(u_norm: torch.Tensor, rules: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def physical_inputs(
+    u_norm: torch.Tensor, rules: Any
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """"physical": supply f (as "paper"), energy mean mu [eV], gate width sigma_g [eV] and mean incidence
+    cosine c, each (B, E), from normalized controls (B, 14) (module docstring)."""
+    b = _buffers(rules, u_norm)
+    ctrl = b["ctrl_idx"]
+    # (B, 14) transformed controls: physical units for the angle and energy channels (their transform is
+    # the identity; integers not rounded). The log-flux columns are not exponentiated (no overflow).
+    raw = denormalize(u_norm)
+    f = F.softplus(_gather(u_norm, ctrl[:, 0])) * (ctrl[:, 0] >= 0).to(u_norm.dtype)
+    energy = _gather(raw, ctrl[:, 2]).clamp_min(0.0)
+    sigma = torch.sqrt(_gather(raw, ctrl[:, 3]).clamp_min(0.0) ** 2 + SIGMA_FLOOR_EV**2)
+    c = mean_cosine(_gather(raw, ctrl[:, 1]).clamp_min(0.0))
+    c = torch.where(ctrl[:, 1] >= 0, c, torch.ones_like(c))
+    return f, energy, sigma, c
+
+
+def primary_terms(
+    u_norm: torch.Tensor, rules: Any, kinetics: Kinetics = "paper"
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(f, p, Y), each (B, E), zero for product-mediated (and dropped) events [supp_kinetic_models].
 
-    Args: u_norm (B, 14) controls normalized to [-1, 1]; rules: RuleTensors or its torch_buffers().
+    Args: u_norm (B, 14) controls normalized to [-1, 1]; rules: RuleTensors or its torch_buffers();
+      kinetics: "paper" or "physical" (module docstring).
     """
     b = _buffers(rules, u_norm)
-    f, energy, c = kinetic_inputs(u_norm, b)
-    p = probability(energy, c, b["prob_model"], b["prob_params_norm"], b["angle_kind"])
-    y = yield_factor(energy, c, b["yield_model"], b["yield_params_norm"])
+    if check_kinetics(kinetics) == "paper":
+        f, energy, c = kinetic_inputs(u_norm, b)
+        p = probability(energy, c, b["prob_model"], b["prob_params_norm"], b["angle_kind"])
+        y = yield_factor(energy, c, b["yield_model"], b["yield_params_norm"])
+    else:
+        f, energy, sigma, c = physical_inputs(u_norm, b)
+        pp, yp = b["prob_params"], b["yield_params"]
+        p = probability_physical(energy, sigma, c, b["prob_model"], pp, b["angle_kind"])
+        y_gate = torch.special.ndtr((energy - yp[:, 0]) / sigma)  # E[[E' > E_th^Y]]
+        y = yield_factor(energy, c, b["yield_model"], yp, energy_gate=y_gate)
     active = b["is_primary"].to(u_norm.dtype) * b["event_mask"]  # (E,)
     return f * active, p * active, y * active
 
 
-def base_intensity(u_norm: torch.Tensor, rules: Any) -> torch.Tensor:
+def base_intensity(u_norm: torch.Tensor, rules: Any, kinetics: Kinetics = "paper") -> torch.Tensor:
     """lambda^{p,b} = (1 - d_e) f p Y, (B, E) [eq:supp_eic_primary_base]."""
-    f, p, y = primary_terms(u_norm, rules)
+    f, p, y = primary_terms(u_norm, rules, kinetics)
     return f * p * y
 
 
@@ -241,79 +351,10 @@ def dependency_base(pool: torch.Tensor, rules: Any) -> torch.Tensor:
     return (pool @ b["w_sink"].T) * (b["s_dep"] * d)
 
 
-def formula_intensities(u_norm: torch.Tensor, rules: Any) -> torch.Tensor:
+def formula_intensities(u_norm: torch.Tensor, rules: Any, kinetics: Kinetics = "paper") -> torch.Tensor:
     """Formula-based event intensities lambda^RF (B, E): primary base intensity plus deposition driven by
     the Product Pool of the base intensities ([eq:rulefeat]; EIC's value at initialization)."""
     b = _buffers(rules, u_norm)
-    f, p, y = primary_terms(u_norm, b)
+    f, p, y = primary_terms(u_norm, b, kinetics)
     lam_p = f * p * y
     return lam_p + dependency_base(product_pool(lam_p, y, b), b)
-
-
-# ================================================================================================
-# numba side (simulator: physical eV, real incidence cosine, hard thresholds)
-# ================================================================================================
-
-
-@numba.njit(cache=True)
-def _angle_physical(angle_kind: int, cos_theta: float) -> float:
-    if angle_kind == 0:
-        return 1.0
-    if cos_theta <= 0.0:
-        return 0.0
-    c = min(cos_theta, 1.0)
-    if angle_kind == 1:
-        ce = max(c, EPS)
-        return ce ** (-Q_P) * math.exp(-S_P * (1.0 / ce - 1.0))
-    if angle_kind == 2:
-        if math.acos(c) < THETA_C:
-            return 1.0
-        return c / C_C
-    return 0.0
-
-
-@numba.njit(cache=True)
-def prob_physical(
-    prob_model: int, prob_params: np.ndarray, angle_kind: int, energy_ev: float, cos_theta: float
-) -> float:
-    """Interaction probability with physical energy (eV) and real incidence cosine, hard thresholds.
-
-    Args: prob_model (-1 none -> 0, 0 const, 1 probModel); prob_params (5,) physical (p_const | E_th,
-      E_ref, p0, n, angle); angle_kind (0 none, 1 P, 2 C); energy_ev; cos_theta (cosine of the angle
-      between the incoming direction reversed and the surface normal; <= 0 -> no interaction for
-      angular laws).
-    """
-    if prob_model == 0:
-        return min(max(prob_params[0], 0.0), 1.0)
-    if prob_model != 1:
-        return 0.0
-    e_th = prob_params[0]
-    e_ref = prob_params[1]
-    p0 = prob_params[2]
-    n = prob_params[3]
-    if energy_ev <= e_th or p0 <= 0.0:
-        return 0.0
-    x = min(max((energy_ev - e_th) / (e_ref - e_th + EPS), 0.0), 1.0)
-    p = p0 * x**n * _angle_physical(angle_kind, cos_theta)
-    return min(max(p, 0.0), 1.0)
-
-
-@numba.njit(cache=True)
-def yield_physical(yield_model: int, yield_params: np.ndarray, energy_ev: float, cos_theta: float) -> float:
-    """Yield multiplier with physical energy (eV), real incidence cosine and hard thresholds.
-
-    Args: yield_model (-1 none -> 0, 0 const, 1 yamamura); yield_params (4,) (Y_const | E_th [eV],
-      theta_max [deg], Y_max, Y0).
-    """
-    if yield_model == 0:
-        return max(yield_params[0], 0.0)
-    if yield_model != 1:
-        return 0.0
-    if energy_ev <= yield_params[0] or cos_theta <= 0.0:
-        return 0.0
-    c_max = math.cos(math.radians(yield_params[1]))
-    ratio = yield_params[2] / max(yield_params[3], EPS)
-    q = -math.log(ratio) / (math.log(c_max) + 1.0 - c_max + EPS)
-    s = q * c_max
-    ce = max(min(cos_theta, 1.0), EPS)
-    return ce ** (-q) * math.exp(-s * (1.0 / ce - 1.0))

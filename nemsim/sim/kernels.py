@@ -21,13 +21,13 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
     when that estimate is degenerate or faces away); incidence cosine = -d.n; target species sampled from
     the voxel's contents; all rule channels of the (projectile, target) pair compete: total probability
     < 1 leaves a non-reactive remainder, otherwise the channels are normalized.
-  * probability: ``kinetics.prob_physical`` (hard thresholds, real incidence angle). Choice: the paper
+  * probability: ``laws.prob_physical`` (hard thresholds, real incidence angle). Choice: the paper
     lists "saturation at the reference energy" among the safeguards its *differentiable* form adds to the
     source Monte Carlo expression ([supp_kinetic_models]), so the simulator uses the unsaturated law
     p0 ((E - E_th)/(E_ref - E_th))^n F(theta): ``prob_physical`` times ((E - E_th)/(E_ref - E_th))^n for
     E > E_ref. Without it every design energy (160-500 eV > E_ref = 100-150 eV) would give the same
     probabilities.
-  * yield: ``kinetics.yield_physical``; integer removal count k by stochastic rounding.
+  * yield: ``laws.yield_physical``; integer removal count k by stochastic rounding.
   * outcome: react / remove (+ SiCl_x products) / deposit, see ``events``; a reacting particle is consumed.
     Non-reactive ions reflect specularly about the normal and keep the fraction
     sin^2 theta + cos^2 theta ((M1 - M2)/(M1 + M2))^2 of their energy (elastic transfer of the normal
@@ -52,7 +52,7 @@ import math
 import numba
 import numpy as np
 
-from nemsim.rules.kinetics import EPS, prob_physical, yield_physical
+from nemsim.rules.laws import EPS, prob_physical, yield_physical
 
 from .events import ACT_DEPOSIT, ACT_REACT, ACT_REMOVE
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from nemsim.rules import kinetics as K
+from nemsim.rules import laws
 
 E1, E7, E8, E9, E12, E23 = 0, 6, 7, 8, 11, 22
 
@@ -20,7 +21,7 @@ def cos_deg(a: float) -> float:
 def test_constants():
     assert K.TAU_E == 0.5 and K.TAU_C == 0.05
     # P law: F(c_P) = R_P at the 60 degree maximum
-    assert K._angle_physical(1, K.C_P) == pytest.approx(K.R_P, rel=1e-4)
+    assert laws._angle_physical(1, K.C_P) == pytest.approx(K.R_P, rel=1e-4)
 
 
 def test_prob_physical_by_hand(tensors):
@@ -56,12 +57,12 @@ def test_yield_physical_by_hand(tensors):
 
 def test_p_law_shape():
     angles = np.arange(0.0, 90.0, 5.0)
-    f = np.array([K._angle_physical(1, cos_deg(a)) for a in angles])
+    f = np.array([laws._angle_physical(1, cos_deg(a)) for a in angles])
     peak = angles[np.argmax(f)]
     assert peak == 60.0
     assert f[0] == pytest.approx(1.0)
     assert np.all(np.diff(f[angles <= 60]) > 0) and np.all(np.diff(f[angles >= 60]) < 0)
-    assert K._angle_physical(1, cos_deg(89.9)) < 1e-3
+    assert laws._angle_physical(1, cos_deg(89.9)) < 1e-3
     # torch smooth version has the same shape away from grazing incidence
     c = torch.tensor([[cos_deg(a) for a in angles[:-2]]], dtype=torch.float64)
     ft = K.angle_factor(c, torch.ones(c.shape[1], dtype=torch.long))
