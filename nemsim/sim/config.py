@@ -93,6 +93,12 @@ class SimConfig:
     neutral_energy_ev: float = 0.2  # incident energy of neutral Cl [supp_simulator]
     product_energy_ev: float = 2.0  # energy of emitted SiCl_x products [supp_simulator]
     psi_sigma_vox: float = 0.7  # Gaussian smoothing of the material fraction before the SDF (voxels)
+    # ion reflection law (kernels.reflection_probability; module docstring "Ion reflection"): a non-reacting
+    # ion is absorbed (implanted and neutralized) below ion_absorb_below_deg incidence, always reflected
+    # beyond ion_reflect_above_deg, linear in the angle between. 0, 0 (default) = every non-reacting ion
+    # reflects, the calibrated behaviour; measured to *lower* lateral etch and bowing, so off by default.
+    ion_absorb_below_deg: float = 0.0
+    ion_reflect_above_deg: float = 0.0
     queue_capacity: int = 1 << 15  # FIFO ring buffer for secondary products (drained after each primary)
     projectile_mass_amu: tuple[tuple[str, float], ...] = _PROJECTILE_MASS_AMU
     target_mass_amu: tuple[tuple[str, float], ...] = _TARGET_MASS_AMU
@@ -111,6 +117,12 @@ class SimConfig:
             )
         if self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        lo, hi = self.ion_absorb_below_deg, self.ion_reflect_above_deg
+        if not (0.0 <= lo <= hi <= 90.0):
+            raise ValueError(
+                f"ion reflection law needs 0 <= ion_absorb_below_deg <= ion_reflect_above_deg <= 90, "
+                f"got {lo} and {hi}"
+            )
         if self.psi_sigma_vox < 0:
             raise ValueError(f"psi_sigma_vox must be >= 0, got {self.psi_sigma_vox}")
 
@@ -130,6 +142,16 @@ class SimConfig:
         cap = self.resolved(scene).capacity
         assert cap is not None
         return self.flux_scale * cap / (self.si_atoms_per_nm3 * scene.voxel_nm**3) * self.particle_budget
+
+    @property
+    def reflection_cosines(self) -> tuple[float, float]:
+        """(cos theta_full, cos theta_zero) for ``kernels.reflection_probability``; (1, 1) = always reflect."""
+        if self.ion_reflect_above_deg <= 0.0:
+            return 1.0, 1.0
+        return (
+            math.cos(math.radians(self.ion_reflect_above_deg)),
+            math.cos(math.radians(self.ion_absorb_below_deg)),
+        )
 
     @property
     def particle_weight(self) -> float:
