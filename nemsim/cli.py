@@ -307,6 +307,48 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     _add_sim_overrides(p)
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_noise)
+    p = bench_sub.add_parser(
+        "yields",
+        help="flat-surface etch/sputter yields of the simulator vs published values",
+        description=(
+            "Fire monoenergetic Cl+, Ar+ and thermal Cl at a fresh flat surface through the simulator's "
+            "own surface-event code and print the yield per projectile against ion energy and incidence "
+            "angle (Cl+ on Cl-saturated Si, Ar+ on Si, Cl+ on resist, neutral-only Cl), next to the "
+            "cited published values (sources in the output). Writes OUT.md and OUT.json; refuses to "
+            "overwrite. Example: nemsim bench yields --out runs/yields/yields"
+        ),
+    )
+    p.add_argument("--out", default="runs/yields/yields",
+                   help="output path without extension: writes OUT.md and OUT.json (default runs/yields/yields)")
+    p.add_argument("--n", type=int, default=2000, help="projectiles per point (neutrals: 50 n; default 2000)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _add_sim_overrides(p)
+    p.set_defaults(handler=_cmd_bench_yields)
+
+
+def _cmd_bench_yields(args: argparse.Namespace) -> int:
+    import dataclasses
+    import os
+
+    from nemsim.rules import compile_rules, load_rules
+    from nemsim.sim.yields import compare, measure_yields, to_markdown
+
+    if args.n < 2:
+        raise UserError(f"--n must be >= 2 projectiles per point, got {args.n}")
+    md_path, json_path = args.out + ".md", args.out + ".json"
+    for path in (md_path, json_path):
+        if os.path.exists(path):
+            raise UserError(f"{path} exists; choose another --out (this command never overwrites)")
+    config = _sim_config(args.overrides)
+    points = measure_yields(compile_rules(load_rules()), config, n=args.n, seed=args.seed)
+    rows = compare(points)
+    text = to_markdown(points, rows)
+    print(text, end="")  # noqa: T201
+    os.makedirs(os.path.dirname(md_path) or ".", exist_ok=True)
+    with open(md_path, "w") as fh:
+        fh.write(f"Command: nemsim bench yields --n {args.n} --seed {args.seed}\n\n" + text)
+    _write_json(json_path, {"points": [dataclasses.asdict(p) for p in points], "comparison": rows})
+    return 0
 
 
 def _sim_config(overrides: list[str]):

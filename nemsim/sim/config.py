@@ -99,6 +99,9 @@ class SimConfig:
     # reflects, the calibrated behaviour; measured to *lower* lateral etch and bowing, so off by default.
     ion_absorb_below_deg: float = 0.0
     ion_reflect_above_deg: float = 0.0
+    # excess-probability yield (kernels module docstring): when the competing channels' unsaturated
+    # probabilities sum to P > 1, the chosen event's yield is multiplied by P (was: normalized away)
+    excess_probability_yield: bool = True
     queue_capacity: int = 1 << 15  # FIFO ring buffer for secondary products (drained after each primary)
     projectile_mass_amu: tuple[tuple[str, float], ...] = _PROJECTILE_MASS_AMU
     target_mass_amu: tuple[tuple[str, float], ...] = _TARGET_MASS_AMU

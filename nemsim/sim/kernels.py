@@ -224,6 +224,7 @@ def fly(
     target_mass: np.ndarray, product_energy: float, max_steps: int,
     queue: np.ndarray, head: int, tail: int, pbuf: np.ndarray, counters: np.ndarray,
     event_counts: np.ndarray, weight: float = 1.0, refl_cos_full: float = 1.0, refl_cos_zero: float = 1.0,
+    excess_yield: bool = False,
 ) -> int:  # fmt: skip
     """Transport one particle until it reacts, escapes or runs out of steps; returns the queue tail.
 
@@ -231,7 +232,8 @@ def fly(
     ``weight`` = 1 / particle budget: the material one surface event moves, relative to budget 1
     (module docstring). ``refl_cos_full`` / ``refl_cos_zero``: cosines of the incidence angles above which
     a non-reacting ion always reflects / below which it never does (``reflection_probability``; 1, 1 =
-    every non-reacting ion reflects, the behaviour before the mechanism existed).
+    every non-reacting ion reflects, the behaviour before the mechanism existed). ``excess_yield``: the
+    excess-probability yield (module docstring; False = the behaviour before it existed).
     """
     nx, ny, nz = fill.shape
     n_t = mat.shape[3]
@@ -425,6 +427,10 @@ def fly(
                     counters[C_DROPPED] += 1
                 return tail
             y_val = yield_physical(yield_model[chosen], yield_params[chosen], energy, cos_inc)
+            if excess_yield and ptot > 1.0:
+                # excess-probability yield: the channels were normalized by ptot; scaling the yield by
+                # ptot keeps each channel's expected effect at p_c Y_c (module docstring)
+                y_val *= ptot
             k = stochastic_round(y_val * w_event)  # units this (weighted) event moves
             have = mat[wx, wy, iz, tgt]
             nrem = k if k < have else have
@@ -537,7 +543,7 @@ def run_particles(
     prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
     target_mass: np.ndarray, neutral_energy: float, product_energy: float, max_steps: int,
     queue: np.ndarray, pbuf: np.ndarray, counters: np.ndarray, event_counts: np.ndarray, seed: int,
-    weight: float = 1.0, refl_cos_full: float = 1.0, refl_cos_zero: float = 1.0,
+    weight: float = 1.0, refl_cos_full: float = 1.0, refl_cos_zero: float = 1.0, excess_yield: bool = False,
 ) -> None:  # fmt: skip
     """Launch primaries until ``n_target`` ions (``count_ions``) or primaries have been processed.
 
@@ -552,6 +558,7 @@ def run_particles(
       seed: seeds numba's generator for this call.
       weight: 1 / particle budget, the material one simulated particle moves (module docstring).
       refl_cos_full, refl_cos_zero: the ion reflection law (``reflection_probability``; 1, 1 = off).
+      excess_yield: the excess-probability yield (module docstring).
     """
     np.random.seed(seed)
     nx, ny, nz = fill.shape
@@ -588,7 +595,7 @@ def run_particles(
             mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
             prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
             product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-            queue, head, 0, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero,
+            queue, head, 0, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero, excess_yield,
         )  # fmt: skip
         # drain the FIFO of secondary products (they may not emit further products, but could)
         while head != tail:
@@ -606,6 +613,6 @@ def run_particles(
                 mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
                 prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
                 product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-                queue, head, tail, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero,
+                queue, head, tail, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero, excess_yield,
             )  # fmt: skip
 
