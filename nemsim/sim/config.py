@@ -30,6 +30,11 @@ Values were chosen by short sweeps (kappa 1.0 -> 0.7 -> 0.6; resist ratio 1.0 / 
 vs 32, which did not lower the noise of the fast-etching cases - their seed-to-seed spread is in the
 etch-front position, not in voxel-scale roughness).
 
+Surface mechanisms (``kernels`` module docstring): ``excess_probability_yield`` (on; an unsaturated
+channel probability sum P > 1 multiplies the chosen event's yield by P instead of being normalized away)
+and the ion reflection law ``ion_absorb_below_deg`` / ``ion_reflect_above_deg`` (off: 0, 0). Both are
+written into ``to_meta``, so a data file made before they existed is not resumed with them.
+
 Particle budget (``particle_budget`` = b, used by ``nemsim bench speed-error``): the simulator traces b
 times the calibrated number of particles, and every simulated particle becomes a *super-particle* of
 weight w = 1/b: it stands for w particles of the full-budget run. The weight is applied to what a surface

@@ -34,6 +34,23 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
     momentum to a target atom at rest -- our choice of "energy reduction determined by the
     projectile-target mass relation"); non-reactive neutrals and products reflect diffusely (cosine about
     the normal) at unchanged energy.
+  * excess-probability yield (``SimConfig.excess_probability_yield``, on by default): with the
+    unsaturated law the competing channels' probabilities can sum to P > 1 (Cl+ / Ar+ on SiCl2 or SiCl3
+    above ~330 eV). The channels are then chosen with probabilities p_c / P and, so that each channel's
+    expected effect stays p_c Y_c as the unsaturated law says, the chosen event's yield is multiplied by P.
+    Before this, the normalization silently re-saturated the law: one unit per ion at most, so Cl+ on a
+    Cl-saturated surface gave the same flat-surface yield at 330 and 500 eV (``nemsim bench yields``:
+    0.6 Si per ion at 500 eV, now 0.70), against the sqrt(E) growth of the ion-enhanced yield in the
+    beam studies (Chang, Arnold, Sawin et al., J. Vac. Sci. Technol. A, 1997). Below P = 1 nothing
+    changes (no extra random draw, identical states).
+  * ion reflection law (``SimConfig.ion_absorb_below_deg`` / ``ion_reflect_above_deg``, off by default):
+    a non-reacting ion reflects with probability R(theta) = 0 below theta_zero, 1 beyond theta_full,
+    linear in theta between (``reflection_probability``), and is otherwise absorbed (implanted and
+    neutralized; counter ``absorbed``). Molecular-dynamics studies of Cl+/Ar+ on Si find reflection
+    rare near normal incidence and dominant at grazing incidence. Off by default because, measured on
+    ``small`` (median recipe with m = 50, 500 eV, high ion flux), absorbing the near-normal and
+    intermediate-angle ions (45-75 deg) removes the mask-facet-reflected ions that drive the sidewall
+    bulge: lateral width -10 nm and the unsmoothed bow 4.6 -> 2.1 nm; kept as an option for studies.
   * products: ``product_energy_ev`` (2 eV), cosine-distributed about the local normal, launched from the
     vacuum voxel in front of the hit face; on a solid voxel they stick with the rule's p_stick (adding one
     unit of their species to the hit voxel, or to the vacuum voxel in front of it when the hit voxel is

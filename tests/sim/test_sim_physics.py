@@ -118,3 +118,19 @@ def test_bench_yields_cli_writes_and_refuses_to_overwrite(tmp_path):
     assert (tmp_path / "y.md").read_text().count("Laegreid & Wehner") == 4
     assert '"comparison"' in (tmp_path / "y.json").read_text()
     assert main(["bench", "yields", "--n", "4", "--out", str(out)]) == 2
+
+
+def test_bench_bowing_cli_on_tiny(tmp_path):
+    import json
+
+    from nemsim.cli import main
+
+    out = tmp_path / "b"
+    args = ["bench", "bowing", "--scene", "tiny", "--m", "50", "--energies", "500", "--ion-q", "0.8"]
+    assert main([*args, "--before", "--out", str(out)]) == 0
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert [r["variant"] for r in rows] == ["after", "before"]
+    assert all(r["bowing"] >= 0 and r["bowing_unsmoothed"] >= 0 and r["etch_depth"] > 0 for r in rows)
+    assert "Command: nemsim bench bowing --scene tiny" in (tmp_path / "b.md").read_text()
+    assert main([*args, "--out", str(out)]) == 2  # never overwrites
+    assert main([*args, "--ion-q", "2", "--out", str(tmp_path / "c")]) == 2
