@@ -319,7 +319,7 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("--out", default="runs/yields/yields",
-                   help="output path without extension: writes OUT.md and OUT.json (default runs/yields/yields)")
+                   help="output path w/o extension: writes OUT.md and OUT.json (default: runs/yields/yields)")
     p.add_argument("--n", type=int, default=2000, help="projectiles per point (neutrals: 50 n; default 2000)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     _add_sim_overrides(p)
@@ -391,7 +391,8 @@ def _cmd_bench_bowing(args: argparse.Namespace) -> int:
         rows = bowing_map(scene, rules, config, ms, energies, qs, args.seed, args.before, log=show)
         what = f"--m {args.m} --energies {args.energies} --ion-q {args.ion_q}"
     os.makedirs(os.path.dirname(md_path) or ".", exist_ok=True)
-    cmd = f"nemsim bench bowing --scene {args.scene} {what} --seed {args.seed}" + (" --before" if args.before else "")
+    cmd = f"nemsim bench bowing --scene {args.scene} {what} --seed {args.seed}"
+    cmd += " --before" if args.before else ""
     with open(md_path, "w") as fh:
         fh.write(f"Command: {cmd}\n\n" + to_markdown(rows))
     _write_json(json_path, {"command": cmd, "rows": rows})

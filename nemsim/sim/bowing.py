@@ -106,9 +106,11 @@ def design_points(
     for i in design_rows:
         raw = design[i]
         for name, cfg in variants:
-            row = {"variant": name, "design_row": i, "m": float(raw[CONTROL_INDEX["angle_cl_plus"]]),
-                   "energy_ev": round(float(raw[CONTROL_INDEX["energy_mean_cl_plus"]]), 1), "ion_q": None,
-                   **run_point(scene, rules, raw, cfg, seed)}  # fmt: skip
+            row = {
+                "variant": name, "design_row": i, "m": float(raw[CONTROL_INDEX["angle_cl_plus"]]),
+                "energy_ev": round(float(raw[CONTROL_INDEX["energy_mean_cl_plus"]]), 1), "ion_q": None,
+                **run_point(scene, rules, raw, cfg, seed),
+            }  # fmt: skip
             rows.append(row)
             if log is not None:
                 log(row)
@@ -118,8 +120,10 @@ def design_points(
 def to_markdown(rows: list[dict]) -> str:
     """The map as a markdown table."""
     lead = ("design_row",) if rows and "design_row" in rows[0] else ()
-    cols = lead + ("variant", "m", "energy_ev", "ion_q", "flux_ratio", "bowing", "bowing_unsmoothed", "etch_depth",
-            "top_width", "top_width_unsmoothed", "mask_loss", "cpu_s")  # fmt: skip
+    cols = lead + (
+        "variant", "m", "energy_ev", "ion_q", "flux_ratio", "bowing", "bowing_unsmoothed", "etch_depth",
+        "top_width", "top_width_unsmoothed", "mask_loss", "cpu_s",
+    )  # fmt: skip
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         cells = ("-" if r[c] is None else r[c] if isinstance(r[c], str) else f"{r[c]:g}" for c in cols)

@@ -153,7 +153,7 @@ class SimConfig:
 
     @property
     def reflection_cosines(self) -> tuple[float, float]:
-        """(cos theta_full, cos theta_zero) for ``kernels.reflection_probability``; (1, 1) = always reflect."""
+        """(cos theta_full, cos theta_zero) for ``kernels.reflection_probability``; (1, 1): always reflect."""
         if self.ion_reflect_above_deg <= 0.0:
             return 1.0, 1.0
         return (

@@ -630,6 +630,7 @@ def run_particles(
                 mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
                 prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
                 product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-                queue, head, tail, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero, excess_yield,
+                queue, head, tail, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero,
+                excess_yield,
             )  # fmt: skip
 
