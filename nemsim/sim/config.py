@@ -184,9 +184,15 @@ class SimConfig:
 
     @classmethod
     def from_meta(cls, meta: dict) -> SimConfig:
-        """Inverse of ``to_meta`` (derived keys are ignored)."""
+        """Inverse of ``to_meta`` (derived keys are ignored).
+
+        A record written before ``excess_probability_yield`` existed describes a simulator without it, so
+        the missing key reads as False (the reflection law's missing keys read as its default, off).
+        """
         known = {f for f in cls.__dataclass_fields__}
         kwargs = {k: v for k, v in meta.items() if k in known}
+        if kwargs and "excess_probability_yield" not in kwargs:
+            kwargs["excess_probability_yield"] = False
         for key in ("projectile_mass_amu", "target_mass_amu"):
             if isinstance(kwargs.get(key), dict):
                 kwargs[key] = tuple(kwargs[key].items())

@@ -40,7 +40,7 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
     expected effect stays p_c Y_c as the unsaturated law says, the chosen event's yield is multiplied by P.
     Before this, the normalization silently re-saturated the law: one unit per ion at most, so Cl+ on a
     Cl-saturated surface gave the same flat-surface yield at 330 and 500 eV (``nemsim bench yields``:
-    0.6 Si per ion at 500 eV, now 0.70), against the sqrt(E) growth of the ion-enhanced yield in the
+    0.60 Si per ion at 500 eV, now 0.69), against the sqrt(E) growth of the ion-enhanced yield in the
     beam studies (Chang, Arnold, Sawin et al., J. Vac. Sci. Technol. A, 1997). Below P = 1 nothing
     changes (no extra random draw, identical states).
   * ion reflection law (``SimConfig.ion_absorb_below_deg`` / ``ion_reflect_above_deg``, off by default):

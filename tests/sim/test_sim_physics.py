@@ -134,3 +134,13 @@ def test_bench_bowing_cli_on_tiny(tmp_path):
     assert "Command: nemsim bench bowing --scene tiny" in (tmp_path / "b.md").read_text()
     assert main([*args, "--out", str(out)]) == 2  # never overwrites
     assert main([*args, "--ion-q", "2", "--out", str(tmp_path / "c")]) == 2
+
+
+def test_config_meta_round_trip_and_records_made_before_the_mechanisms():
+    cfg = SimConfig(ion_absorb_below_deg=30.0, ion_reflect_above_deg=70.0)
+    assert SimConfig.from_meta(cfg.to_meta()) == cfg
+    old = SimConfig().to_meta()
+    for key in ("excess_probability_yield", "ion_absorb_below_deg", "ion_reflect_above_deg"):
+        del old[key]
+    restored = SimConfig.from_meta(old)  # a data file written before these fields existed
+    assert restored.excess_probability_yield is False and restored.reflection_cosines == (1.0, 1.0)
