@@ -307,6 +307,121 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     _add_sim_overrides(p)
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_noise)
+    p = bench_sub.add_parser(
+        "yields",
+        help="flat-surface etch/sputter yields of the simulator vs published values",
+        description=(
+            "Fire monoenergetic Cl+, Ar+ and thermal Cl at a fresh flat surface through the simulator's "
+            "own surface-event code and print the yield per projectile against ion energy and incidence "
+            "angle (Cl+ on Cl-saturated Si, Ar+ on Si, Cl+ on resist, neutral-only Cl), next to the "
+            "cited published values (sources in the output). Writes OUT.md and OUT.json; refuses to "
+            "overwrite. Example: nemsim bench yields --out runs/yields/yields"
+        ),
+    )
+    p.add_argument("--out", default="runs/yields/yields",
+                   help="output path w/o extension: writes OUT.md and OUT.json (default: runs/yields/yields)")
+    p.add_argument("--n", type=int, default=2000, help="projectiles per point (neutrals: 50 n; default 2000)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    _add_sim_overrides(p)
+    p.set_defaults(handler=_cmd_bench_yields)
+    p = bench_sub.add_parser(
+        "bowing",
+        help="bowing map over ion angular exponent x ion energy x flux ratio (final time)",
+        description=(
+            "Simulate the median recipe with the three ions' angular exponent, mean energy and flux "
+            "set on a grid, and write the final-time bowing (profile metric, and the same metric without "
+            "Psi's smoothing), depth, widths and mask loss per point to OUT.md and OUT.json (refuses to "
+            "overwrite). --before also runs each point without the excess-probability yield. "
+            "Example: nemsim bench bowing --m 50,300,3000 --energies 160,330,500 --ion-q 0.5,0.8 "
+            "--out runs/bowing/map"
+        ),
+    )
+    _add_scene_option(p)
+    p.add_argument("--m", default="50,300,3000", help="ion angular exponents, comma-separated")
+    p.add_argument("--energies", default="160,330,500", help="ion mean energies [eV], comma-separated")
+    p.add_argument("--ion-q", default="0.5,0.8",
+                   help="ion-flux unit coordinates in the design range (0 low .. 1 high), comma-separated")
+    p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
+    p.add_argument("--before", action="store_true", help="also run every point without this change set")
+    p.add_argument("--design-rows", default=None, metavar="I,J,...",
+                   help="instead of the grid, run these rows of the 500-case design (e.g. 0,100,200)")
+    p.add_argument("--out", default="runs/bowing/map", help="output path without extension")
+    _add_sim_overrides(p)
+    p.set_defaults(handler=_cmd_bench_bowing)
+
+
+def _floats(text: str, option: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise UserError(f"{option} {text!r}: expected comma-separated numbers") from None
+    if not values:
+        raise UserError(f"{option}: no values given")
+    return values
+
+
+def _cmd_bench_bowing(args: argparse.Namespace) -> int:
+    import os
+
+    from nemsim.rules import compile_rules, load_rules
+    from nemsim.scenes import get_scene
+    from nemsim.sim.bowing import bowing_map, design_points, to_markdown
+
+    try:
+        scene = get_scene(args.scene)
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    ms, energies = _floats(args.m, "--m"), _floats(args.energies, "--energies")
+    qs = _floats(args.ion_q, "--ion-q")
+    if any(not 0.0 <= q <= 1.0 for q in qs):
+        raise UserError(f"--ion-q values must be in [0, 1], got {args.ion_q}")
+    md_path, json_path = args.out + ".md", args.out + ".json"
+    for path in (md_path, json_path):
+        if os.path.exists(path):
+            raise UserError(f"{path} exists; choose another --out (this command never overwrites)")
+    rules, config = compile_rules(load_rules()), _sim_config(args.overrides)
+    show = lambda r: print(r, flush=True)  # noqa: E731, T201
+    if args.design_rows is not None:
+        idx = tuple(int(v) for v in _floats(args.design_rows, "--design-rows"))
+        if any(not 0 <= i < 500 for i in idx):
+            raise UserError(f"--design-rows must be in [0, 499], got {args.design_rows}")
+        rows = design_points(scene, rules, config, idx, args.seed, args.before, log=show)
+        what = f"--design-rows {args.design_rows}"
+    else:
+        rows = bowing_map(scene, rules, config, ms, energies, qs, args.seed, args.before, log=show)
+        what = f"--m {args.m} --energies {args.energies} --ion-q {args.ion_q}"
+    os.makedirs(os.path.dirname(md_path) or ".", exist_ok=True)
+    cmd = f"nemsim bench bowing --scene {args.scene} {what} --seed {args.seed}"
+    cmd += " --before" if args.before else ""
+    with open(md_path, "w") as fh:
+        fh.write(f"Command: {cmd}\n\n" + to_markdown(rows))
+    _write_json(json_path, {"command": cmd, "rows": rows})
+    return 0
+
+
+def _cmd_bench_yields(args: argparse.Namespace) -> int:
+    import dataclasses
+    import os
+
+    from nemsim.rules import compile_rules, load_rules
+    from nemsim.sim.yields import compare, measure_yields, to_markdown
+
+    if args.n < 2:
+        raise UserError(f"--n must be >= 2 projectiles per point, got {args.n}")
+    md_path, json_path = args.out + ".md", args.out + ".json"
+    for path in (md_path, json_path):
+        if os.path.exists(path):
+            raise UserError(f"{path} exists; choose another --out (this command never overwrites)")
+    config = _sim_config(args.overrides)
+    points = measure_yields(compile_rules(load_rules()), config, n=args.n, seed=args.seed)
+    rows = compare(points)
+    text = to_markdown(points, rows)
+    print(text, end="")  # noqa: T201
+    os.makedirs(os.path.dirname(md_path) or ".", exist_ok=True)
+    with open(md_path, "w") as fh:
+        fh.write(f"Command: nemsim bench yields --n {args.n} --seed {args.seed}\n\n" + text)
+    _write_json(json_path, {"points": [dataclasses.asdict(p) for p in points], "comparison": rows})
+    return 0
 
 
 def _sim_config(overrides: list[str]):

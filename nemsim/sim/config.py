@@ -30,6 +30,11 @@ Values were chosen by short sweeps (kappa 1.0 -> 0.7 -> 0.6; resist ratio 1.0 / 
 vs 32, which did not lower the noise of the fast-etching cases - their seed-to-seed spread is in the
 etch-front position, not in voxel-scale roughness).
 
+Surface mechanisms (``kernels`` module docstring): ``excess_probability_yield`` (on; an unsaturated
+channel probability sum P > 1 multiplies the chosen event's yield by P instead of being normalized away)
+and the ion reflection law ``ion_absorb_below_deg`` / ``ion_reflect_above_deg`` (off: 0, 0). Both are
+written into ``to_meta``, so a data file made before they existed is not resumed with them.
+
 Particle budget (``particle_budget`` = b, used by ``nemsim bench speed-error``): the simulator traces b
 times the calibrated number of particles, and every simulated particle becomes a *super-particle* of
 weight w = 1/b: it stands for w particles of the full-budget run. The weight is applied to what a surface
@@ -93,6 +98,15 @@ class SimConfig:
     neutral_energy_ev: float = 0.2  # incident energy of neutral Cl [supp_simulator]
     product_energy_ev: float = 2.0  # energy of emitted SiCl_x products [supp_simulator]
     psi_sigma_vox: float = 0.7  # Gaussian smoothing of the material fraction before the SDF (voxels)
+    # ion reflection law (kernels.reflection_probability; module docstring "Ion reflection"): a non-reacting
+    # ion is absorbed (implanted and neutralized) below ion_absorb_below_deg incidence, always reflected
+    # beyond ion_reflect_above_deg, linear in the angle between. 0, 0 (default) = every non-reacting ion
+    # reflects, the calibrated behaviour; measured to *lower* lateral etch and bowing, so off by default.
+    ion_absorb_below_deg: float = 0.0
+    ion_reflect_above_deg: float = 0.0
+    # excess-probability yield (kernels module docstring): when the competing channels' unsaturated
+    # probabilities sum to P > 1, the chosen event's yield is multiplied by P (was: normalized away)
+    excess_probability_yield: bool = True
     queue_capacity: int = 1 << 15  # FIFO ring buffer for secondary products (drained after each primary)
     projectile_mass_amu: tuple[tuple[str, float], ...] = _PROJECTILE_MASS_AMU
     target_mass_amu: tuple[tuple[str, float], ...] = _TARGET_MASS_AMU
@@ -111,6 +125,12 @@ class SimConfig:
             )
         if self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        lo, hi = self.ion_absorb_below_deg, self.ion_reflect_above_deg
+        if not (0.0 <= lo <= hi <= 90.0):
+            raise ValueError(
+                f"ion reflection law needs 0 <= ion_absorb_below_deg <= ion_reflect_above_deg <= 90, "
+                f"got {lo} and {hi}"
+            )
         if self.psi_sigma_vox < 0:
             raise ValueError(f"psi_sigma_vox must be >= 0, got {self.psi_sigma_vox}")
 
@@ -130,6 +150,16 @@ class SimConfig:
         cap = self.resolved(scene).capacity
         assert cap is not None
         return self.flux_scale * cap / (self.si_atoms_per_nm3 * scene.voxel_nm**3) * self.particle_budget
+
+    @property
+    def reflection_cosines(self) -> tuple[float, float]:
+        """(cos theta_full, cos theta_zero) for ``kernels.reflection_probability``; (1, 1): always reflect."""
+        if self.ion_reflect_above_deg <= 0.0:
+            return 1.0, 1.0
+        return (
+            math.cos(math.radians(self.ion_reflect_above_deg)),
+            math.cos(math.radians(self.ion_absorb_below_deg)),
+        )
 
     @property
     def particle_weight(self) -> float:
@@ -154,9 +184,15 @@ class SimConfig:
 
     @classmethod
     def from_meta(cls, meta: dict) -> SimConfig:
-        """Inverse of ``to_meta`` (derived keys are ignored)."""
+        """Inverse of ``to_meta`` (derived keys are ignored).
+
+        A record written before ``excess_probability_yield`` existed describes a simulator without it, so
+        the missing key reads as False (the reflection law's missing keys read as its default, off).
+        """
         known = {f for f in cls.__dataclass_fields__}
         kwargs = {k: v for k, v in meta.items() if k in known}
+        if kwargs and "excess_probability_yield" not in kwargs:
+            kwargs["excess_probability_yield"] = False
         for key in ("projectile_mass_amu", "target_mass_amu"):
             if isinstance(kwargs.get(key), dict):
                 kwargs[key] = tuple(kwargs[key].items())

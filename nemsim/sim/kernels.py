@@ -34,6 +34,23 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
     momentum to a target atom at rest -- our choice of "energy reduction determined by the
     projectile-target mass relation"); non-reactive neutrals and products reflect diffusely (cosine about
     the normal) at unchanged energy.
+  * excess-probability yield (``SimConfig.excess_probability_yield``, on by default): with the
+    unsaturated law the competing channels' probabilities can sum to P > 1 (Cl+ / Ar+ on SiCl2 or SiCl3
+    above ~330 eV). The channels are then chosen with probabilities p_c / P and, so that each channel's
+    expected effect stays p_c Y_c as the unsaturated law says, the chosen event's yield is multiplied by P.
+    Before this, the normalization silently re-saturated the law: one unit per ion at most, so Cl+ on a
+    Cl-saturated surface gave the same flat-surface yield at 330 and 500 eV (``nemsim bench yields``:
+    0.60 Si per ion at 500 eV, now 0.69), against the sqrt(E) growth of the ion-enhanced yield in the
+    beam studies (Chang, Arnold, Sawin et al., J. Vac. Sci. Technol. A, 1997). Below P = 1 nothing
+    changes (no extra random draw, identical states).
+  * ion reflection law (``SimConfig.ion_absorb_below_deg`` / ``ion_reflect_above_deg``, off by default):
+    a non-reacting ion reflects with probability R(theta) = 0 below theta_zero, 1 beyond theta_full,
+    linear in theta between (``reflection_probability``), and is otherwise absorbed (implanted and
+    neutralized; counter ``absorbed``). Molecular-dynamics studies of Cl+/Ar+ on Si find reflection
+    rare near normal incidence and dominant at grazing incidence. Off by default because, measured on
+    ``small`` (median recipe with m = 50, 500 eV, high ion flux), absorbing the near-normal and
+    intermediate-angle ions (45-75 deg) removes the mask-facet-reflected ions that drive the sidewall
+    bulge: lateral width -10 nm and the unsmoothed bow 4.6 -> 2.1 nm; kept as an option for studies.
   * products: ``product_energy_ev`` (2 eV), cosine-distributed about the local normal, launched from the
     vacuum voxel in front of the hit face; on a solid voxel they stick with the rule's p_stick (adding one
     unit of their species to the hit voxel, or to the vacuum voxel in front of it when the hit voxel is
@@ -64,13 +81,14 @@ C_REMOVED = 12  # + target index (5)
 C_DEPOSITED = 17  # + target index (5)
 C_CONV_FROM = 22  # + target index (5)
 C_CONV_TO = 27  # + target index (5)
-N_COUNTERS = 32
+C_ABSORBED = 32  # non-reacting ions absorbed instead of reflected (angle-dependent reflection)
+N_COUNTERS = 33
 COUNTER_NAMES = (
     "primary", "ions", "neutrals", "products", "stuck", "escaped_top", "escaped_bottom", "step_limit",
     "hits", "reactions", "steps", "dropped",
 ) + tuple(f"removed_{i}" for i in range(5)) + tuple(f"deposited_{i}" for i in range(5)) + tuple(
     f"converted_from_{i}" for i in range(5)
-) + tuple(f"converted_to_{i}" for i in range(5))  # fmt: skip
+) + tuple(f"converted_to_{i}" for i in range(5)) + ("absorbed",)  # fmt: skip
 assert len(COUNTER_NAMES) == N_COUNTERS
 
 _Q_X, _Q_Y, _Q_Z, _Q_DX, _Q_DY, _Q_DZ, _Q_SPECIES, _Q_ENERGY = 0, 1, 2, 3, 4, 5, 6, 7
@@ -171,6 +189,23 @@ def surface_normal(fill: np.ndarray, i: int, j: int, k: int) -> tuple[float, flo
 
 
 @numba.njit(cache=True)
+def reflection_probability(cos_inc: float, cos_full: float, cos_zero: float) -> float:
+    """Probability that a non-reacting ion reflects at incidence cosine ``cos_inc`` (module docstring).
+
+    0 at or below the incidence angle theta_zero (cos_inc >= cos_zero), 1 at or beyond theta_full
+    (cos_inc <= cos_full), linear in the incidence angle between them.
+    """
+    if cos_inc <= cos_full:
+        return 1.0
+    if cos_inc >= cos_zero:
+        return 0.0
+    th = math.acos(min(cos_inc, 1.0))
+    th_full = math.acos(cos_full)
+    th_zero = math.acos(cos_zero)
+    return (th - th_zero) / (th_full - th_zero)
+
+
+@numba.njit(cache=True)
 def _refill(mat: np.ndarray, fill: np.ndarray, i: int, j: int, k: int, cap: float, rcap: float) -> None:
     s = mat[i, j, k, 0] + mat[i, j, k, 1] + mat[i, j, k, 2] + mat[i, j, k, 3]
     fill[i, j, k] = s / cap + mat[i, j, k, 4] / rcap
@@ -205,13 +240,17 @@ def fly(
     prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
     target_mass: np.ndarray, product_energy: float, max_steps: int,
     queue: np.ndarray, head: int, tail: int, pbuf: np.ndarray, counters: np.ndarray,
-    event_counts: np.ndarray, weight: float = 1.0,
+    event_counts: np.ndarray, weight: float = 1.0, refl_cos_full: float = 1.0, refl_cos_zero: float = 1.0,
+    excess_yield: bool = False,
 ) -> int:  # fmt: skip
     """Transport one particle until it reacts, escapes or runs out of steps; returns the queue tail.
 
     Mutates ``mat``/``fill`` (surface events), ``queue`` (emitted products), ``counters``, ``event_counts``.
     ``weight`` = 1 / particle budget: the material one surface event moves, relative to budget 1
-    (module docstring).
+    (module docstring). ``refl_cos_full`` / ``refl_cos_zero``: cosines of the incidence angles above which
+    a non-reacting ion always reflects / below which it never does (``reflection_probability``; 1, 1 =
+    every non-reacting ion reflects, the behaviour before the mechanism existed). ``excess_yield``: the
+    excess-probability yield (module docstring; False = the behaviour before it existed).
     """
     nx, ny, nz = fill.shape
     n_t = mat.shape[3]
@@ -405,6 +444,10 @@ def fly(
                     counters[C_DROPPED] += 1
                 return tail
             y_val = yield_physical(yield_model[chosen], yield_params[chosen], energy, cos_inc)
+            if excess_yield and ptot > 1.0:
+                # excess-probability yield: the channels were normalized by ptot; scaling the yield by
+                # ptot keeps each channel's expected effect at p_c Y_c (module docstring)
+                y_val *= ptot
             k = stochastic_round(y_val * w_event)  # units this (weighted) event moves
             have = mat[wx, wy, iz, tgt]
             nrem = k if k < have else have
@@ -464,8 +507,14 @@ def fly(
             w_event *= (k - nrem) / k
             counters[C_STEPS] -= steps  # counted again where the particle ends
             continue
-        # ---------------- no reaction: reflect ----------------
+        # ---------------- no reaction: reflect (ions: or be absorbed) ----------------
         if is_ion[species]:
+            if refl_cos_full < 1.0:
+                r_prob = reflection_probability(cos_inc, refl_cos_full, refl_cos_zero)
+                if r_prob < 1.0 and np.random.random() >= r_prob:
+                    counters[C_STEPS] += steps
+                    counters[C_ABSORBED] += 1
+                    return tail
             m1 = proj_mass[species]
             m2 = target_mass[tgt]
             ratio = (m1 - m2) / (m1 + m2)
@@ -511,7 +560,7 @@ def run_particles(
     prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
     target_mass: np.ndarray, neutral_energy: float, product_energy: float, max_steps: int,
     queue: np.ndarray, pbuf: np.ndarray, counters: np.ndarray, event_counts: np.ndarray, seed: int,
-    weight: float = 1.0,
+    weight: float = 1.0, refl_cos_full: float = 1.0, refl_cos_zero: float = 1.0, excess_yield: bool = False,
 ) -> None:  # fmt: skip
     """Launch primaries until ``n_target`` ions (``count_ions``) or primaries have been processed.
 
@@ -525,6 +574,8 @@ def run_particles(
         int64; event_counts: (E,) int64 (both accumulated).
       seed: seeds numba's generator for this call.
       weight: 1 / particle budget, the material one simulated particle moves (module docstring).
+      refl_cos_full, refl_cos_zero: the ion reflection law (``reflection_probability``; 1, 1 = off).
+      excess_yield: the excess-probability yield (module docstring).
     """
     np.random.seed(seed)
     nx, ny, nz = fill.shape
@@ -561,7 +612,7 @@ def run_particles(
             mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
             prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
             product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-            queue, head, 0, pbuf, counters, event_counts, weight,
+            queue, head, 0, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero, excess_yield,
         )  # fmt: skip
         # drain the FIFO of secondary products (they may not emit further products, but could)
         while head != tail:
@@ -579,6 +630,7 @@ def run_particles(
                 mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
                 prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
                 product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-                queue, head, tail, pbuf, counters, event_counts, weight,
+                queue, head, tail, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero,
+                excess_yield,
             )  # fmt: skip
 

@@ -163,7 +163,8 @@ def run_trajectory(
                 tables.yield_params, tables.s_dep, tables.prod_coef, tables.prod_is_yield,
                 tables.product_species, tables.is_ion, tables.proj_mass, tables.target_mass,
                 cfg.neutral_energy_ev, cfg.product_energy_ev, cfg.max_steps,
-                queue, pbuf, counters, event_counts, seed, cfg.particle_weight,
+                queue, pbuf, counters, event_counts, seed, cfg.particle_weight, *cfg.reflection_cosines,
+                cfg.excess_probability_yield,
             )  # fmt: skip
         states[t + 1] = psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
     wall = time.perf_counter() - t0
