@@ -78,3 +78,19 @@ def test_batch_matches_single_and_torch(tiny_scene, make_hole):
 def test_bad_shape(tiny_scene):
     with pytest.raises(ValueError, match="state shape"):
         profile_metrics(np.zeros((2, 3, 3, 3)), tiny_scene)
+
+
+def test_bowing_is_measured_below_the_rounded_top_rows(tiny_scene, make_hole):
+    # Psi rounds the Si/resist corner, so the top Si rows read wider than the hole below them; a bulge
+    # deeper down must still count (against the top row it was hidden: widest row minus top width <= 0)
+    sc = tiny_scene
+    v = sc.voxel_nm
+    wide_top = make_hole(sc, 1.5, 14.0, bow=2.0, bow_depth=sc.si_top - 1.0)  # top two rows +2 voxels
+    bulge = make_hole(sc, 1.5, 14.0, bow=1.0, bow_depth=12.0)  # +1 voxel around native z = 12
+    st = np.maximum(wide_top, bulge)  # union of the two holes (Si SDF is negative inside Si)
+    m = profile_metrics(st, sc)
+    assert m["top_width"] == pytest.approx(7.0 * v, abs=0.5 * v)
+    assert m["neck_width"] == pytest.approx(3.0 * v, abs=0.5 * v)
+    assert m["bowing"] == pytest.approx(2.0 * v, abs=0.5 * v)
+    # the rounded top alone is not a bow
+    assert profile_metrics(wide_top, sc)["bowing"] == pytest.approx(0.0, abs=0.5 * v)
