@@ -843,8 +843,13 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
             "controls: the design-range centre, the corners of the flux/ion-energy sub-box, extreme "
             "angle exponents, and noisy states and controls. Per case report whether values stay finite and "
             "within --abs-bound (the pass criterion), etch-depth decreases and the growth of the state "
-            "norm; print the table. Exit code 0 if every case is finite and bounded, 1 otherwise. Writes nothing unless --json is given. "
-            "Example: nemsim stress --checkpoint runs/nemsim/best.pt --max-corners 16"
+            "norm; print the table. Then check physical invariants against the Monte Carlo simulator, each "
+            "with a tolerance from the simulator's seed-to-seed noise: zero flux leaves the state unchanged, "
+            "ions off matches the simulator's neutral-only run, depth never decreases, mask loss >= -tol, "
+            "depth non-decreasing in each ion flux and in ion energy, and responding where the simulator "
+            "responds. Exit code 0 if every case is finite and bounded and no invariant is violated, 1 "
+            "otherwise. Writes nothing unless --json / --noise-out is given. "
+            "Example: nemsim stress --checkpoint runs/nemsim/best.pt --max-corners 16 --workers 2"
         ),
     )
     p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
@@ -858,6 +863,19 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--abs-bound", type=float, default=1.5,
                    help="|value| above this, in normalized SDF units (data lie in [-1, 1]), is a blow-up "
                    "(default 1.5)")
+    p.add_argument("--no-invariants", action="store_true",
+                   help="only the finite/bounded stability cases (no simulator runs)")
+    _add_truth_options(p)
+    p.add_argument("--pair-bases", type=int, default=2,
+                   help="Latin-hypercube base recipes of the monotonicity grid beside the design centre (default 2)")
+    p.add_argument("--levels", type=int, default=3,
+                   help="levels of each monotone axis from design min to max (default 3)")
+    p.add_argument("--tol-factor", type=float, default=1.0,
+                   help="multiply every seed-to-seed tolerance by this (default 1)")
+    p.add_argument("--noise", default=None, metavar="FILE.json",
+                   help="read the tolerances from this noise file instead of simulating the seed pairs")
+    p.add_argument("--noise-out", default=None, metavar="FILE.json",
+                   help="write the measured tolerances to this noise file (for --noise)")
     p.add_argument("--json", dest="json_out", default=None, help="write the full report to this JSON file")
     p.set_defaults(handler=_cmd_stress)
     p = _bench_subparsers(sub).add_parser(
@@ -899,12 +917,91 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     cfg = StressConfig(steps=args.steps, max_corners=args.max_corners, noise_cases=args.noise_cases,
                        batch_size=args.batch_size, seed=args.seed, abs_bound=args.abs_bound)
-    report = run_stress(loaded.model, loaded.scene, initial_state(loaded.scene), cfg)
+    x0 = initial_state(loaded.scene)
+    report = run_stress(loaded.model, loaded.scene, x0, cfg)
     report["checkpoint"] = str(args.checkpoint)
     print(format_table(report))  # noqa: T201
+    passed = report["summary"]["passed"]
+    if not args.no_invariants:
+        from nemsim.evaluation.invariants import (
+            InvariantConfig,
+            format_invariants,
+            planned_runs,
+            read_noise,
+            run_invariants,
+            write_noise,
+        )
+
+        try:
+            inv_cfg = InvariantConfig(sim_steps=args.sim_steps, seeds=_parse_seeds(args.seeds),
+                                      pair_bases=args.pair_bases, levels=args.levels, tol_factor=args.tol_factor)
+            noise = read_noise(args.noise, loaded.scene.name) if args.noise else None
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        with _sim_truth(args, loaded) as truth:
+            _print_plan(truth, planned_runs(truth, inv_cfg, noise))
+            inv = run_invariants(loaded.model, truth, x0, inv_cfg, long_steps=cfg.steps,
+                                 stress_cases=report["cases"], abs_bound=cfg.abs_bound, noise=noise)
+        print(format_invariants(inv))  # noqa: T201
+        report["invariants"] = inv
+        passed = passed and inv["passed"]
+        if args.noise_out:
+            write_noise(args.noise_out, inv["noise"])
+    report["passed"] = passed
     if args.json_out:
         _write_json(args.json_out, report)
-    return 0 if report["summary"]["passed"] else 1
+    return 0 if passed else 1
+
+
+def _add_truth_options(p: argparse.ArgumentParser) -> None:
+    """Flags of the commands that judge a surrogate against simulator runs."""
+    p.add_argument("--sim-steps", type=int, default=None,
+                   help="transitions simulated and compared (default: the scene's horizon, 100)")
+    p.add_argument("--seeds", default="1,2", help="the simulator seed pair, comma-separated (default 1,2)")
+    p.add_argument("--workers", type=int, default=1, help="parallel simulations, one core each (default 1)")
+    p.add_argument("--cache-dir", default=None, metavar="DIR",
+                   help="keep the simulator runs here and reuse them on a rerun (default: a temporary directory)")
+    _add_sim_overrides(p)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _parse_seeds(text: str) -> tuple[int, int]:
+    try:
+        seeds = tuple(int(s) for s in text.split(","))
+    except ValueError:
+        raise UserError(f"--seeds {text!r}: expected two integers, e.g. 1,2") from None
+    if len(seeds) != 2 or seeds[0] == seeds[1]:
+        raise UserError(f"--seeds {text!r}: expected two different integers")
+    return seeds  # type: ignore[return-value]
+
+
+def _sim_truth(args: argparse.Namespace, loaded):
+    """The SimTruth of a checkpoint's scene and rules (the simulator configuration the checkpoint
+    records, else the defaults, with --set overrides)."""
+    from nemsim.evaluation.truth import SimTruth
+    from nemsim.sim import SimConfig
+
+    meta = loaded.raw.get("sim_config")
+    config = SimConfig.from_meta(meta) if isinstance(meta, dict) else None
+    if args.overrides:
+        import dataclasses
+
+        over = _sim_config(args.overrides)  # validates every KEY=VALUE
+        keys = {item.partition("=")[0].strip() for item in args.overrides}
+        config = dataclasses.replace(config or SimConfig(), **{k: getattr(over, k) for k in keys})
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    try:
+        return SimTruth(loaded.scene, loaded.rules, config, steps=args.sim_steps, workers=args.workers,
+                        cache_dir=args.cache_dir, progress=not args.no_progress)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _print_plan(truth, runs) -> None:
+    n = len(truth.missing(runs))
+    print(f"planned: {n} simulator runs of {truth.steps} transitions on {truth.scene.name} "  # noqa: T201
+          f"({len(runs) - n} reused), {truth.workers} worker(s)", flush=True)
 
 
 def _cmd_bench_rollout(args: argparse.Namespace) -> int:

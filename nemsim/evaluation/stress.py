@@ -123,12 +123,12 @@ def _max_abs_finite(x: torch.Tensor) -> torch.Tensor:
     return torch.where(torch.isfinite(a), a, torch.zeros_like(a)).amax(dim=1)
 
 
-def _depths(x: torch.Tensor, scene: Any) -> np.ndarray:
-    """Etch depth (B,) in nm of states (B, 2, D, H, W); NaN where the state is not finite."""
+def _depth_mask(x: torch.Tensor, scene: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Etch depth and mask loss (B,), (B,) in nm of states (B, 2, D, H, W); NaN where not finite."""
     arr = x.detach().float().cpu().numpy()
     ok = np.isfinite(arr).reshape(arr.shape[0], -1).all(axis=1)
-    depth = profile_metrics_batch(np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=-1.0), scene)["etch_depth"]
-    return np.where(ok, depth, np.nan)
+    m = profile_metrics_batch(np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=-1.0), scene)
+    return np.where(ok, m["etch_depth"], np.nan), np.where(ok, m["mask_loss"], np.nan)
 
 
 @torch.no_grad()
@@ -181,12 +181,13 @@ def _run_chunk(
     T = cfg.steps
     norms = np.empty((T + 1, B))
     depth = np.empty((T + 1, B))
+    mask_loss = np.empty((T + 1, B))
     max_abs = _max_abs_finite(x0).cpu().numpy()
     max_change = np.zeros(B)
     prev = [x0]
     first_bad = np.full(B, -1)
     norms[0] = _norms(x0).cpu().numpy()
-    depth[0] = _depths(x0, scene)
+    depth[0], mask_loss[0] = _depth_mask(x0, scene)
 
     def on_step(t: int, x: torch.Tensor) -> None:
         nonlocal max_abs, max_change
@@ -196,7 +197,7 @@ def _run_chunk(
         first_bad[(~finite) & (first_bad < 0)] = t
         max_abs = np.maximum(max_abs, _max_abs_finite(x).cpu().numpy())
         norms[t] = _norms(x).cpu().numpy()
-        depth[t] = _depths(x, scene)
+        depth[t], mask_loss[t] = _depth_mask(x, scene)
 
     rollout(model, x0, u, T, keep=False, on_step=on_step)
     out = []
@@ -219,6 +220,7 @@ def _run_chunk(
             "depth_final_nm": _num(depth[-1, i]),
             "depth_decreases": int(np.sum(d[np.isfinite(d)] > cfg.depth_tol_nm)),
             "depth_max_drop_nm": _num(np.nanmax(d)) if np.isfinite(d).any() else None,
+            "mask_loss_min_nm": _num(np.nanmin(mask_loss[:, i])) if np.isfinite(mask_loss[:, i]).any() else None,
             "norm_ratio": _num(norms[-1, i] / norms[0, i]),
             "max_step_growth": _num(np.nanmax(g)) if np.isfinite(g).any() else None,
             "max_step_change": float(max_change[i]),
