@@ -903,6 +903,92 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=_cmd_bench_rollout)
 
 
+def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
+    bench_sub = _bench_subparsers(sub)
+    p = bench_sub.add_parser(
+        "physics",
+        help="surrogate vs simulator: one-at-a-time control sweeps, held-out profile errors, no-change baseline",
+        description=(
+            "Judge a checkpoint against the Monte Carlo simulator (two seeds per recipe): (a) one control "
+            "group at a time from the median recipe (Cl+, Ar+, Cl2+, Cl fluxes; ion energies; ion angular "
+            "exponents; neutral angular exponent) at --levels levels: final depth, top and bottom width, "
+            "mask loss, bowing and the slope ratio surrogate/simulator; (b) held-out cases (fresh "
+            "Latin-hypercube points and box corners, or a data file's split): profile-metric errors beside "
+            "the seed-to-seed differences, Avg RMSE beside the seed-to-seed floor; (c) cases worse than "
+            "predicting no change. Writes physics.md, physics.json and physics.png to --out. "
+            "Example: nemsim bench physics --checkpoint checkpoints/nemsim-small.pt --workers 2"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
+    p.add_argument("--levels", type=int, default=3, help="sweep levels per control group, >= 3 (default 3)")
+    p.add_argument("--heldout", type=int, default=12,
+                   help="fresh Latin-hypercube held-out cases (default 12; ignored with --data)")
+    p.add_argument("--corners", type=int, default=4,
+                   help="corners of the control box among the fresh held-out cases (default 4)")
+    p.add_argument("--data", default=None, metavar="FILE.h5",
+                   help="take the held-out controls from this data file's split instead (re-simulated, two seeds)")
+    p.add_argument("--setting", default="control-id", help="split setting with --data (default control-id)")
+    p.add_argument("--splits", default=None, metavar="DIR", help="split manifests directory with --data")
+    p.add_argument("--split", default="test", help="split with --data (default test)")
+    p.add_argument("--max-cases", type=int, default=None, help="first N cases of the split with --data")
+    _add_truth_options(p)
+    p.add_argument("--out", default="runs/bench/physics", metavar="DIR",
+                   help="output directory (default runs/bench/physics)")
+    p.set_defaults(handler=_cmd_bench_physics)
+
+
+def _load_truth_checkpoint(path: str):
+    from nemsim.training.checkpoint import load_checkpoint
+
+    try:
+        return load_checkpoint(path)
+    except (FileNotFoundError, ValueError) as exc:
+        raise UserError(str(exc)) from exc
+
+
+def _cmd_bench_physics(args: argparse.Namespace) -> int:
+    from nemsim.evaluation import physics
+    from nemsim.evaluation.stress import initial_state
+
+    loaded = _load_truth_checkpoint(args.checkpoint)
+    try:
+        cfg = physics.PhysicsConfig(levels=args.levels, heldout=args.heldout, corners=args.corners,
+                                    seeds=_parse_seeds(args.seeds))
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    heldout = None
+    if args.data:
+        from pathlib import Path
+
+        from nemsim.data.hdf5 import open_trajectories
+        from nemsim.train import TrainInputError, _load_manifest
+
+        if not Path(args.data).is_file():
+            raise UserError(f"{args.data} does not exist")
+        try:
+            with open_trajectories(args.data) as tf:
+                if tf.scene != loaded.scene:
+                    raise UserError(f"{args.data} is on scene {tf.scene.name!r}, the checkpoint on "
+                                    f"{loaded.scene.name!r}")
+                manifest = _load_manifest(Path(args.data), args.setting, Path(args.splits) if args.splits else None,
+                                          tf)
+            names, raw, sim_meta = physics.heldout_from_data(args.data, manifest, args.split, args.max_cases)
+        except (TrainInputError, ValueError, KeyError) as exc:
+            raise UserError(str(exc)) from None
+        heldout = (names, raw)
+        if sim_meta and "sim_config" not in loaded.raw:
+            loaded.raw["sim_config"] = sim_meta  # the data's simulator, for the re-simulation
+    with _sim_truth(args, loaded) as truth:
+        held_raw = heldout[1] if heldout else physics.heldout_recipes(cfg)[1]
+        _print_plan(truth, physics.planned_runs(cfg, held_raw))
+        rep = physics.run_physics(loaded.model, truth, initial_state(loaded.scene), cfg, heldout)
+    rep["checkpoint"] = str(args.checkpoint)
+    paths = physics.write_outputs(rep, args.out)
+    print(physics.format_markdown(rep))  # noqa: T201
+    print("wrote " + ", ".join(paths.values()))  # noqa: T201
+    return 0
+
+
 def _cmd_stress(args: argparse.Namespace) -> int:
     from nemsim.evaluation.stress import StressConfig, format_table, initial_state, run_stress
     from nemsim.training.checkpoint import load_checkpoint
@@ -1196,7 +1282,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress,
-                _add_speed_error):
+                _add_truth_benches, _add_speed_error):
         add(sub)
     return parser
 

@@ -226,3 +226,35 @@ def avg_rmse(a: np.ndarray, b: np.ndarray) -> float:
 
 def final_metrics(m: dict[str, np.ndarray]) -> dict[str, float]:
     return {k: float(v[-1]) for k, v in m.items()}
+
+
+def compare_case(truth: SimTruth, raw: np.ndarray, pred: np.ndarray, seeds: tuple[int, int]) -> dict[str, Any]:
+    """Surrogate trajectory ``pred`` against the simulator's two seeds of ``raw``.
+
+    Returns (JSON-ready): ``avg_rmse`` (model vs each seed, mean; normalized SDF units), ``floor`` (seed vs
+    seed), ``no_change`` (x_0 held for every step vs each seed, mean), ``worse_than_no_change``; final
+    profile metrics (nm) of the ``model``, each seed (``sim_a``, ``sim_b``), their mean ``sim``, the
+    ``error`` model - sim mean and the ``seed_diff`` |a - b|.
+    """
+    a, b = truth.states(raw, seeds[0]), truth.states(raw, seeds[1])
+    if pred.shape != a.shape:
+        raise ValueError(f"prediction shape {pred.shape} != simulated {a.shape}")
+    still = np.broadcast_to(a[0], a.shape)
+    model_rmse = 0.5 * (avg_rmse(pred, a) + avg_rmse(pred, b))
+    no_change = 0.5 * (avg_rmse(still, a) + avg_rmse(still, b))
+    fa, fb = final_metrics(truth.metrics(raw, seeds[0])), final_metrics(truth.metrics(raw, seeds[1]))
+    fm = final_metrics(profile_metrics_batch(pred, truth.scene))
+    sim = {k: 0.5 * (fa[k] + fb[k]) for k in fa}
+    return {
+        "controls": [float(v) for v in raw],
+        "avg_rmse": model_rmse,
+        "floor": avg_rmse(a, b),
+        "no_change": no_change,
+        "worse_than_no_change": bool(model_rmse > no_change),
+        "model": fm,
+        "sim_a": fa,
+        "sim_b": fb,
+        "sim": sim,
+        "error": {k: fm[k] - sim[k] for k in fm},
+        "seed_diff": {k: abs(fa[k] - fb[k]) for k in fa},
+    }
