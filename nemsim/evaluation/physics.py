@@ -71,7 +71,7 @@ class PhysicsConfig:
             raise ValueError(f"seeds must be two different integers, got {self.seeds}")
 
 
-def _round_ints(raw: np.ndarray) -> np.ndarray:
+def round_int_controls(raw: np.ndarray) -> np.ndarray:
     out = np.array(raw, dtype=np.float64)
     out[..., list(INT_INDICES)] = np.round(out[..., list(INT_INDICES)])
     return out
@@ -81,7 +81,7 @@ def sweep_recipes(levels: int) -> dict[str, dict[str, Any]]:
     """{group: {"levels" (L,) normalized, "raw" (L, 14)}} from the median recipe."""
     base = centre_raw()
     u = np.linspace(-1.0, 1.0, levels)
-    return {g: {"levels": u, "raw": _round_ints(np.stack([set_axis(base, names, float(v)) for v in u]))}
+    return {g: {"levels": u, "raw": round_int_controls(np.stack([set_axis(base, names, float(v)) for v in u]))}
             for g, names in SWEEP_GROUPS.items()}
 
 
@@ -93,7 +93,7 @@ def box_corners(n: int, seed: int) -> np.ndarray:
     signs = [np.full(N_CONTROLS, -1.0), np.full(N_CONTROLS, 1.0)]
     while len(signs) < n:
         signs.append(rng.choice([-1.0, 1.0], size=N_CONTROLS))
-    return _round_ints(from_normalized(np.stack(signs[:n])))
+    return round_int_controls(from_normalized(np.stack(signs[:n])))
 
 
 def heldout_recipes(cfg: PhysicsConfig) -> tuple[list[str], np.ndarray]:
@@ -185,7 +185,7 @@ def summarize(sweeps: dict[str, Any], held: list[dict[str, Any]]) -> dict[str, A
 
 # --- outputs ---------------------------------------------------------------------------------------
 
-_SHORT = {"etch_depth": "depth", "top_width": "top w", "bottom_width": "bottom w", "mask_loss": "mask loss",
+METRIC_LABELS = {"etch_depth": "depth", "top_width": "top w", "bottom_width": "bottom w", "mask_loss": "mask loss",
           "bowing": "bowing"}
 
 
@@ -208,13 +208,13 @@ def format_markdown(rep: dict[str, Any]) -> str:
     for g, s in rep["sweeps"].items():
         for m, v in s["metrics"].items():
             ratio = "n/a" if v["slope_ratio"] is None else f"{v['slope_ratio']:+.2f}"
-            lines.append(f"| {g} | {_SHORT[m]} | {seq(s['levels'])} | {seq(v['simulator'])} | {seq(v['model'])} | "
+            lines.append(f"| {g} | {METRIC_LABELS[m]} | {seq(s['levels'])} | {seq(v['simulator'])} | {seq(v['model'])} | "
                          f"{seq(v['seed_diff'])} | {v['slope_sim']:+.2f} ± {v['slope_noise']:.2f} | "
                          f"{v['slope_model']:+.2f} | {ratio} | {'ok' if v['same_sign'] else 'WRONG'} | "
                          f"{'yes' if v['resolved'] else 'no'} |")
     lines += ["", "## (b) Held-out cases (final state; error = surrogate - mean of the two seeds)", "",
               "| case | Avg RMSE [SDF] | floor [SDF] | ratio [1] | no change [SDF] | "
-              + " | ".join(f"{_SHORT[m]} err / seed diff [nm]" for m in SWEEP_METRICS) + " |",
+              + " | ".join(f"{METRIC_LABELS[m]} err / seed diff [nm]" for m in SWEEP_METRICS) + " |",
               "|---|---|---|---|---|" + "---|" * len(SWEEP_METRICS)]
     for c in rep["heldout"]:
         flag = " **worse than no change**" if c["worse_than_no_change"] else ""
@@ -227,7 +227,7 @@ def format_markdown(rep: dict[str, Any]) -> str:
         lines.append(f"- held-out Avg RMSE mean {s['heldout_avg_rmse_mean']:.4f} SDF against the seed-to-seed floor "
                      f"{s['heldout_floor_mean']:.4f} SDF (per-case ratio median {s['heldout_rmse_over_floor_median']:.2f})")
         lines.append("- held-out mean |error| / mean bias / mean seed-to-seed difference [nm]: " + "; ".join(
-            f"{_SHORT[m]} {s['heldout_mae_nm'][m]:.2f} / {s['heldout_bias_nm'][m]:+.2f} / "
+            f"{METRIC_LABELS[m]} {s['heldout_mae_nm'][m]:.2f} / {s['heldout_bias_nm'][m]:+.2f} / "
             f"{s['heldout_seed_diff_nm'][m]:.2f}" for m in SWEEP_METRICS))
     lines.append(f"- (c) worse than predicting no change: {s['heldout_worse_than_no_change']} of {s['n_heldout']} "
                  f"held-out cases, {s['sweep_worse_than_no_change']} of {s['n_sweep_cases']} sweep recipes")
@@ -262,7 +262,7 @@ def plot_physics(rep: dict[str, Any], path: str | Path) -> Path:
             if i == 0:
                 ax.set_title(g, fontsize=8)
             if j == 0:
-                ax.set_ylabel(f"{_SHORT[m]} [nm]", fontsize=8)
+                ax.set_ylabel(f"{METRIC_LABELS[m]} [nm]", fontsize=8)
             if i == len(SWEEP_METRICS) - 1:
                 ax.set_xlabel("normalized level [1]", fontsize=8)
             ax.tick_params(labelsize=7)
