@@ -250,7 +250,7 @@ def compare_case(truth: SimTruth, raw: np.ndarray, pred: np.ndarray, seeds: tupl
         "avg_rmse": model_rmse,
         "floor": avg_rmse(a, b),
         "no_change": no_change,
-        "worse_than_no_change": bool(model_rmse > no_change),
+        "worse_than_no_change": bool(model_rmse > no_change * (1.0 + 1e-9)),  # a tie within rounding is not worse
         "model": fm,
         "sim_a": fa,
         "sim_b": fb,

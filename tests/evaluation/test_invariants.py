@@ -23,53 +23,6 @@ from nemsim.evaluation.invariants import (
 
 torch.set_num_threads(1)
 STEPS = 5  # simulated transitions: enough for the ion fluxes to move the depth beyond the seed noise
-ION = [CONTROL_INDEX[n] for n in ("flux_ar_plus", "flux_cl_plus", "flux_cl2_plus")]
-ENERGY = [CONTROL_INDEX[n] for n in ("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus")]
-
-
-class Plausible(torch.nn.Module):
-    """Removes Si everywhere at a rate rising with every ion flux and ion energy, zero without ions."""
-
-    def __init__(self, sign: float = 1.0) -> None:
-        super().__init__()
-        self.sign = sign  # -1: the rate falls with the Ar+ flux (a broken monotonicity)
-
-    def rate(self, u: torch.Tensor) -> torch.Tensor:
-        flux = torch.exp(u[:, ION])  # normalized log fluxes: 0 flux -> exp(-9) ~ 0
-        flux[:, 0] = torch.exp(self.sign * u[:, ION[0]]) * (u[:, ION[0]] > -5)
-        energy = 1.0 + 0.2 * u[:, ENERGY].mean(dim=1, keepdim=True)
-        return 0.01 * (flux * energy).sum(dim=1)  # (B,) SDF units per step
-
-    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        y = x.clone()
-        y[:, 1] = (y[:, 1] + self.rate(u)[:, None, None, None]).clamp(-1, 1)
-        return y
-
-
-class NoChange(torch.nn.Module):
-    def forward(self, x, u):
-        return x
-
-
-class EtchesWithoutFlux(torch.nn.Module):
-    """Etches Si and grows the mask whatever the controls (the issue's failure: change at zero flux)."""
-
-    def forward(self, x, u):
-        y = x.clone()
-        y[:, 1] += 0.02
-        y[:, 0] -= 0.01
-        return y
-
-
-class Unetches(torch.nn.Module):
-    """Grows Si back every step: the depth decreases over time."""
-
-    def forward(self, x, u):
-        y = x.clone()
-        y[:, 1] -= 0.02
-        return y
-
-
 @pytest.fixture(scope="module")
 def truth(tiny_scene, tmp_path_factory):
     from nemsim.evaluation.truth import SimTruth
@@ -94,6 +47,10 @@ def _rows(rep):
     return {r["name"]: r for r in rep["invariants"]}
 
 
+ION = [CONTROL_INDEX[n] for n in ("flux_ar_plus", "flux_cl_plus", "flux_cl2_plus")]
+ENERGY = [CONTROL_INDEX[n] for n in ("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus")]
+
+
 def run(model, truth, x0, noise=None):
     return run_invariants(model, truth, x0, CFG, long_steps=8, noise=noise)
 
@@ -112,8 +69,8 @@ def test_recipes():
     assert np.allclose(line["raw"][:, others], line["raw"][0, others])
 
 
-def test_plausible_model_passes(truth, x0):
-    rep = run(Plausible(), truth, x0)
+def test_plausible_model_passes(truth, x0, stubs):
+    rep = run(stubs.Plausible(), truth, x0)
     rows = _rows(rep)
     assert rep["passed"], format_invariants(rep)
     # the grid exercised the response check: the simulator clearly deepens with the Ar+ and Cl+ fluxes
@@ -124,35 +81,35 @@ def test_plausible_model_passes(truth, x0):
     json.dumps(rep)
 
 
-def test_no_change_model_is_caught_only_by_the_response_check(truth, x0):
-    rep = run(NoChange(), truth, x0)
+def test_no_change_model_is_caught_only_by_the_response_check(truth, x0, stubs):
+    rep = run(stubs.NoChange(), truth, x0)
     failed = {r["name"] for r in rep["invariants"] if r["violations"]}
     assert failed == {"responds where the simulator does"}
     assert not rep["passed"]
 
 
-def test_etching_without_flux_is_flagged(truth, x0):
-    rows = _rows(run(EtchesWithoutFlux(), truth, x0))
+def test_etching_without_flux_is_flagged(truth, x0, stubs):
+    rows = _rows(run(stubs.EtchesWithoutFlux(), truth, x0))
     for name in ("zero flux: state", "zero flux: depth", "zero flux: mask loss", "ions off: state",
                  "ions off: depth", "mask loss >= -tol"):
         assert rows[name]["violations"] == rows[name]["checked"] > 0, name
     assert rows["depth never decreases"]["violations"] == 0
 
 
-def test_unetching_and_reversed_flux_response_are_flagged(truth, x0):
-    rows = _rows(run(Unetches(), truth, x0))
+def test_unetching_and_reversed_flux_response_are_flagged(truth, x0, stubs):
+    rows = _rows(run(stubs.Unetches(), truth, x0))
     assert rows["depth never decreases"]["violations"] == rows["depth never decreases"]["checked"]
-    rows = _rows(run(Plausible(sign=-1.0), truth, x0))
+    rows = _rows(run(stubs.Plausible(sign=-1.0), truth, x0))
     assert rows["depth non-decreasing in flux_ar_plus"]["violations"] == 2  # both pairs of the 3-level line
     assert rows["depth non-decreasing in flux_cl_plus"]["violations"] == 0
 
 
-def test_noise_file_round_trip(truth, x0, tmp_path, tiny_scene):
-    rep = run(Plausible(), truth, x0)
+def test_noise_file_round_trip(truth, x0, tmp_path, tiny_scene, stubs):
+    rep = run(stubs.Plausible(), truth, x0)
     path = tmp_path / "noise.json"
     write_noise(path, rep["noise"])
     noise = read_noise(path, tiny_scene.name)
-    again = run(Plausible(), truth, x0, noise=noise)
+    again = run(stubs.Plausible(), truth, x0, noise=noise)
     assert again["tolerances"] == rep["tolerances"]
     with pytest.raises(ValueError, match="scene"):
         read_noise(path, "small")
@@ -161,7 +118,7 @@ def test_noise_file_round_trip(truth, x0, tmp_path, tiny_scene):
         read_noise(path, tiny_scene.name)
 
 
-def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch):
+def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stubs):
     """The suite's exit code: 0 for a plausible model, 1 for one that etches without flux; bad flags 2."""
     import nemsim.cli as cli
     from nemsim.training.checkpoint import LoadedModel
@@ -176,12 +133,12 @@ def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch):
             "--sim-steps", str(STEPS), "--pair-bases", "0", "--no-progress", "--cache-dir", str(tmp_path / "c")]
     import nemsim.training.checkpoint as ck
 
-    monkeypatch.setattr(ck, "load_checkpoint", fake_loader(Plausible()))
+    monkeypatch.setattr(ck, "load_checkpoint", fake_loader(stubs.Plausible()))
     out = tmp_path / "ok.json"
     assert cli.main(args + ["--json", str(out), "--noise-out", str(tmp_path / "noise.json")]) == 0
     rep = json.loads(out.read_text())
     assert rep["passed"] and rep["invariants"]["passed"]
-    monkeypatch.setattr(ck, "load_checkpoint", fake_loader(EtchesWithoutFlux()))
+    monkeypatch.setattr(ck, "load_checkpoint", fake_loader(stubs.EtchesWithoutFlux()))
     assert cli.main(args + ["--noise", str(tmp_path / "noise.json")]) == 1
     assert cli.main(args + ["--seeds", "1,1"]) == 2
     assert cli.main(args + ["--levels", "1"]) == 2
