@@ -867,7 +867,8 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
                    help="only the finite/bounded stability cases (no simulator runs)")
     _add_truth_options(p)
     p.add_argument("--pair-bases", type=int, default=2,
-                   help="Latin-hypercube base recipes of the monotonicity grid beside the design centre (default 2)")
+                   help="Latin-hypercube base recipes of the monotonicity grid beside the design centre "
+                   "(default 2)")
     p.add_argument("--levels", type=int, default=3,
                    help="levels of each monotone axis from design min to max (default 3)")
     p.add_argument("--tol-factor", type=float, default=1.0,
@@ -907,7 +908,7 @@ def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
     bench_sub = _bench_subparsers(sub)
     p = bench_sub.add_parser(
         "physics",
-        help="surrogate vs simulator: one-at-a-time control sweeps, held-out profile errors, no-change baseline",
+        help="surrogate vs simulator: one-at-a-time sweeps, held-out profile errors, no-change baseline",
         description=(
             "Judge a checkpoint against the Monte Carlo simulator (two seeds per recipe): (a) one control "
             "group at a time from the median recipe (Cl+, Ar+, Cl2+, Cl fluxes; ion energies; ion angular "
@@ -926,7 +927,8 @@ def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--corners", type=int, default=4,
                    help="corners of the control box among the fresh held-out cases (default 4)")
     p.add_argument("--data", default=None, metavar="FILE.h5",
-                   help="take the held-out controls from this data file's split instead (re-simulated, two seeds)")
+                   help="take the held-out controls from this data file's split instead (re-simulated with "
+                   "two seeds)")
     p.add_argument("--setting", default="control-id", help="split setting with --data (default control-id)")
     p.add_argument("--splits", default=None, metavar="DIR", help="split manifests directory with --data")
     p.add_argument("--split", default="test", help="split with --data (default test)")
@@ -1024,8 +1026,8 @@ def _cmd_bench_physics(args: argparse.Namespace) -> int:
                 if tf.scene != loaded.scene:
                     raise UserError(f"{args.data} is on scene {tf.scene.name!r}, the checkpoint on "
                                     f"{loaded.scene.name!r}")
-                manifest = _load_manifest(Path(args.data), args.setting, Path(args.splits) if args.splits else None,
-                                          tf)
+                splits = Path(args.splits) if args.splits else None
+                manifest = _load_manifest(Path(args.data), args.setting, splits, tf)
             names, raw, sim_meta = physics.heldout_from_data(args.data, manifest, args.split, args.max_cases)
         except (TrainInputError, ValueError, KeyError) as exc:
             raise UserError(str(exc)) from None
@@ -1073,13 +1075,13 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         )
 
         try:
-            inv_cfg = InvariantConfig(sim_steps=args.sim_steps, seeds=_parse_seeds(args.seeds),
-                                      pair_bases=args.pair_bases, levels=args.levels, tol_factor=args.tol_factor)
+            inv_cfg = InvariantConfig(seeds=_parse_seeds(args.seeds), pair_bases=args.pair_bases,
+                                      levels=args.levels, tol_factor=args.tol_factor)
             noise = read_noise(args.noise, loaded.scene.name) if args.noise else None
         except ValueError as exc:
             raise UserError(str(exc)) from None
         with _sim_truth(args, loaded) as truth:
-            _print_plan(truth, planned_runs(truth, inv_cfg, noise))
+            _print_plan(truth, planned_runs(inv_cfg, noise))
             inv = run_invariants(loaded.model, truth, x0, inv_cfg, long_steps=cfg.steps,
                                  stress_cases=report["cases"], abs_bound=cfg.abs_bound, noise=noise)
         print(format_invariants(inv))  # noqa: T201
@@ -1100,7 +1102,8 @@ def _add_truth_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seeds", default="1,2", help="the simulator seed pair, comma-separated (default 1,2)")
     p.add_argument("--workers", type=int, default=1, help="parallel simulations, one core each (default 1)")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
-                   help="keep the simulator runs here and reuse them on a rerun (default: a temporary directory)")
+                   help="keep the simulator runs here and reuse them on a rerun (default: a temporary "
+                   "directory)")
     _add_sim_overrides(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

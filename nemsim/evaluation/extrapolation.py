@@ -1,4 +1,4 @@
-"""Extrapolation benchmark: surrogate error outside the training box, against the simulator (issue 19, item 2).
+"""Extrapolation benchmark: surrogate error outside the training box against the simulator (issue 19, item 2).
 
 ``nemsim bench extrapolation`` simulates (two seeds) and predicts recipes of these kinds:
 
@@ -102,7 +102,8 @@ def recipes(cfg: ExtrapolationConfig) -> tuple[list[dict[str, Any]], list[dict[s
                 raw = round_int_controls(from_normalized(u))
                 label = f"{name}-{tag}-{d:g}"
                 if raw[j] < PHYS_MIN[j]:
-                    skipped.append({"name": label, "reason": f"{name}={raw[j]:.4g} < {PHYS_MIN[j]:g} (inadmissible)"})
+                    reason = f"{name}={raw[j]:.4g} < {PHYS_MIN[j]:g} (inadmissible)"
+                    skipped.append({"name": label, "reason": reason})
                     continue
                 add(label, "axis", f"axis {d:g}", raw)
     for j in FLUX_INDICES:
@@ -130,7 +131,8 @@ def planned_runs(cfg: ExtrapolationConfig) -> list[tuple[np.ndarray, int]]:
     return [(c["raw"], s) for c in recipes(cfg)[0] for s in cfg.seeds]
 
 
-def run_extrapolation(model: Any, truth: SimTruth, x0: np.ndarray, cfg: ExtrapolationConfig) -> dict[str, Any]:
+def run_extrapolation(model: Any, truth: SimTruth, x0: np.ndarray, cfg: ExtrapolationConfig
+                      ) -> dict[str, Any]:
     """The benchmark of the module docstring; JSON-ready report."""
     cases, skipped = recipes(cfg)
     truth.ensure(planned_runs(cfg), desc="extrapolation")
@@ -167,23 +169,27 @@ def format_markdown(rep: dict[str, Any]) -> str:
     s = rep["summary"]
     lines = [f"# Extrapolation benchmark ({rep['scene']}, {rep['steps']} transitions, simulator seeds "
              f"{rep['config']['seeds']})", "",
-             "Distance = max_j |u_j| - 1 in normalized controls (< 0 inside the training box, 0 on its edge). "
-             "Errors are final-state surrogate - mean of the two seeds.", "",
+             "Distance = max_j |u_j| - 1 in normalized controls (< 0 inside the training box, 0 on its "
+             "edge). Errors are final-state surrogate - mean of the two seeds.", "",
              "## Per group", "",
-             "| group | cases [1] | Avg RMSE [SDF] | floor [SDF] | / in-box [1] | worse than no change [cases] | "
+             "| group | cases [1] | Avg RMSE [SDF] | floor [SDF] | / in-box [1] "
+             "| worse than no change [cases] | "
              + " | ".join(f"{METRIC_LABELS[m]} MAE / seed diff [nm]" for m in SWEEP_METRICS) + " |",
              "|---|---|---|---|---|---|" + "---|" * len(SWEEP_METRICS)]
     for g, v in s["groups"].items():
         ratio = "n/a" if v["ratio_to_in_box"] is None else f"{v['ratio_to_in_box']:.2f}"
         lines.append(f"| {g} | {v['n']} | {v['avg_rmse']:.4f} | {v['floor']:.4f} | {ratio} | "
                      f"{v['worse_than_no_change']} | "
-                     + " | ".join(f"{v['mae_nm'][m]:.1f} / {v['seed_diff_nm'][m]:.1f}" for m in SWEEP_METRICS) + " |")
+                     + " | ".join(f"{v['mae_nm'][m]:.1f} / {v['seed_diff_nm'][m]:.1f}" for m in SWEEP_METRICS)
+                     + " |")
     lines += ["", "## Per case", "",
               "| case | kind | distance [1] | Avg RMSE [SDF] | floor [SDF] | no change [SDF] | "
-              + " | ".join(f"{METRIC_LABELS[m]} err [nm]" for m in SWEEP_METRICS) + " | depth seed diff [nm] |",
+              + " | ".join(f"{METRIC_LABELS[m]} err [nm]" for m in SWEEP_METRICS)
+              + " | depth seed diff [nm] |",
               "|---|---|---|---|---|---|" + "---|" * len(SWEEP_METRICS) + "---|"]
     for r in rep["cases"]:
-        lines.append(f"| {r['name']} | {r['kind']} | {r['distance']:+.2f} | {r['avg_rmse']:.4f} | {r['floor']:.4f} | "
+        lines.append(f"| {r['name']} | {r['kind']} | {r['distance']:+.2f} | {r['avg_rmse']:.4f} | "
+                     f"{r['floor']:.4f} | "
                      f"{r['no_change']:.4f} | " + " | ".join(f"{r['error'][m]:+.1f}" for m in SWEEP_METRICS)
                      + f" | {r['seed_diff']['etch_depth']:.1f} |")
     if rep["skipped"]:
@@ -218,7 +224,8 @@ def plot_extrapolation(rep: dict[str, Any], path: str | Path) -> Path:
     ax.set_xlabel(f"normalized distance from the training box, max|u| - 1 [1] (clipped at {PLOT_CLIP:g})")
     ax.set_ylabel("Avg RMSE [normalized SDF]")
     ax.set_yscale("log")
-    ax.set_title(f"surrogate vs simulator outside the box ({rep['scene']}, {rep['steps']} transitions)", fontsize=9)
+    ax.set_title(f"surrogate vs simulator outside the box ({rep['scene']}, {rep['steps']} transitions)",
+                 fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

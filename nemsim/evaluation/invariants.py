@@ -46,6 +46,7 @@ import numpy as np
 
 from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, N_CONTROLS, from_normalized, from_unit, lhs_unit
 from nemsim.evaluation.truth import SimTruth, predict, step_rmse
+from nemsim.geometry.profile import profile_metrics_batch
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,6 @@ BASE_DESIGN_SEED = 7  # Latin-hypercube seed of the grid's extra base recipes (n
 
 @dataclass(frozen=True)
 class InvariantConfig:
-    sim_steps: int | None = None  # transitions compared with the simulator (None: the scene's horizon)
     seeds: tuple[int, int] = (1, 2)  # the seed pair of the noise measurement; grid runs use seeds[0]
     pair_bases: int = 2  # Latin-hypercube base recipes of the monotonicity grid beside the design centre
     levels: int = 3  # values of each monotone axis, design min..max (>= 2)
@@ -180,7 +180,8 @@ def read_noise(path: str | Path, scene_name: str) -> dict[str, Any]:
         raise ValueError(f"cannot read noise file {path}: {exc}") from None
     missing = [k for k in NOISE_KEYS if not isinstance(noise.get(k), (int, float))]
     if missing:
-        raise ValueError(f"noise file {path} lacks {missing}; write one with `nemsim stress --noise-out FILE`")
+        raise ValueError(f"noise file {path} lacks {missing}; write one with "
+                         "`nemsim stress --noise-out FILE`")
     if noise.get("scene") != scene_name:
         raise ValueError(f"noise file {path} is for scene {noise.get('scene')!r}, the checkpoint's is "
                          f"{scene_name!r}")
@@ -189,34 +190,133 @@ def read_noise(path: str | Path, scene_name: str) -> dict[str, Any]:
 
 def tolerances(noise: dict[str, Any], cfg: InvariantConfig) -> dict[str, float]:
     f = cfg.tol_factor
-    return {"rmse": f * noise["rmse"], "depth_nm": f * noise["depth_nm"], "mask_loss_nm": f * noise["mask_loss_nm"],
+    return {"rmse": f * noise["rmse"], "depth_nm": f * noise["depth_nm"],
+            "mask_loss_nm": f * noise["mask_loss_nm"],
             "depth_decrease_nm": f * max(noise["depth_decrease_nm"], cfg.depth_decrease_floor_nm)}
 
 
 # --- the checks -----------------------------------------------------------------------------------
 
 
-def planned_runs(truth: SimTruth, cfg: InvariantConfig, noise: dict[str, Any] | None) -> list[tuple[np.ndarray, int]]:
-    """Every simulator run the invariants need (duplicates included; ``truth.missing`` removes them)."""
+def planned_runs(cfg: InvariantConfig, noise: dict[str, Any] | None) -> list[tuple[np.ndarray, int]]:
+    """Every simulator run the invariants need (duplicates included; ``SimTruth.missing`` drops them)."""
     s0, s1 = cfg.seeds
-    runs = [(r, s0) for r in zero_flux_recipes().values()] + [(r, s0) for r in ions_off_recipes().values()]
-    for line in monotone_grid(cfg):
-        runs += [(r, s0) for r in line["raw"]]
+    raws = list(zero_flux_recipes().values()) + list(ions_off_recipes().values())
+    raws += [r for line in monotone_grid(cfg) for r in line["raw"]]
+    runs = [(r, s0) for r in raws]
     if noise is None:
         runs += [(r, s) for r in grid_bases(cfg.pair_bases) for s in (s0, s1)]
     return runs
 
 
-def _row(name: str, what: str, unit: str, items: list[dict[str, Any]], tol: float, worst: float | None,
-         checked_unit: str, sim_violations: int | None = None) -> dict[str, Any]:
-    return {"name": name, "what": what, "unit": unit, "checked": len(items), "checked_unit": checked_unit,
-            "violations": sum(not it["ok"] for it in items), "worst": worst, "tolerance": tol,
+Item = dict[str, Any]  # one checked recipe, rollout or pair: {"case", "value", "ok", ...}
+
+
+def _row(name: str, what: str, unit: str, items: list[Item], bound: str, tol: float, checked_unit: str,
+         sim_violations: int | None = None) -> dict[str, Any]:
+    """One invariant: ``value bound tol`` must hold for every item; ``worst`` is the extreme value."""
+    vals = [it["value"] for it in items if it["value"] is not None and math.isfinite(it["value"])]
+    worst = (max(vals) if bound == "<=" else min(vals)) if vals else None
+    return {"name": name, "what": what, "unit": unit, "bound": bound, "tolerance": tol, "checked": len(items),
+            "checked_unit": checked_unit, "violations": sum(not it["ok"] for it in items), "worst": worst,
             "simulator_violations": sim_violations, "items": items}
 
 
-def _mx(values: list[float]) -> float | None:
-    vals = [v for v in values if v is not None and math.isfinite(v)]
-    return max(vals) if vals else None
+def _max_change(series: np.ndarray) -> float:
+    return float(np.abs(series - series[0]).max())
+
+
+def _zero_flux_rows(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantConfig, tol: dict[str, float],
+                    long_steps: int, track: Any) -> list[dict[str, Any]]:
+    """The model's largest change from x_0 under zero flux, beside the simulator's own (0) plus the noise."""
+    recipes = zero_flux_recipes()
+    raws = np.stack(list(recipes.values()))
+    state, depth, mask = [], [], []
+    for i, traj in predict(model, x0, raws, long_steps, cfg.batch_size):
+        name = list(recipes)[i]
+        sim = truth.states(raws[i], cfg.seeds[0])
+        sm = truth.metrics(raws[i], cfg.seeds[0])
+        m = profile_metrics_batch(traj, truth.scene)
+        track(name, m)
+        r = float(step_rmse(traj, np.broadcast_to(traj[0], traj.shape)).max())
+        sim_r = float(step_rmse(sim, np.broadcast_to(sim[0], sim.shape)).max())
+        state.append({"case": name, "value": r, "simulator": sim_r, "ok": r <= sim_r + tol["rmse"],
+                      "max_abs_change": float(np.abs(traj - traj[0]).max())})
+        for out, key, t in ((depth, "etch_depth", "depth_nm"), (mask, "mask_loss", "mask_loss_nm")):
+            v, sim_v = _max_change(m[key]), _max_change(sm[key])
+            out.append({"case": name, "value": v, "simulator": sim_v, "ok": v <= sim_v + tol[t]})
+
+    def moved(items: list[Item]) -> int:
+        return sum(it["simulator"] > 0 for it in items)
+
+    return [
+        _row("zero flux: state", "max_t RMSE(x_t, x_0), all fluxes 0", "SDF", state, "<=", tol["rmse"],
+             "recipes", moved(state)),
+        _row("zero flux: depth", "max_t |depth_t - depth_0|, all fluxes 0", "nm", depth, "<=",
+             tol["depth_nm"], "recipes", moved(depth)),
+        _row("zero flux: mask loss", "max_t |mask_loss_t - mask_loss_0|, all fluxes 0", "nm", mask, "<=",
+             tol["mask_loss_nm"], "recipes", moved(mask)),
+    ]
+
+
+def _ions_off_rows(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantConfig, tol: dict[str, float],
+                   track: Any) -> list[dict[str, Any]]:
+    """The model's distance from the simulator's neutral-only trajectory, step by step."""
+    recipes = ions_off_recipes()
+    raws = np.stack(list(recipes.values()))
+    state, depth, mask = [], [], []
+    for i, traj in predict(model, x0, raws, truth.steps, cfg.batch_size):
+        name = list(recipes)[i]
+        sim = truth.states(raws[i], cfg.seeds[0])
+        sm = truth.metrics(raws[i], cfg.seeds[0])
+        m = profile_metrics_batch(traj, truth.scene)
+        track(name, m)
+        r = float(step_rmse(traj, sim).max())
+        state.append({"case": name, "value": r, "ok": r <= tol["rmse"]})
+        for out, key, t in ((depth, "etch_depth", "depth_nm"), (mask, "mask_loss", "mask_loss_nm")):
+            v = float(np.abs(m[key] - sm[key]).max())
+            out.append({"case": name, "value": v, "ok": v <= tol[t]})
+    return [
+        _row("ions off: state", "max_t RMSE(model_t, simulator_t), ion fluxes 0", "SDF", state, "<=",
+             tol["rmse"], "recipes"),
+        _row("ions off: depth", "max_t |depth model - simulator|, ion fluxes 0", "nm", depth, "<=",
+             tol["depth_nm"], "recipes"),
+        _row("ions off: mask loss", "max_t |mask loss model - simulator|, ion fluxes 0", "nm", mask, "<=",
+             tol["mask_loss_nm"], "recipes"),
+    ]
+
+
+def _monotone_rows(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantConfig, tol: dict[str, float],
+                   track: Any) -> list[dict[str, Any]]:
+    """Depth at the higher minus the lower level of each grid pair (model, simulator); the response check."""
+    mono: dict[str, list[Item]] = {a: [] for a in MONOTONE_AXES}
+    sim_bad = dict.fromkeys(MONOTONE_AXES, 0)
+    responds: list[Item] = []
+    for line in monotone_grid(cfg):
+        raws, levels = line["raw"], line["levels"]
+        tags = [f"{line['axis']} base {line['base']} level {v:+.2f}" for v in levels]
+        depth = []
+        for k, traj in predict(model, x0, raws, truth.steps, cfg.batch_size):
+            m = profile_metrics_batch(traj, truth.scene)
+            track(tags[k], m)
+            depth.append(m["etch_depth"])
+        rise = np.diff(np.stack(depth), axis=0)  # (L-1, T+1) nm, model
+        sim_rise = np.diff(np.stack([truth.metrics(r, cfg.seeds[0])["etch_depth"] for r in raws]), axis=0)
+        for k in range(len(raws) - 1):
+            tag = f"{tags[k]} -> {levels[k + 1]:+.2f}"
+            worst, sim_worst = float(rise[k].min()), float(sim_rise[k].min())
+            sim_bad[line["axis"]] += sim_worst < -tol["depth_nm"]
+            mono[line["axis"]].append({"case": tag, "value": worst, "simulator": sim_worst,
+                                       "ok": worst >= -tol["depth_nm"]})
+            if sim_rise[k, -1] > tol["depth_nm"]:
+                final = float(rise[k, -1])
+                responds.append({"case": tag, "value": final, "simulator": float(sim_rise[k, -1]),
+                                 "ok": final > 0.0})
+    rows = [_row(f"depth non-decreasing in {axis}", "min_t (depth at the higher - at the lower level)", "nm",
+                 items, ">=", -tol["depth_nm"], "pairs", sim_bad[axis]) for axis, items in mono.items()]
+    rows.append(_row("responds where the simulator does", "final depth rise where the simulator's > tol",
+                     "nm", responds, ">", 0.0, "pairs"))
+    return rows
 
 
 def run_invariants(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantConfig, *, long_steps: int,
@@ -232,19 +332,13 @@ def run_invariants(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantCo
             checked); abs_bound: the bound ``run_stress`` used (reported).
         noise: a measured noise dict (``read_noise``); None measures it here.
     """
-    scene = truth.scene
-    s0 = cfg.seeds[0]
-    truth.ensure(planned_runs(truth, cfg, noise), desc="invariants")
-    grid = monotone_grid(cfg)
+    truth.ensure(planned_runs(cfg, noise), desc="invariants")
     if noise is None:
-        extra = [r for line in grid for r in line["raw"]] + list(ions_off_recipes().values())
+        extra = [r for line in monotone_grid(cfg) for r in line["raw"]] + list(ions_off_recipes().values())
         noise = measure_noise(truth, grid_bases(cfg.pair_bases), cfg.seeds, extra)
     tol = tolerances(noise, cfg)
-    T = truth.steps
-    from nemsim.geometry.profile import profile_metrics_batch
-
-    drops: list[dict[str, Any]] = []  # per rollout: the largest step-to-step depth decrease
-    masks: list[dict[str, Any]] = []  # per noise-free rollout: the smallest mask loss
+    drops: list[Item] = []  # per rollout: the largest step-to-step depth decrease
+    masks: list[Item] = []  # per noise-free rollout: the smallest mask loss
 
     def track(name: str, m: dict[str, np.ndarray]) -> None:
         d = m["etch_depth"]
@@ -253,109 +347,29 @@ def run_invariants(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantCo
         ml = float(m["mask_loss"].min())
         masks.append({"case": name, "value": ml, "ok": ml >= -tol["mask_loss_nm"]})
 
-    bounded = [{"case": c["name"], "value": c["max_abs"], "ok": bool(c["bounded"])} for c in stress_cases or []]
-    for c in stress_cases or []:
-        drop = c["depth_max_drop_nm"]
-        drops.append({"case": c["name"], "value": drop, "ok": drop is not None and drop <= tol["depth_decrease_nm"]})
-        if c.get("state_noise", 0.0) == 0.0:
-            ml = c.get("mask_loss_min_nm")
-            masks.append({"case": c["name"], "value": ml, "ok": ml is not None and ml >= -tol["mask_loss_nm"]})
-
-    # zero flux ------------------------------------------------------------------------------------
-    zf = zero_flux_recipes()
-    zs, zd, zm = [], [], []
-    raws = np.stack(list(zf.values()))
-    for i, traj in predict(model, x0, raws, long_steps, cfg.batch_size):
-        name = list(zf)[i]
-        sim = truth.states(raws[i], s0)
-        sm = truth.metrics(raws[i], s0)
-        m = profile_metrics_batch(traj, scene)
-        track(name, m)
-        r = float(step_rmse(traj, np.broadcast_to(traj[0], traj.shape)).max())
-        sim_r = float(step_rmse(sim, np.broadcast_to(sim[0], sim.shape)).max())
-        dd = float(np.abs(m["etch_depth"] - m["etch_depth"][0]).max())
-        sim_dd = float(np.abs(sm["etch_depth"] - sm["etch_depth"][0]).max())
-        dm = float(np.abs(m["mask_loss"] - m["mask_loss"][0]).max())
-        sim_dm = float(np.abs(sm["mask_loss"] - sm["mask_loss"][0]).max())
-        max_abs = float(np.abs(traj - traj[0]).max())
-        zs.append({"case": name, "value": r, "simulator": sim_r, "max_abs_change": max_abs,
-                   "ok": r <= sim_r + tol["rmse"]})
-        zd.append({"case": name, "value": dd, "simulator": sim_dd, "ok": dd <= sim_dd + tol["depth_nm"]})
-        zm.append({"case": name, "value": dm, "simulator": sim_dm, "ok": dm <= sim_dm + tol["mask_loss_nm"]})
-    sim_zero_changes = sum(it["simulator"] > 0 for it in zs)
-
-    # ions off -------------------------------------------------------------------------------------
-    io = ions_off_recipes()
-    raws = np.stack(list(io.values()))
-    ios, iod, iom = [], [], []
-    for i, traj in predict(model, x0, raws, T, cfg.batch_size):
-        name = list(io)[i]
-        sim = truth.states(raws[i], s0)
-        sm = truth.metrics(raws[i], s0)
-        m = profile_metrics_batch(traj, scene)
-        track(name, m)
-        r = float(step_rmse(traj, sim).max())
-        dd = float(np.abs(m["etch_depth"] - sm["etch_depth"]).max())
-        dm = float(np.abs(m["mask_loss"] - sm["mask_loss"]).max())
-        ios.append({"case": name, "value": r, "ok": r <= tol["rmse"]})
-        iod.append({"case": name, "value": dd, "ok": dd <= tol["depth_nm"]})
-        iom.append({"case": name, "value": dm, "ok": dm <= tol["mask_loss_nm"]})
-
-    # monotonicity and response --------------------------------------------------------------------
-    mono: dict[str, list[dict[str, Any]]] = {a: [] for a in MONOTONE_AXES}
-    sim_mono: dict[str, int] = {a: 0 for a in MONOTONE_AXES}
-    responds: list[dict[str, Any]] = []
-    for line in grid:
-        raws = line["raw"]
-        depth_rows = []
-        for k, traj in predict(model, x0, raws, T, cfg.batch_size):
-            m = profile_metrics_batch(traj, scene)
-            track(f"{line['axis']} base {line['base']} level {line['levels'][k]:+.2f}", m)
-            depth_rows.append(m["etch_depth"])
-        depth = np.stack(depth_rows)  # (L, T+1) nm
-        sim_depth = np.stack([truth.metrics(r, s0)["etch_depth"] for r in raws])  # (L, T+1)
-        for k in range(len(raws) - 1):
-            tag = f"{line['axis']} base {line['base']} level {line['levels'][k]:+.2f}->{line['levels'][k + 1]:+.2f}"
-            rise = depth[k + 1] - depth[k]  # (T+1,) nm
-            sim_rise = sim_depth[k + 1] - sim_depth[k]
-            worst = float(rise.min())
-            sim_ok = float(sim_rise.min()) >= -tol["depth_nm"]
-            sim_mono[line["axis"]] += not sim_ok
-            mono[line["axis"]].append({"case": tag, "value": worst, "simulator": float(sim_rise.min()),
-                                       "ok": worst >= -tol["depth_nm"]})
-            if sim_rise[-1] > tol["depth_nm"]:
-                responds.append({"case": tag, "value": float(rise[-1]), "simulator": float(sim_rise[-1]),
-                                 "ok": float(rise[-1]) > 0.0})
-
-    def mn(items: list[dict[str, Any]]) -> float | None:
-        vals = [it["value"] for it in items if it["value"] is not None]
-        return min(vals) if vals else None
-
-    rows = [_row("finite and bounded", "max_t |x_t| of the stability cases", "SDF", bounded, abs_bound,
-                 _mx([it["value"] for it in bounded]), "cases")] if bounded else []
+    cases = stress_cases or []
+    bounded = [{"case": c["name"], "value": c["max_abs"], "ok": bool(c["bounded"])} for c in cases]
+    for c in cases:
+        drop, ml = c["depth_max_drop_nm"], c.get("mask_loss_min_nm")
+        drops.append({"case": c["name"], "value": drop,
+                      "ok": drop is not None and drop <= tol["depth_decrease_nm"]})
+        if c.get("state_noise", 0.0) == 0.0:  # a noisy x_0 has a noisy mask top from the start
+            masks.append({"case": c["name"], "value": ml,
+                          "ok": ml is not None and ml >= -tol["mask_loss_nm"]})
+    rows = []
+    if bounded:
+        rows.append(_row("finite and bounded", "max_t |x_t| of the stability cases", "SDF", bounded, "<=",
+                         abs_bound, "cases"))
+    rows += _zero_flux_rows(model, truth, x0, cfg, tol, long_steps, track)
+    rows += _ions_off_rows(model, truth, x0, cfg, tol, track)
+    mono = _monotone_rows(model, truth, x0, cfg, tol, track)  # adds to drops and masks: before their rows
     rows += [
-        _row("zero flux: state", "max_t RMSE(x_t, x_0), all fluxes 0", "SDF", zs, tol["rmse"],
-             _mx([it["value"] for it in zs]), "recipes", sim_zero_changes),
-        _row("zero flux: depth", "max_t |depth_t - depth_0|, all fluxes 0", "nm", zd, tol["depth_nm"],
-             _mx([it["value"] for it in zd]), "recipes", sum(it["simulator"] > 0 for it in zd)),
-        _row("zero flux: mask loss", "max_t |mask_loss_t - mask_loss_0|, all fluxes 0", "nm", zm,
-             tol["mask_loss_nm"], _mx([it["value"] for it in zm]), "recipes", sum(it["simulator"] > 0 for it in zm)),
-        _row("ions off: state", "max_t RMSE(model_t, simulator_t), ion fluxes 0", "SDF", ios, tol["rmse"],
-             _mx([it["value"] for it in ios]), "recipes"),
-        _row("ions off: depth", "max_t |depth model - simulator|, ion fluxes 0", "nm", iod, tol["depth_nm"],
-             _mx([it["value"] for it in iod]), "recipes"),
-        _row("ions off: mask loss", "max_t |mask loss model - simulator|, ion fluxes 0", "nm", iom,
-             tol["mask_loss_nm"], _mx([it["value"] for it in iom]), "recipes"),
-        _row("depth never decreases", "max_t (depth_t - depth_t+1) per rollout", "nm", drops,
-             tol["depth_decrease_nm"], _mx([it["value"] for it in drops]), "rollouts"),
-        _row("mask loss >= -tol", "min_t mask loss per noise-free rollout (reported negated tolerance)", "nm",
-             masks, -tol["mask_loss_nm"], mn(masks), "rollouts"),
+        _row("depth never decreases", "max_t (depth_t - depth_t+1) per rollout", "nm", drops, "<=",
+             tol["depth_decrease_nm"], "rollouts"),
+        _row("mask loss >= -tol", "min_t mask loss per noise-free rollout", "nm", masks, ">=",
+             -tol["mask_loss_nm"], "rollouts"),
     ]
-    for axis, items in mono.items():
-        rows.append(_row(f"depth non-decreasing in {axis}", "min_t (depth at higher - at lower level)", "nm",
-                         items, -tol["depth_nm"], mn(items), "pairs", sim_mono[axis]))
-    rows.append(_row("responds where the simulator does", "final depth rise where the simulator's > tol", "nm",
-                     responds, 0.0, mn(responds), "pairs"))
+    rows += mono
     return {"config": asdict(cfg), "noise": noise, "tolerances": tol, "invariants": rows,
             "passed": all(r["violations"] == 0 for r in rows)}
 
@@ -374,22 +388,20 @@ def format_invariants(rep: dict[str, Any]) -> str:
     for r in rep["invariants"]:
         cu = r["checked_unit"]
         sim = "n/a" if r["simulator_violations"] is None else f"{r['simulator_violations']} {cu}"
-        bound = ">=" if r["name"].startswith(("mask loss", "depth non-decreasing", "responds")) else "<="
-        if r["name"].startswith("responds"):
-            bound = ">"
         lines.append(
             f"{r['name']:36s} {str(r['checked']) + ' ' + cu:>14s} {str(r['violations']) + ' ' + cu:>14s} "
-            f"{v(r['worst'], r['unit']):>15s} {bound + ' ' + v(r['tolerance'], r['unit']):>16s} {sim:>14s}  "
+            f"{v(r['worst'], r['unit']):>15s} {r['bound'] + ' ' + v(r['tolerance'], r['unit']):>16s} "
+            f"{sim:>14s}  "
             f"{'PASS' if r['violations'] == 0 else 'FAIL'}"
         )
-    n = rep["noise"]
+    n, t = rep["noise"], rep["tolerances"]
     lines.append(
-        f"tolerances from the simulator's seed-to-seed noise ({n['n_cases']} recipes, seeds {n['seeds']}, "
-        f"{n['steps']} steps) x {rep['config']['tol_factor']:g}: RMSE {rep['tolerances']['rmse']:.4f} SDF, depth "
-        f"{rep['tolerances']['depth_nm']:.2f} nm, mask loss {rep['tolerances']['mask_loss_nm']:.2f} nm, depth "
-        f"decrease {rep['tolerances']['depth_decrease_nm']:.2f} nm; 'simulator' = the same check on the "
-        f"simulator's runs"
+        f"tolerances = the simulator's seed-to-seed noise ({n['n_cases']} recipes, seeds {n['seeds']}, "
+        f"{n['steps']} steps) x {rep['config']['tol_factor']:g}: RMSE {t['rmse']:.4f} SDF, depth "
+        f"{t['depth_nm']:.2f} nm, mask loss {t['mask_loss_nm']:.2f} nm, depth decrease "
+        f"{t['depth_decrease_nm']:.2f} nm; 'simulator' = the same check on the simulator's runs"
     )
-    lines.append(f"invariants: {sum(r['violations'] > 0 for r in rep['invariants'])} of {len(rep['invariants'])} "
-                 f"violated -> {'PASS' if rep['passed'] else 'FAIL'}")
+    n_bad = sum(r["violations"] > 0 for r in rep["invariants"])
+    verdict = "PASS" if rep["passed"] else "FAIL"
+    lines.append(f"invariants: {n_bad} of {len(rep['invariants'])} violated -> {verdict}")
     return "\n".join(lines)

@@ -81,8 +81,11 @@ def sweep_recipes(levels: int) -> dict[str, dict[str, Any]]:
     """{group: {"levels" (L,) normalized, "raw" (L, 14)}} from the median recipe."""
     base = centre_raw()
     u = np.linspace(-1.0, 1.0, levels)
-    return {g: {"levels": u, "raw": round_int_controls(np.stack([set_axis(base, names, float(v)) for v in u]))}
-            for g, names in SWEEP_GROUPS.items()}
+    out = {}
+    for g, names in SWEEP_GROUPS.items():
+        raw = np.stack([set_axis(base, names, float(v)) for v in u])  # (L, 14)
+        out[g] = {"levels": u, "raw": round_int_controls(raw)}
+    return out
 
 
 def box_corners(n: int, seed: int) -> np.ndarray:
@@ -130,7 +133,8 @@ def run_physics(model: Any, truth: SimTruth, x0: np.ndarray, cfg: PhysicsConfig,
     seeds = cfg.seeds
 
     def records(raws: np.ndarray) -> list[dict[str, Any]]:
-        return [compare_case(truth, raws[i], traj, seeds) for i, traj in predict(model, x0, raws, T, cfg.batch_size)]
+        return [compare_case(truth, raws[i], traj, seeds)
+                for i, traj in predict(model, x0, raws, T, cfg.batch_size)]
 
     sweeps = {}
     for group, rec in sweep_recipes(cfg.levels).items():
@@ -168,9 +172,12 @@ def summarize(sweeps: dict[str, Any], held: list[dict[str, Any]]) -> dict[str, A
         out["heldout_floor_mean"] = float(np.mean([c["floor"] for c in held]))
         out["heldout_rmse_over_floor_median"] = float(np.median([c["avg_rmse"] / max(c["floor"], 1e-12)
                                                                  for c in held]))
-        out["heldout_mae_nm"] = {m: float(np.mean([abs(c["error"][m]) for c in held])) for m in SWEEP_METRICS}
-        out["heldout_bias_nm"] = {m: float(np.mean([c["error"][m] for c in held])) for m in SWEEP_METRICS}
-        out["heldout_seed_diff_nm"] = {m: float(np.mean([c["seed_diff"][m] for c in held])) for m in SWEEP_METRICS}
+        def mean(f: Any) -> dict[str, float]:
+            return {m: float(np.mean([f(c, m) for c in held])) for m in SWEEP_METRICS}
+
+        out["heldout_mae_nm"] = mean(lambda c, m: abs(c["error"][m]))
+        out["heldout_bias_nm"] = mean(lambda c, m: c["error"][m])
+        out["heldout_seed_diff_nm"] = mean(lambda c, m: c["seed_diff"][m])
     out["heldout_worse_than_no_change"] = sum(c["worse_than_no_change"] for c in held)
     sweep_cases = [c for g in sweeps.values() for c in g["cases"]]
     out["sweep_worse_than_no_change"] = sum(c["worse_than_no_change"] for c in sweep_cases)
@@ -185,8 +192,8 @@ def summarize(sweeps: dict[str, Any], held: list[dict[str, Any]]) -> dict[str, A
 
 # --- outputs ---------------------------------------------------------------------------------------
 
-METRIC_LABELS = {"etch_depth": "depth", "top_width": "top w", "bottom_width": "bottom w", "mask_loss": "mask loss",
-          "bowing": "bowing"}
+METRIC_LABELS = {"etch_depth": "depth", "top_width": "top w", "bottom_width": "bottom w",
+                 "mask_loss": "mask loss", "bowing": "bowing"}
 
 
 def format_markdown(rep: dict[str, Any]) -> str:
@@ -195,11 +202,11 @@ def format_markdown(rep: dict[str, Any]) -> str:
     lines = [f"# Physics benchmark ({rep['scene']}, {rep['steps']} transitions, simulator seeds "
              f"{rep['config']['seeds']}, {nl} runs per recipe)", "",
              "## (a) One control group at a time from the median recipe (final state)", "",
-             "Levels are normalized controls (-1 = design minimum, +1 = maximum). Slopes in nm per normalized "
-             "unit; the ratio is surrogate / simulator; 'resolved' = the simulator's slope exceeds its seed "
-             "noise.", "",
-             "| group | metric | levels [1] | simulator [nm] | surrogate [nm] | seed diff [nm] | slope sim [nm/1] "
-             "| slope model [nm/1] | ratio [1] | sign | resolved |",
+             "Levels are normalized controls (-1 = design minimum, +1 = maximum). Slopes in nm per "
+             "normalized unit; the ratio is surrogate / simulator; 'resolved' = the simulator's slope "
+             "exceeds its seed noise.", "",
+             "| group | metric | levels [1] | simulator [nm] | surrogate [nm] | seed diff [nm] "
+             "| slope sim [nm/1] | slope model [nm/1] | ratio [1] | sign | resolved |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def seq(v: list[float]) -> str:
@@ -208,8 +215,9 @@ def format_markdown(rep: dict[str, Any]) -> str:
     for g, s in rep["sweeps"].items():
         for m, v in s["metrics"].items():
             ratio = "n/a" if v["slope_ratio"] is None else f"{v['slope_ratio']:+.2f}"
-            lines.append(f"| {g} | {METRIC_LABELS[m]} | {seq(s['levels'])} | {seq(v['simulator'])} | {seq(v['model'])} | "
-                         f"{seq(v['seed_diff'])} | {v['slope_sim']:+.2f} ± {v['slope_noise']:.2f} | "
+            lines.append(f"| {g} | {METRIC_LABELS[m]} | {seq(s['levels'])} | {seq(v['simulator'])} | "
+                         f"{seq(v['model'])} | {seq(v['seed_diff'])} | "
+                         f"{v['slope_sim']:+.2f} ± {v['slope_noise']:.2f} | "
                          f"{v['slope_model']:+.2f} | {ratio} | {'ok' if v['same_sign'] else 'WRONG'} | "
                          f"{'yes' if v['resolved'] else 'no'} |")
     lines += ["", "## (b) Held-out cases (final state; error = surrogate - mean of the two seeds)", "",
@@ -220,19 +228,22 @@ def format_markdown(rep: dict[str, Any]) -> str:
         flag = " **worse than no change**" if c["worse_than_no_change"] else ""
         lines.append(f"| {c['name']} | {c['avg_rmse']:.4f}{flag} | {c['floor']:.4f} | "
                      f"{c['avg_rmse'] / max(c['floor'], 1e-12):.2f} | {c['no_change']:.4f} | "
-                     + " | ".join(f"{c['error'][m]:+.1f} / {c['seed_diff'][m]:.1f}" for m in SWEEP_METRICS) + " |")
+                     + " | ".join(f"{c['error'][m]:+.1f} / {c['seed_diff'][m]:.1f}" for m in SWEEP_METRICS)
+                     + " |")
     s = rep["summary"]
     lines += ["", "## Summary", ""]
     if s["n_heldout"]:
-        lines.append(f"- held-out Avg RMSE mean {s['heldout_avg_rmse_mean']:.4f} SDF against the seed-to-seed floor "
-                     f"{s['heldout_floor_mean']:.4f} SDF (per-case ratio median {s['heldout_rmse_over_floor_median']:.2f})")
+        lines.append(f"- held-out Avg RMSE mean {s['heldout_avg_rmse_mean']:.4f} SDF against the "
+                     f"seed-to-seed floor {s['heldout_floor_mean']:.4f} SDF (per-case ratio median "
+                     f"{s['heldout_rmse_over_floor_median']:.2f})")
         lines.append("- held-out mean |error| / mean bias / mean seed-to-seed difference [nm]: " + "; ".join(
             f"{METRIC_LABELS[m]} {s['heldout_mae_nm'][m]:.2f} / {s['heldout_bias_nm'][m]:+.2f} / "
             f"{s['heldout_seed_diff_nm'][m]:.2f}" for m in SWEEP_METRICS))
-    lines.append(f"- (c) worse than predicting no change: {s['heldout_worse_than_no_change']} of {s['n_heldout']} "
-                 f"held-out cases, {s['sweep_worse_than_no_change']} of {s['n_sweep_cases']} sweep recipes")
-    lines.append(f"- slopes the simulator resolves: {s['slopes_resolved']}; wrong sign {s['slopes_wrong_sign']}; "
-                 f"within ±25 % {s['slopes_within_25pct']}")
+    lines.append(f"- (c) worse than predicting no change: {s['heldout_worse_than_no_change']} of "
+                 f"{s['n_heldout']} held-out cases, {s['sweep_worse_than_no_change']} of "
+                 f"{s['n_sweep_cases']} sweep recipes")
+    lines.append(f"- slopes the simulator resolves: {s['slopes_resolved']}; wrong sign "
+                 f"{s['slopes_wrong_sign']}; within ±25 % {s['slopes_within_25pct']}")
     return "\n".join(lines) + "\n"
 
 
@@ -246,8 +257,8 @@ def plot_physics(rep: dict[str, Any], path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     groups = list(rep["sweeps"])
-    fig, axes = plt.subplots(len(SWEEP_METRICS), len(groups), figsize=(2.4 * len(groups), 2.0 * len(SWEEP_METRICS)),
-                             squeeze=False, sharex=True)
+    rows, cols = len(SWEEP_METRICS), len(groups)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.4 * cols, 2.0 * rows), squeeze=False, sharex=True)
     for j, g in enumerate(groups):
         s = rep["sweeps"][g]
         x = np.array(s["levels"])
@@ -294,7 +305,7 @@ def heldout_from_data(path: str | Path, manifest: dict | None, split: str, limit
     from nemsim.data.hdf5 import open_trajectories
 
     with open_trajectories(path) as tf:
-        ids = [int(c) for c in (manifest or {}).get(split, tf.case_ids)] if manifest else [int(c) for c in tf.case_ids]
+        ids = [int(c) for c in (manifest[split] if manifest else tf.case_ids)]
         if not ids:
             raise ValueError(f"split {split!r} of {path} is empty")
         raw = np.stack([tf.controls_raw[tf.row_of(c)] for c in ids])

@@ -220,7 +220,7 @@ def _run_chunk(
             "depth_final_nm": _num(depth[-1, i]),
             "depth_decreases": int(np.sum(d[np.isfinite(d)] > cfg.depth_tol_nm)),
             "depth_max_drop_nm": _num(np.nanmax(d)) if np.isfinite(d).any() else None,
-            "mask_loss_min_nm": _num(np.nanmin(mask_loss[:, i])) if np.isfinite(mask_loss[:, i]).any() else None,
+            "mask_loss_min_nm": _num(np.nanmin(ml)) if np.isfinite(ml := mask_loss[:, i]).any() else None,
             "norm_ratio": _num(norms[-1, i] / norms[0, i]),
             "max_step_growth": _num(np.nanmax(g)) if np.isfinite(g).any() else None,
             "max_step_change": float(max_change[i]),

@@ -228,7 +228,8 @@ def final_metrics(m: dict[str, np.ndarray]) -> dict[str, float]:
     return {k: float(v[-1]) for k, v in m.items()}
 
 
-def compare_case(truth: SimTruth, raw: np.ndarray, pred: np.ndarray, seeds: tuple[int, int]) -> dict[str, Any]:
+def compare_case(truth: SimTruth, raw: np.ndarray, pred: np.ndarray, seeds: tuple[int, int]
+                 ) -> dict[str, Any]:
     """Surrogate trajectory ``pred`` against the simulator's two seeds of ``raw``.
 
     Returns (JSON-ready): ``avg_rmse`` (model vs each seed, mean; normalized SDF units), ``floor`` (seed vs
@@ -250,7 +251,7 @@ def compare_case(truth: SimTruth, raw: np.ndarray, pred: np.ndarray, seeds: tupl
         "avg_rmse": model_rmse,
         "floor": avg_rmse(a, b),
         "no_change": no_change,
-        "worse_than_no_change": bool(model_rmse > no_change * (1.0 + 1e-9)),  # a tie within rounding is not worse
+        "worse_than_no_change": bool(model_rmse > no_change * (1.0 + 1e-9)),  # a rounding tie is not worse
         "model": fm,
         "sim_a": fa,
         "sim_b": fb,

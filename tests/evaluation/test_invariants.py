@@ -130,7 +130,8 @@ def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stu
                                         rules=compile_rules(load_rules()))
 
     args = ["stress", "--checkpoint", "stub.pt", "--steps", "6", "--max-corners", "2", "--noise-cases", "0",
-            "--sim-steps", str(STEPS), "--pair-bases", "0", "--no-progress", "--cache-dir", str(tmp_path / "c")]
+            "--sim-steps", str(STEPS), "--pair-bases", "0", "--no-progress",
+            "--cache-dir", str(tmp_path / "c")]
     import nemsim.training.checkpoint as ck
 
     monkeypatch.setattr(ck, "load_checkpoint", fake_loader(stubs.Plausible()))

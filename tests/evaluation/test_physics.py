@@ -112,6 +112,7 @@ def test_cli_bench_physics(tiny_checkpoint, tmp_path, capsys):
     assert "planned: " in text and "simulator runs" in text
     rep = json.loads((out / "physics.json").read_text())
     assert set(rep["sweeps"]) == set(SWEEP_GROUPS) and len(rep["heldout"]) == 1
-    assert (out / "physics.png").stat().st_size > 1000 and (out / "physics.md").read_text().startswith("# Physics")
+    assert (out / "physics.png").stat().st_size > 1000
+    assert (out / "physics.md").read_text().startswith("# Physics")
     assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--levels", "2"]) == 2
     assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--sim-steps", "1000"]) == 2
