@@ -986,6 +986,7 @@ def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
     with _sim_truth(args, loaded) as truth:
         _print_plan(truth, ex.planned_runs(cfg))
         rep = ex.run_extrapolation(loaded.model, truth, initial_state(loaded.scene), cfg)
+        rep["simulator_cost"] = _sim_cost(truth)
     rep["checkpoint"] = str(args.checkpoint)
     paths = ex.write_outputs(rep, args.out)
     print(ex.format_markdown(rep))  # noqa: T201
@@ -1038,6 +1039,7 @@ def _cmd_bench_physics(args: argparse.Namespace) -> int:
         held_raw = heldout[1] if heldout else physics.heldout_recipes(cfg)[1]
         _print_plan(truth, physics.planned_runs(cfg, held_raw))
         rep = physics.run_physics(loaded.model, truth, initial_state(loaded.scene), cfg, heldout)
+        rep["simulator_cost"] = _sim_cost(truth)
     rep["checkpoint"] = str(args.checkpoint)
     paths = physics.write_outputs(rep, args.out)
     print(physics.format_markdown(rep))  # noqa: T201
@@ -1084,6 +1086,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
             _print_plan(truth, planned_runs(inv_cfg, noise))
             inv = run_invariants(loaded.model, truth, x0, inv_cfg, long_steps=cfg.steps,
                                  stress_cases=report["cases"], abs_bound=cfg.abs_bound, noise=noise)
+            inv["simulator_cost"] = _sim_cost(truth)
         print(format_invariants(inv))  # noqa: T201
         report["invariants"] = inv
         passed = passed and inv["passed"]
@@ -1141,10 +1144,23 @@ def _sim_truth(args: argparse.Namespace, loaded):
         raise UserError(str(exc)) from None
 
 
+def _sim_cost(truth) -> dict:
+    """What the simulator runs of a command cost (printed and stored in its report)."""
+    cost = {"runs": truth.n_simulated, "wall_s": round(truth.sim_wall_s, 1), "workers": truth.workers,
+            "steps": truth.steps}
+    per = truth.sim_wall_s / max(truth.n_simulated, 1) * truth.workers
+    print(f"simulator: {cost['runs']} runs in {cost['wall_s']:.1f} s wall ({per:.2f} s per run per "  # noqa: T201
+          f"worker)", flush=True)
+    return cost
+
+
 def _print_plan(truth, runs) -> None:
-    n = len(truth.missing(runs))
-    print(f"planned: {n} simulator runs of {truth.steps} transitions on {truth.scene.name} "  # noqa: T201
-          f"({len(runs) - n} reused), {truth.workers} worker(s)", flush=True)
+    from nemsim.evaluation.truth import particle_work
+
+    todo = truth.missing(runs)
+    print(f"planned: {len(todo)} simulator runs of {truth.steps} transitions on {truth.scene.name} "  # noqa: T201
+          f"({len(runs) - len(todo)} shared or cached), {truth.workers} worker(s); particle work = "
+          f"{particle_work(todo):.0f} design-centre runs", flush=True)
 
 
 def _cmd_bench_rollout(args: argparse.Namespace) -> int:

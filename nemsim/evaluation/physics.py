@@ -172,6 +172,7 @@ def summarize(sweeps: dict[str, Any], held: list[dict[str, Any]]) -> dict[str, A
         out["heldout_floor_mean"] = float(np.mean([c["floor"] for c in held]))
         out["heldout_rmse_over_floor_median"] = float(np.median([c["avg_rmse"] / max(c["floor"], 1e-12)
                                                                  for c in held]))
+
         def mean(f: Any) -> dict[str, float]:
             return {m: float(np.mean([f(c, m) for c in held])) for m in SWEEP_METRICS}
 

@@ -116,3 +116,35 @@ def test_cli_bench_physics(tiny_checkpoint, tmp_path, capsys):
     assert (out / "physics.md").read_text().startswith("# Physics")
     assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--levels", "2"]) == 2
     assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--sim-steps", "1000"]) == 2
+
+
+def test_sim_truth_cache(tiny_scene, tmp_path):
+    """Runs are cached by (controls, seed) on disk: duplicates simulate once, a rerun reuses the directory."""
+    from nemsim.rules import compile_rules, load_rules
+
+    rules = compile_rules(load_rules())
+    raws = sweep_recipes(3)["flux_cl_plus"]["raw"][1:]  # (2, 14)
+    runs = [(raws[0], 1), (raws[1], 1), (raws[0], 1)]  # one duplicate
+    with SimTruth(tiny_scene, rules, steps=2, cache_dir=tmp_path) as truth:
+        assert len(truth.missing(runs)) == 2
+        assert truth.ensure(runs) == 2 and truth.ensure(runs) == 0 and truth.n_simulated == 2
+        first = truth.states(*runs[0])
+        assert first.shape == (3, *tiny_scene.state_shape)
+        assert not np.array_equal(first, truth.states(raws[0], 2))  # another seed, another run
+    with SimTruth(tiny_scene, rules, steps=2, cache_dir=tmp_path) as again:
+        assert again.missing(runs) == [] and np.array_equal(again.states(*runs[0]), first)
+    with pytest.raises(ValueError, match="steps"):
+        SimTruth(tiny_scene, rules, steps=tiny_scene.n_transitions + 1)
+
+
+@pytest.mark.slow  # ~30 s: two spawned workers import torch and numba
+def test_sim_truth_workers_match_serial(tiny_scene, tmp_path):
+    from nemsim.rules import compile_rules, load_rules
+
+    rules = compile_rules(load_rules())
+    runs = [(r, 1) for r in sweep_recipes(3)["flux_cl_plus"]["raw"][1:]]
+    with SimTruth(tiny_scene, rules, steps=2) as serial, SimTruth(tiny_scene, rules, steps=2, workers=2) as pool:
+        serial.ensure(runs)
+        pool.ensure(runs)
+        for raw, seed in runs:
+            assert np.array_equal(pool.states(raw, seed), serial.states(raw, seed))
