@@ -25,7 +25,6 @@ against the distance (points beyond ``PLOT_CLIP`` drawn at it).
 from __future__ import annotations
 
 import json
-import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -46,8 +45,6 @@ from nemsim.controls import (
 from nemsim.evaluation.invariants import ION_FLUXES, centre_raw
 from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS, box_corners, round_int_controls
 from nemsim.evaluation.truth import SimTruth, compare_case, predict
-
-log = logging.getLogger(__name__)
 
 ANGLES = tuple(s.name for s in CONTROL_SPECS if s.name.startswith("angle_"))
 ION_ANGLES = ("angle_cl_plus", "angle_cl2_plus", "angle_ar_plus")

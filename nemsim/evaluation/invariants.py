@@ -36,7 +36,6 @@ simulator's depth on every simulation of the suite, at least ``depth_decrease_fl
 from __future__ import annotations
 
 import json
-import logging
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -47,8 +46,6 @@ import numpy as np
 from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, N_CONTROLS, from_normalized, from_unit, lhs_unit
 from nemsim.evaluation.truth import SimTruth, predict, step_rmse
 from nemsim.geometry.profile import profile_metrics_batch
-
-log = logging.getLogger(__name__)
 
 ION_FLUXES = ("flux_ar_plus", "flux_cl_plus", "flux_cl2_plus")
 ION_ENERGIES = ("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus")

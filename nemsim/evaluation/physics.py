@@ -27,18 +27,15 @@ the mean of the two (so the floor and the model error are on the same footing).
 
 from __future__ import annotations
 
-import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from nemsim.controls import HIGH, INT_INDICES, LOW, N_CONTROLS, from_normalized, from_unit, lhs_unit
+from nemsim.controls import HIGH, INT_INDICES, LOW, N_CONTROLS, from_unit, lhs_unit
 from nemsim.evaluation.invariants import ION_ENERGIES, centre_raw, set_axis
 from nemsim.evaluation.truth import SimTruth, compare_case, predict
-
-log = logging.getLogger(__name__)
 
 SWEEP_GROUPS: dict[str, tuple[str, ...]] = {
     "flux_cl_plus": ("flux_cl_plus",),

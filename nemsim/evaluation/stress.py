@@ -20,7 +20,12 @@ Per case the suite reports (streamed per step, the trajectory is never held in m
     ``depth_tol_nm``; ``depth_max_drop_nm``; ``depth_final_nm`` (etching only removes Si, so the depth
     should never decrease);
   * ``norm_ratio`` = ‖x_T‖ / ‖x_0‖ and ``max_step_growth`` = max_t ‖x_{t+1}‖ / ‖x_t‖ (Frobenius norms);
-  * ``max_step_change`` = max_t max |x_{t+1} - x_t| (the largest single-step increment).
+  * ``max_step_change`` = max_t max |x_{t+1} - x_t| (the largest single-step increment);
+  * ``mask_loss_min_nm``: the smallest mask loss over the rollout (nm; negative = the mask grew).
+
+Physical invariants judged against the simulator (zero flux, ions off, depth monotone in time, flux and
+energy, mask loss >= -tol, response) are ``nemsim.evaluation.invariants``; ``nemsim stress`` runs them after
+these cases and judges these cases' depth drops and mask losses with the simulator's tolerances.
 
 Choices the issue leaves open: the sub-box corners use the ion-energy means only (the three energy spreads
 stay at their centre: 2^10 corners would not run on a CPU and the spreads have the narrowest ranges);
@@ -37,10 +42,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from nemsim.controls import CONTROL_INDEX, CONTROL_SPECS, N_CONTROLS
 from nemsim.evaluation.rollout import rollout
+from nemsim.evaluation.truth import model_device
 from nemsim.geometry.profile import profile_metrics_batch
 
 log = logging.getLogger(__name__)
@@ -133,12 +138,12 @@ def _depth_mask(x: torch.Tensor, scene: Any) -> tuple[np.ndarray, np.ndarray]:
 
 @torch.no_grad()
 def run_stress(
-    model: nn.Module, scene: Any, x0: np.ndarray | torch.Tensor, cfg: StressConfig | None = None
+    model: Any, scene: Any, x0: np.ndarray | torch.Tensor, cfg: StressConfig | None = None
 ) -> dict[str, Any]:
     """Run the suite; returns {"config", "scene", "cases": [per-case dict], "summary"} (JSON-ready).
 
     Args:
-        model: one-step model forward(x (B,2,D,H,W), u (B,14)) (NEMSim uses its cached-control fast path).
+        model: anything ``rollout`` accepts (NEMSim uses its cached-control fast path).
         scene: the scene of ``x0`` (etch depth is measured with it).
         x0: (2, D, H, W) initial state (normalized SDF), e.g. ``nemsim.sim.initial_state(scene)``.
         cfg: ``StressConfig``.
@@ -148,8 +153,7 @@ def run_stress(
         raise ValueError(f"steps and batch_size must be >= 1, got {cfg.steps} and {cfg.batch_size}")
     rng = np.random.default_rng(cfg.seed)
     cases = stress_cases(cfg, rng)
-    p = next(model.parameters(), None)
-    device = p.device if p is not None else torch.device("cpu")
+    device = model_device(model)
     base = torch.as_tensor(np.asarray(x0), dtype=torch.float32, device=device)  # (2, D, H, W)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     results: list[dict[str, Any]] = []
@@ -168,7 +172,7 @@ def run_stress(
 
 
 def _run_chunk(
-    model: nn.Module, scene: Any, base: torch.Tensor, chunk: list[StressCase], cfg: StressConfig,
+    model: Any, scene: Any, base: torch.Tensor, chunk: list[StressCase], cfg: StressConfig,
     gen: torch.Generator,
 ) -> list[dict[str, Any]]:
     B = len(chunk)

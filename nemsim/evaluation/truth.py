@@ -19,7 +19,6 @@ Choices:
 from __future__ import annotations
 
 import hashlib
-import logging
 import os
 import tempfile
 import time
@@ -31,13 +30,10 @@ import numpy as np
 import torch
 
 from nemsim.controls import to_normalized
-from nemsim.geometry.profile import METRIC_NAMES, profile_metrics_batch
+from nemsim.geometry.profile import profile_metrics_batch
 from nemsim.scenes import Scene
 
-log = logging.getLogger(__name__)
-
 Run = tuple[np.ndarray, int]  # (raw controls (14,), seed)
-METRIC_UNITS = {name: "nm" for name in METRIC_NAMES}
 
 
 def _simulate(scene: Scene, rules: Any, config: Any, raw: np.ndarray, seed: int, steps: int) -> np.ndarray:

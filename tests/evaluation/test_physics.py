@@ -18,7 +18,6 @@ from nemsim.evaluation.physics import (
     planned_runs,
     run_physics,
     sweep_recipes,
-    write_outputs,
 )
 from nemsim.evaluation.truth import SimTruth, compare_case
 
