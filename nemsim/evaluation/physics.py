@@ -10,8 +10,9 @@ what a process engineer reads, the profile metrics of ``nemsim.geometry.profile`
       Per group and metric (final depth, top and bottom width, mask loss, bowing at the last compared
       step): the simulator's mean of the two seeds and the surrogate at each level, the least-squares
       slopes against the normalized level (nm per unit; a flux's unit is half its log10 range), the slope
-      ratio surrogate / simulator with its sign, and the simulator's slope noise (half the difference of the
-      slopes of the two seeds): a ratio is meaningful only where the simulator's slope exceeds it.
+      ratio surrogate / simulator with its sign, and the standard error of the simulator's slope (half the
+      difference of the two seeds' slopes): a slope is "resolved", and its ratio and sign meaningful,
+      where it exceeds twice that error.
   (b) **Held-out cases**: ``heldout`` Latin-hypercube points of the design box drawn with a seed other than
       the training design's (42), plus ``corners`` corners of the 14-control box (all-min and all-max
       first, then random sign patterns), each simulated with two seeds; or, with a data file and split,
@@ -47,6 +48,7 @@ SWEEP_GROUPS: dict[str, tuple[str, ...]] = {
     "neutral_angle": ("angle_cl",),
 }
 SWEEP_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss", "bowing")
+RESOLVED_SE = 2.0  # a simulator slope counts as resolved beyond this many standard errors
 HELDOUT_DESIGN_SEED = 2026  # Latin-hypercube seed of the fresh held-out controls (training design: 42)
 
 
@@ -150,7 +152,7 @@ def run_physics(model: Any, truth: SimTruth, x0: np.ndarray, cfg: PhysicsConfig,
                 "slope_sim": s_sim, "slope_model": s_mod, "slope_noise": noise,
                 "slope_ratio": s_mod / s_sim if s_sim != 0 else None,
                 "same_sign": bool(np.sign(s_mod) == np.sign(s_sim)),
-                "resolved": bool(abs(s_sim) > noise),
+                "resolved": bool(abs(s_sim) > RESOLVED_SE * noise),
             }
         sweeps[group] = {"controls": list(SWEEP_GROUPS[group]), "levels": x.tolist(),
                          "raw": rec["raw"].tolist(), "metrics": metrics, "cases": cases}
@@ -201,8 +203,9 @@ def format_markdown(rep: dict[str, Any]) -> str:
              f"{rep['config']['seeds']}, {nl} runs per recipe)", "",
              "## (a) One control group at a time from the median recipe (final state)", "",
              "Levels are normalized controls (-1 = design minimum, +1 = maximum). Slopes in nm per "
-             "normalized unit; the ratio is surrogate / simulator; 'resolved' = the simulator's slope "
-             "exceeds its seed noise.", "",
+             f"normalized unit ± the standard error of the simulator's (half the difference of its two "
+             f"seeds' slopes); the ratio is surrogate / simulator; 'resolved' = |slope sim| > "
+             f"{RESOLVED_SE:g} standard errors.", "",
              "| group | metric | levels [1] | simulator [nm] | surrogate [nm] | seed diff [nm] "
              "| slope sim [nm/1] | slope model [nm/1] | ratio [1] | sign | resolved |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
