@@ -3,7 +3,8 @@
 ``nemsim stress`` (physical invariants), ``nemsim bench extrapolation`` and ``nemsim bench physics`` judge
 a surrogate against the Monte Carlo simulator on the same controls. Simulations dominate their cost, so
 every run goes through one :class:`SimTruth` per command: a run is keyed by (raw controls, seed, number
-of transitions), simulated once, and shared by every check that asks for it.
+of transitions; scene, rules and simulator configuration), simulated once, and shared by every check
+that asks for it.
 
 Choices:
   * Seeds: run (controls, seed) uses ``np.random.default_rng(seed)``; the two seeds of a seed pair (default
@@ -19,6 +20,7 @@ Choices:
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import tempfile
 import time
@@ -74,13 +76,16 @@ class SimTruth:
         self.dir = Path(cache_dir if cache_dir is not None else self._tmp.name)
         self.dir.mkdir(parents=True, exist_ok=True)
         self._metrics: dict[str, dict[str, np.ndarray]] = {}
+        # what else decides a trajectory: a cache directory shared between configurations stays correct
+        ident = json.dumps(self.config.to_meta(scene), sort_keys=True, default=str)
+        self._ident = f"|{self.steps}|{scene.to_json()}|{getattr(rules, 'sha256', '')}|{ident}"
         self.n_simulated = 0  # runs simulated by this object (cache hits excluded)
         self.sim_wall_s = 0.0
 
     # --- keys and storage ------------------------------------------------------------------------
     def key(self, raw: np.ndarray, seed: int) -> str:
         raw = np.ascontiguousarray(np.asarray(raw, dtype=np.float64).reshape(14))
-        h = hashlib.sha1(raw.tobytes() + f"|{int(seed)}|{self.steps}|{self.scene.name}".encode())
+        h = hashlib.sha1(raw.tobytes() + f"|{int(seed)}{self._ident}".encode())
         return h.hexdigest()[:20]
 
     def _path(self, key: str) -> Path:

@@ -132,6 +132,10 @@ def test_sim_truth_cache(tiny_scene, tmp_path):
         assert not np.array_equal(first, truth.states(raws[0], 2))  # another seed, another run
     with SimTruth(tiny_scene, rules, steps=2, cache_dir=tmp_path) as again:
         assert again.missing(runs) == [] and np.array_equal(again.states(*runs[0]), first)
+    from nemsim.sim import SimConfig
+
+    with SimTruth(tiny_scene, rules, SimConfig(flux_scale=0.3), steps=2, cache_dir=tmp_path) as other:
+        assert len(other.missing(runs)) == 2  # another simulator configuration: nothing is reused
     with pytest.raises(ValueError, match="steps"):
         SimTruth(tiny_scene, rules, steps=tiny_scene.n_transitions + 1)
 
