@@ -1062,7 +1062,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     cfg = StressConfig(steps=args.steps, max_corners=args.max_corners, noise_cases=args.noise_cases,
                        batch_size=args.batch_size, seed=args.seed, abs_bound=args.abs_bound)
     x0 = initial_state(loaded.scene)
-    report = run_stress(loaded.model, loaded.scene, x0, cfg)
+    report = run_stress(loaded.model, loaded.scene, x0, cfg, progress=not args.no_progress)
     report["checkpoint"] = str(args.checkpoint)
     print(format_table(report))  # noqa: T201
     passed = report["summary"]["passed"]

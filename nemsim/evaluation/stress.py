@@ -138,7 +138,8 @@ def _depth_mask(x: torch.Tensor, scene: Any) -> tuple[np.ndarray, np.ndarray]:
 
 @torch.no_grad()
 def run_stress(
-    model: Any, scene: Any, x0: np.ndarray | torch.Tensor, cfg: StressConfig | None = None
+    model: Any, scene: Any, x0: np.ndarray | torch.Tensor, cfg: StressConfig | None = None, *,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Run the suite; returns {"config", "scene", "cases": [per-case dict], "summary"} (JSON-ready).
 
@@ -146,7 +147,7 @@ def run_stress(
         model: anything ``rollout`` accepts (NEMSim uses its cached-control fast path).
         scene: the scene of ``x0`` (etch depth is measured with it).
         x0: (2, D, H, W) initial state (normalized SDF), e.g. ``nemsim.sim.initial_state(scene)``.
-        cfg: ``StressConfig``.
+        cfg: ``StressConfig``. progress: a tqdm bar (stderr) over the cases.
     """
     cfg = cfg or StressConfig()
     if cfg.steps < 1 or cfg.batch_size < 1:
@@ -157,11 +158,21 @@ def run_stress(
     base = torch.as_tensor(np.asarray(x0), dtype=torch.float32, device=device)  # (2, D, H, W)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     results: list[dict[str, Any]] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(cases), unit="case", desc=f"stress rollouts ({scene.name})", dynamic_ncols=True)
     with torch.inference_mode():
         for start in range(0, len(cases), cfg.batch_size):
             chunk = cases[start : start + cfg.batch_size]
             results.extend(_run_chunk(model, scene, base, chunk, cfg, gen))
-            log.info("stress: %d/%d cases done", len(results), len(cases))
+            if bar is not None:
+                bar.update(len(chunk))
+            else:
+                log.info("stress: %d/%d cases done", len(results), len(cases))
+    if bar is not None:
+        bar.close()
     return {
         "config": asdict(cfg),
         "scene": scene.name,
