@@ -151,3 +151,35 @@ def test_sim_truth_workers_match_serial(tiny_scene, tmp_path):
         pool.ensure(runs)
         for raw, seed in runs:
             assert np.array_equal(pool.states(raw, seed), serial.states(raw, seed))
+
+
+def test_cli_bench_physics_heldout_from_a_data_file(tiny_checkpoint, tiny_scene, tmp_path):
+    """--data/--splits: the split's controls become the held-out cases (re-simulated with two seeds)."""
+    from nemsim.cli import main
+    from nemsim.controls import lhs_design
+    from nemsim.data.hdf5 import TrajectoryWriter
+    from nemsim.rules import compile_rules, load_rules
+    from nemsim.sim import SimConfig, initial_state
+    from nemsim.sim.generate import generator_meta
+
+    data = tmp_path / "tiny.h5"
+    design = lhs_design()[:3]
+    # only the controls matter (the benchmark re-simulates them): every case holds x_0 for every step
+    still = np.repeat(initial_state(tiny_scene)[None], tiny_scene.n_states, axis=0)
+    with TrajectoryWriter(data, scene=tiny_scene, case_ids=[0, 1, 2], controls_raw=design,
+                          generator=generator_meta(tiny_scene, SimConfig(), 0),
+                          rules_sha256=compile_rules(load_rules()).sha256) as writer:
+        for row in range(3):
+            writer.write(row, still, seed=row)
+    splits = tmp_path / "splits"
+    splits.mkdir()
+    (splits / "control-id.json").write_text(json.dumps(
+        {"setting": "control-id", "train": [0], "val": [], "test": [2, 1], "unused": [], "visible_transitions": 100}))
+    out = tmp_path / "phys"
+    rc = main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--data", str(data), "--splits",
+               str(splits), "--sim-steps", "1", "--no-progress", "--out", str(out)])
+    assert rc == 0
+    rep = json.loads((out / "physics.json").read_text())
+    assert [c["name"] for c in rep["heldout"]] == ["case-2", "case-1"]
+    np.testing.assert_allclose([c["controls"] for c in rep["heldout"]], design[[2, 1]])
+    assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--data", str(tmp_path / "no.h5")]) == 2
