@@ -958,8 +958,13 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
             "controls: the design-range centre, the corners of the flux/ion-energy sub-box, extreme "
             "angle exponents, and noisy states and controls. Per case report whether values stay finite and "
             "within --abs-bound (the pass criterion), etch-depth decreases and the growth of the state "
-            "norm; print the table. Exit code 0 if every case is finite and bounded, 1 otherwise. Writes nothing unless --json is given. "
-            "Example: nemsim stress --checkpoint runs/nemsim/best.pt --max-corners 16"
+            "norm; print the table. Then check physical invariants against the Monte Carlo simulator, each "
+            "with a tolerance from the simulator's seed-to-seed noise: zero flux leaves the state unchanged, "
+            "ions off matches the simulator's neutral-only run, depth never decreases, mask loss >= -tol, "
+            "depth non-decreasing in each ion flux and in ion energy, and responding where the simulator "
+            "responds. Exit code 0 if every case is finite and bounded and no invariant is violated, 1 "
+            "otherwise. Writes nothing unless --json / --noise-out is given. "
+            "Example: nemsim stress --checkpoint runs/nemsim/best.pt --max-corners 16 --workers 2"
         ),
     )
     p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
@@ -973,6 +978,20 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--abs-bound", type=float, default=1.5,
                    help="|value| above this, in normalized SDF units (data lie in [-1, 1]), is a blow-up "
                    "(default 1.5)")
+    p.add_argument("--no-invariants", action="store_true",
+                   help="only the finite/bounded stability cases (no simulator runs)")
+    _add_truth_options(p)
+    p.add_argument("--pair-bases", type=int, default=2,
+                   help="Latin-hypercube base recipes of the monotonicity grid beside the design centre "
+                   "(default 2)")
+    p.add_argument("--levels", type=int, default=3,
+                   help="levels of each monotone axis from design min to max (default 3)")
+    p.add_argument("--tol-factor", type=float, default=1.0,
+                   help="multiply every seed-to-seed tolerance by this (default 1)")
+    p.add_argument("--noise", default=None, metavar="FILE.json",
+                   help="read the tolerances from this noise file instead of simulating the seed pairs")
+    p.add_argument("--noise-out", default=None, metavar="FILE.json",
+                   help="write the measured tolerances to this noise file (for --noise)")
     p.add_argument("--json", dest="json_out", default=None, help="write the full report to this JSON file")
     p.set_defaults(handler=_cmd_stress)
     p = _bench_subparsers(sub).add_parser(
@@ -1000,6 +1019,149 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=_cmd_bench_rollout)
 
 
+def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
+    bench_sub = _bench_subparsers(sub)
+    p = bench_sub.add_parser(
+        "physics",
+        help="surrogate vs simulator: one-at-a-time sweeps, held-out profile errors, no-change baseline",
+        description=(
+            "Judge a checkpoint against the Monte Carlo simulator (two seeds per recipe): (a) one control "
+            "group at a time from the median recipe (Cl+, Ar+, Cl2+, Cl fluxes; ion energies; ion angular "
+            "exponents; neutral angular exponent) at --levels levels: final depth, top and bottom width, "
+            "mask loss, bowing and the slope ratio surrogate/simulator; (b) held-out cases (fresh "
+            "Latin-hypercube points and box corners, or a data file's split): profile-metric errors beside "
+            "the seed-to-seed differences, Avg RMSE beside the seed-to-seed floor; (c) cases worse than "
+            "predicting no change. Writes physics.md, physics.json and physics.png to --out. "
+            "Example: nemsim bench physics --checkpoint checkpoints/nemsim-small.pt --workers 2"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
+    p.add_argument("--levels", type=int, default=3, help="sweep levels per control group, >= 3 (default 3)")
+    p.add_argument("--heldout", type=int, default=12,
+                   help="fresh Latin-hypercube held-out cases (default 12; ignored with --data)")
+    p.add_argument("--corners", type=int, default=4,
+                   help="corners of the control box among the fresh held-out cases (default 4)")
+    p.add_argument("--data", default=None, metavar="FILE.h5",
+                   help="take the held-out controls from this data file's split instead (re-simulated with "
+                   "two seeds)")
+    p.add_argument("--setting", default="control-id", help="split setting with --data (default control-id)")
+    p.add_argument("--splits", default=None, metavar="DIR", help="split manifests directory with --data")
+    p.add_argument("--split", default="test", help="split with --data (default test)")
+    p.add_argument("--max-cases", type=int, default=None, help="first N cases of the split with --data")
+    _add_truth_options(p)
+    p.add_argument("--out", default="runs/bench/physics", metavar="DIR",
+                   help="output directory (default runs/bench/physics)")
+    p.set_defaults(handler=_cmd_bench_physics)
+
+
+    p = bench_sub.add_parser(
+        "extrapolation",
+        help="surrogate vs simulator outside the training box: errors against the distance from the box",
+        description=(
+            "Simulate (two seeds) and predict recipes outside the training box: each control at 1.5x and 2x "
+            "the box's half-width from its centre on either side (--distances; inadmissible values skipped), "
+            "zero fluxes, isotropic (m = 1) and needle-like ion angles, box corners, beside in-box reference "
+            "points. Reports Avg RMSE against the seed-to-seed floor and profile-metric errors, per case and "
+            "per group with the ratio to the in-box error; writes extrapolation.md, .json and .png (error "
+            "against normalized distance from the box) to --out. "
+            "Example: nemsim bench extrapolation --checkpoint checkpoints/nemsim-small.pt --workers 2"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
+    p.add_argument("--distances", default="1.5,2",
+                   help="normalized |u| of the out-of-box points, comma-separated, each > 1 (default 1.5,2)")
+    p.add_argument("--corners", type=int, default=4, help="corners of the 14-control box (default 4)")
+    p.add_argument("--in-box", type=int, default=6,
+                   help="in-box Latin-hypercube reference points beside the design centre (default 6)")
+    p.add_argument("--needle-m", type=float, default=10_000.0,
+                   help="ion angular exponent of the needle-like recipe (default 10000)")
+    p.add_argument("--isotropic-m", type=float, default=1.0,
+                   help="angular exponent of the isotropic recipe (default 1)")
+    _add_truth_options(p)
+    p.add_argument("--out", default="runs/bench/extrapolation", metavar="DIR",
+                   help="output directory (default runs/bench/extrapolation)")
+    p.set_defaults(handler=_cmd_bench_extrapolation)
+
+
+def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
+    from nemsim.evaluation import extrapolation as ex
+    from nemsim.evaluation.stress import initial_state
+
+    loaded = _load_truth_checkpoint(args.checkpoint)
+    try:
+        distances = tuple(float(v) for v in args.distances.split(",") if v.strip())
+    except ValueError:
+        raise UserError(f"--distances {args.distances!r}: expected numbers > 1, e.g. 1.5,2") from None
+    try:
+        cfg = ex.ExtrapolationConfig(distances=distances, corners=args.corners, in_box=args.in_box,
+                                     isotropic_m=args.isotropic_m, needle_m=args.needle_m,
+                                     seeds=_parse_seeds(args.seeds))
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    with _sim_truth(args, loaded) as truth:
+        _print_plan(truth, ex.planned_runs(cfg))
+        rep = ex.run_extrapolation(loaded.model, truth, initial_state(loaded.scene), cfg)
+        rep["simulator_cost"] = _sim_cost(truth)
+    rep["checkpoint"] = str(args.checkpoint)
+    paths = ex.write_outputs(rep, args.out)
+    print(ex.format_markdown(rep))  # noqa: T201
+    print("wrote " + ", ".join(paths.values()))  # noqa: T201
+    return 0
+
+
+def _load_truth_checkpoint(path: str):
+    from nemsim.training.checkpoint import load_checkpoint
+
+    try:
+        return load_checkpoint(path)
+    except (FileNotFoundError, ValueError) as exc:
+        raise UserError(str(exc)) from exc
+
+
+def _cmd_bench_physics(args: argparse.Namespace) -> int:
+    from nemsim.evaluation import physics
+    from nemsim.evaluation.stress import initial_state
+
+    loaded = _load_truth_checkpoint(args.checkpoint)
+    try:
+        cfg = physics.PhysicsConfig(levels=args.levels, heldout=args.heldout, corners=args.corners,
+                                    seeds=_parse_seeds(args.seeds))
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    heldout = None
+    if args.data:
+        from pathlib import Path
+
+        from nemsim.data.hdf5 import open_trajectories
+        from nemsim.train import TrainInputError, _load_manifest
+
+        if not Path(args.data).is_file():
+            raise UserError(f"{args.data} does not exist")
+        try:
+            with open_trajectories(args.data) as tf:
+                if tf.scene != loaded.scene:
+                    raise UserError(f"{args.data} is on scene {tf.scene.name!r}, the checkpoint on "
+                                    f"{loaded.scene.name!r}")
+                splits = Path(args.splits) if args.splits else None
+                manifest = _load_manifest(Path(args.data), args.setting, splits, tf)
+            names, raw, sim_meta = physics.heldout_from_data(args.data, manifest, args.split, args.max_cases)
+        except (TrainInputError, ValueError, KeyError) as exc:
+            raise UserError(str(exc)) from None
+        heldout = (names, raw)
+        if sim_meta and "sim_config" not in loaded.raw:
+            loaded.raw["sim_config"] = sim_meta  # the data's simulator, for the re-simulation
+    with _sim_truth(args, loaded) as truth:
+        held_raw = heldout[1] if heldout else physics.heldout_recipes(cfg)[1]
+        _print_plan(truth, physics.planned_runs(cfg, held_raw))
+        rep = physics.run_physics(loaded.model, truth, initial_state(loaded.scene), cfg, heldout)
+        rep["simulator_cost"] = _sim_cost(truth)
+    rep["checkpoint"] = str(args.checkpoint)
+    paths = physics.write_outputs(rep, args.out)
+    print(physics.format_markdown(rep))  # noqa: T201
+    print("wrote " + ", ".join(paths.values()))  # noqa: T201
+    return 0
+
+
 def _cmd_stress(args: argparse.Namespace) -> int:
     from nemsim.evaluation.stress import StressConfig, format_table, initial_state, run_stress
     from nemsim.training.checkpoint import load_checkpoint
@@ -1014,12 +1176,106 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         raise UserError(str(exc)) from exc
     cfg = StressConfig(steps=args.steps, max_corners=args.max_corners, noise_cases=args.noise_cases,
                        batch_size=args.batch_size, seed=args.seed, abs_bound=args.abs_bound)
-    report = run_stress(loaded.model, loaded.scene, initial_state(loaded.scene), cfg)
+    x0 = initial_state(loaded.scene)
+    report = run_stress(loaded.model, loaded.scene, x0, cfg, progress=not args.no_progress)
     report["checkpoint"] = str(args.checkpoint)
     print(format_table(report))  # noqa: T201
+    passed = report["summary"]["passed"]
+    if not args.no_invariants:
+        from nemsim.evaluation.invariants import (
+            InvariantConfig,
+            format_invariants,
+            planned_runs,
+            read_noise,
+            run_invariants,
+            write_noise,
+        )
+
+        try:
+            inv_cfg = InvariantConfig(seeds=_parse_seeds(args.seeds), pair_bases=args.pair_bases,
+                                      levels=args.levels, tol_factor=args.tol_factor)
+            noise = read_noise(args.noise, loaded.scene.name) if args.noise else None
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        with _sim_truth(args, loaded) as truth:
+            _print_plan(truth, planned_runs(inv_cfg, noise))
+            inv = run_invariants(loaded.model, truth, x0, inv_cfg, long_steps=cfg.steps,
+                                 stress_cases=report["cases"], abs_bound=cfg.abs_bound, noise=noise)
+            inv["simulator_cost"] = _sim_cost(truth)
+        print(format_invariants(inv))  # noqa: T201
+        report["invariants"] = inv
+        passed = passed and inv["passed"]
+        if args.noise_out:
+            write_noise(args.noise_out, inv["noise"])
+    report["passed"] = passed
     if args.json_out:
         _write_json(args.json_out, report)
-    return 0 if report["summary"]["passed"] else 1
+    return 0 if passed else 1
+
+
+def _add_truth_options(p: argparse.ArgumentParser) -> None:
+    """Flags of the commands that judge a surrogate against simulator runs."""
+    p.add_argument("--sim-steps", type=int, default=None,
+                   help="transitions simulated and compared (default: the scene's horizon, 100)")
+    p.add_argument("--seeds", default="1,2", help="the simulator seed pair, comma-separated (default 1,2)")
+    p.add_argument("--workers", type=int, default=1, help="parallel simulations, one core each (default 1)")
+    p.add_argument("--cache-dir", default=None, metavar="DIR",
+                   help="keep the simulator runs here and reuse them on a rerun (default: a temporary "
+                   "directory)")
+    _add_sim_overrides(p)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _parse_seeds(text: str) -> tuple[int, int]:
+    try:
+        seeds = tuple(int(s) for s in text.split(","))
+    except ValueError:
+        raise UserError(f"--seeds {text!r}: expected two integers, e.g. 1,2") from None
+    if len(seeds) != 2 or seeds[0] == seeds[1]:
+        raise UserError(f"--seeds {text!r}: expected two different integers")
+    return seeds  # type: ignore[return-value]
+
+
+def _sim_truth(args: argparse.Namespace, loaded):
+    """The SimTruth of a checkpoint's scene and rules (the simulator configuration the checkpoint
+    records, else the defaults, with --set overrides)."""
+    from nemsim.evaluation.truth import SimTruth
+    from nemsim.sim import SimConfig
+
+    meta = loaded.raw.get("sim_config")
+    config = SimConfig.from_meta(meta) if isinstance(meta, dict) else None
+    if args.overrides:
+        import dataclasses
+
+        over = _sim_config(args.overrides)  # validates every KEY=VALUE
+        keys = {item.partition("=")[0].strip() for item in args.overrides}
+        config = dataclasses.replace(config or SimConfig(), **{k: getattr(over, k) for k in keys})
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    try:
+        return SimTruth(loaded.scene, loaded.rules, config, steps=args.sim_steps, workers=args.workers,
+                        cache_dir=args.cache_dir, progress=not args.no_progress)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _sim_cost(truth) -> dict:
+    """What the simulator runs of a command cost (printed and stored in its report)."""
+    cost = {"runs": truth.n_simulated, "wall_s": round(truth.sim_wall_s, 1), "workers": truth.workers,
+            "steps": truth.steps}
+    per = truth.sim_wall_s / max(truth.n_simulated, 1) * truth.workers
+    print(f"simulator: {cost['runs']} runs in {cost['wall_s']:.1f} s wall ({per:.2f} s per run per "  # noqa: T201
+          f"worker)", flush=True)
+    return cost
+
+
+def _print_plan(truth, runs) -> None:
+    from nemsim.evaluation.truth import particle_work
+
+    todo = truth.missing(runs)
+    print(f"planned: {len(todo)} simulator runs of {truth.steps} transitions on {truth.scene.name} "  # noqa: T201
+          f"({len(runs) - len(todo)} shared or cached), {truth.workers} worker(s); particle work = "
+          f"{particle_work(todo):.0f} design-centre runs", flush=True)
 
 
 def _cmd_bench_rollout(args: argparse.Namespace) -> int:
@@ -1214,7 +1470,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress,
-                _add_speed_error):
+                _add_truth_benches, _add_speed_error):
         add(sub)
     return parser
 

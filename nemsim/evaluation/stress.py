@@ -20,7 +20,12 @@ Per case the suite reports (streamed per step, the trajectory is never held in m
     ``depth_tol_nm``; ``depth_max_drop_nm``; ``depth_final_nm`` (etching only removes Si, so the depth
     should never decrease);
   * ``norm_ratio`` = ‖x_T‖ / ‖x_0‖ and ``max_step_growth`` = max_t ‖x_{t+1}‖ / ‖x_t‖ (Frobenius norms);
-  * ``max_step_change`` = max_t max |x_{t+1} - x_t| (the largest single-step increment).
+  * ``max_step_change`` = max_t max |x_{t+1} - x_t| (the largest single-step increment);
+  * ``mask_loss_min_nm``: the smallest mask loss over the rollout (nm; negative = the mask grew).
+
+Physical invariants judged against the simulator (zero flux, ions off, depth monotone in time, flux and
+energy, mask loss >= -tol, response) are ``nemsim.evaluation.invariants``; ``nemsim stress`` runs them after
+these cases and judges these cases' depth drops and mask losses with the simulator's tolerances.
 
 Choices the issue leaves open: the sub-box corners use the ion-energy means only (the three energy spreads
 stay at their centre: 2^10 corners would not run on a CPU and the spreads have the narrowest ranges);
@@ -37,10 +42,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from nemsim.controls import CONTROL_INDEX, CONTROL_SPECS, N_CONTROLS
 from nemsim.evaluation.rollout import rollout
+from nemsim.evaluation.truth import model_device
 from nemsim.geometry.profile import profile_metrics_batch
 
 log = logging.getLogger(__name__)
@@ -123,41 +128,51 @@ def _max_abs_finite(x: torch.Tensor) -> torch.Tensor:
     return torch.where(torch.isfinite(a), a, torch.zeros_like(a)).amax(dim=1)
 
 
-def _depths(x: torch.Tensor, scene: Any) -> np.ndarray:
-    """Etch depth (B,) in nm of states (B, 2, D, H, W); NaN where the state is not finite."""
+def _depth_mask(x: torch.Tensor, scene: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Etch depth and mask loss (B,), (B,) in nm of states (B, 2, D, H, W); NaN where not finite."""
     arr = x.detach().float().cpu().numpy()
     ok = np.isfinite(arr).reshape(arr.shape[0], -1).all(axis=1)
-    depth = profile_metrics_batch(np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=-1.0), scene)["etch_depth"]
-    return np.where(ok, depth, np.nan)
+    m = profile_metrics_batch(np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=-1.0), scene)
+    return np.where(ok, m["etch_depth"], np.nan), np.where(ok, m["mask_loss"], np.nan)
 
 
 @torch.no_grad()
 def run_stress(
-    model: nn.Module, scene: Any, x0: np.ndarray | torch.Tensor, cfg: StressConfig | None = None
+    model: Any, scene: Any, x0: np.ndarray | torch.Tensor, cfg: StressConfig | None = None, *,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Run the suite; returns {"config", "scene", "cases": [per-case dict], "summary"} (JSON-ready).
 
     Args:
-        model: one-step model forward(x (B,2,D,H,W), u (B,14)) (NEMSim uses its cached-control fast path).
+        model: anything ``rollout`` accepts (NEMSim uses its cached-control fast path).
         scene: the scene of ``x0`` (etch depth is measured with it).
         x0: (2, D, H, W) initial state (normalized SDF), e.g. ``nemsim.sim.initial_state(scene)``.
-        cfg: ``StressConfig``.
+        cfg: ``StressConfig``. progress: a tqdm bar (stderr) over the cases.
     """
     cfg = cfg or StressConfig()
     if cfg.steps < 1 or cfg.batch_size < 1:
         raise ValueError(f"steps and batch_size must be >= 1, got {cfg.steps} and {cfg.batch_size}")
     rng = np.random.default_rng(cfg.seed)
     cases = stress_cases(cfg, rng)
-    p = next(model.parameters(), None)
-    device = p.device if p is not None else torch.device("cpu")
+    device = model_device(model)
     base = torch.as_tensor(np.asarray(x0), dtype=torch.float32, device=device)  # (2, D, H, W)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     results: list[dict[str, Any]] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(cases), unit="case", desc=f"stress rollouts ({scene.name})", dynamic_ncols=True)
     with torch.inference_mode():
         for start in range(0, len(cases), cfg.batch_size):
             chunk = cases[start : start + cfg.batch_size]
             results.extend(_run_chunk(model, scene, base, chunk, cfg, gen))
-            log.info("stress: %d/%d cases done", len(results), len(cases))
+            if bar is not None:
+                bar.update(len(chunk))
+            else:
+                log.info("stress: %d/%d cases done", len(results), len(cases))
+    if bar is not None:
+        bar.close()
     return {
         "config": asdict(cfg),
         "scene": scene.name,
@@ -168,7 +183,7 @@ def run_stress(
 
 
 def _run_chunk(
-    model: nn.Module, scene: Any, base: torch.Tensor, chunk: list[StressCase], cfg: StressConfig,
+    model: Any, scene: Any, base: torch.Tensor, chunk: list[StressCase], cfg: StressConfig,
     gen: torch.Generator,
 ) -> list[dict[str, Any]]:
     B = len(chunk)
@@ -181,12 +196,13 @@ def _run_chunk(
     T = cfg.steps
     norms = np.empty((T + 1, B))
     depth = np.empty((T + 1, B))
+    mask_loss = np.empty((T + 1, B))
     max_abs = _max_abs_finite(x0).cpu().numpy()
     max_change = np.zeros(B)
     prev = [x0]
     first_bad = np.full(B, -1)
     norms[0] = _norms(x0).cpu().numpy()
-    depth[0] = _depths(x0, scene)
+    depth[0], mask_loss[0] = _depth_mask(x0, scene)
 
     def on_step(t: int, x: torch.Tensor) -> None:
         nonlocal max_abs, max_change
@@ -196,7 +212,7 @@ def _run_chunk(
         first_bad[(~finite) & (first_bad < 0)] = t
         max_abs = np.maximum(max_abs, _max_abs_finite(x).cpu().numpy())
         norms[t] = _norms(x).cpu().numpy()
-        depth[t] = _depths(x, scene)
+        depth[t], mask_loss[t] = _depth_mask(x, scene)
 
     rollout(model, x0, u, T, keep=False, on_step=on_step)
     out = []
@@ -219,6 +235,7 @@ def _run_chunk(
             "depth_final_nm": _num(depth[-1, i]),
             "depth_decreases": int(np.sum(d[np.isfinite(d)] > cfg.depth_tol_nm)),
             "depth_max_drop_nm": _num(np.nanmax(d)) if np.isfinite(d).any() else None,
+            "mask_loss_min_nm": _num(np.nanmin(ml)) if np.isfinite(ml := mask_loss[:, i]).any() else None,
             "norm_ratio": _num(norms[-1, i] / norms[0, i]),
             "max_step_growth": _num(np.nanmax(g)) if np.isfinite(g).any() else None,
             "max_step_change": float(max_change[i]),
