@@ -2,7 +2,18 @@
 
 Each subcommand parses its flags and calls one library function; heavy imports (torch, numba, h5py)
 happen inside the handlers so `nemsim --help` stays instant. Handlers return a process exit code:
-0 success, 2 bad input or failed check (with one readable line on stderr).
+0 success, 1 `stress` found a failing case, 2 bad input or failed check.
+
+Errors have one boundary, ``main()``: handlers raise, they do not print. ``_error_report`` sorts what
+reaches it into
+  * bad input or a damaged file (exit 2, one line on stderr): ``UserError``; ``ValueError``, the library's
+    kind for bad input (``TrainInputError``, ``CheckpointMismatch``, ``RulesError`` derive from it);
+    ``OSError`` (missing, unwritable, locked or truncated files, h5py's errors); a YAML syntax error (with
+    its line); and anything raised while h5py or ``torch.load`` read a file (a damaged ``.h5`` or ``.pt``);
+  * a bug (exit 1): one line naming the exception and the hint to rerun with ``--debug``, which re-raises
+    so the traceback shows.
+Handlers still turn a library error into a ``UserError`` where they can say more (which option, what to do).
+Output paths the user names get their missing parent directories created (``_output_path``).
 """
 
 from __future__ import annotations
@@ -10,20 +21,33 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import typing
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 Handler = Callable[[argparse.Namespace], int]
+
+EXIT_BAD_INPUT = 2  # bad input, a damaged file or a failed check
+EXIT_BUG = 1  # an unexpected exception (also `stress`'s failing case)
+EXIT_INTERRUPTED = 130
 
 
 class UserError(Exception):
     """Bad input from the command line: printed as one line, exit code 2."""
 
 
+def _output_path(path: str | Path) -> Path:
+    """A file path the user named for output, with its missing parent directories created."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return out
+
+
 def _write_json(path: str, obj: object) -> None:
     """Write a report as indented JSON (the --json option of several commands)."""
     import json
 
-    with open(path, "w") as fh:
+    with open(_output_path(path), "w") as fh:
         json.dump(obj, fh, indent=2)
 
 
@@ -1086,13 +1110,14 @@ def _cmd_bench_collect(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="nemsim",
         description=(
             "NEMSim: Event Rules Library, Monte Carlo etch simulator, neural surrogate and service. "
             "Typical workflow: design -> splits -> generate -> data check -> train -> evaluate -> serve. "
             "Run `nemsim COMMAND --help` for each command. Exit codes: 0 success, 1 `stress` found a failing "
-            "case, 2 bad input or failed check (one line on stderr), 130 interrupted."
+            "case, 2 bad input, a damaged file or a failed check (one line on stderr), 1 an unexpected error (a "
+            "bug: one line; --debug shows the traceback), 130 interrupted."
         ),
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
@@ -1104,8 +1129,97 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _raised_in(exc: BaseException, package: str, module: str | None = None) -> bool:
+    """Whether the innermost Python frame of exc's traceback lies in ``package`` (and file ``module``)."""
+    tb = exc.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    parts = Path(tb.tb_frame.f_code.co_filename).parts
+    return package in parts and (module is None or parts[-1] == module)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    if isinstance(exc, KeyError) and len(exc.args) == 1:
+        text = str(exc.args[0])
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _named_file(args: argparse.Namespace, suffixes: tuple[str, ...]) -> str | None:
+    """The one file argument of the command with one of these suffixes (None if none or several)."""
+    names = {str(v) for k, v in vars(args).items()
+             if k in ("data", "file", "out", "checkpoint") and v is not None
+             and str(v).lower().endswith(suffixes)}  # fmt: skip
+    return names.pop() if len(names) == 1 else None
+
+
+def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
+    """(exit code, one-line message) for an exception that reached main(); see the module docstring."""
+    import pickle
+    import zipfile
+
+    if isinstance(exc, UserError):
+        return EXIT_BAD_INPUT, _first_line(exc)
+    if _raised_in(exc, "h5py"):
+        name = _named_file(args, (".h5", ".hdf5"))
+        where = f"{name}: " if name else ""
+        if isinstance(exc, BlockingIOError):
+            return EXIT_BAD_INPUT, f"{where}file in use (is another nemsim process writing it?): {_first_line(exc)}"
+        if args.command == "data":
+            return EXIT_BAD_INPUT, f"{where}FAILED: the file is damaged: {_first_line(exc)}"
+        return EXIT_BAD_INPUT, (f"{where}cannot read HDF5 data: {_first_line(exc)} (damaged or truncated? "
+                                f"`nemsim data check {name or 'FILE'}` tells)")
+    if isinstance(exc, (EOFError, pickle.UnpicklingError, zipfile.BadZipFile)) or (
+        isinstance(exc, RuntimeError) and _raised_in(exc, "torch", "serialization.py")
+    ):
+        name = _named_file(args, (".pt", ".pth"))
+        what = _first_line(exc).split(". ")[0]
+        return EXIT_BAD_INPUT, (f"{name + ': ' if name else ''}not a readable checkpoint, damaged or truncated "
+                                f"({type(exc).__name__}: {what})")
+    if isinstance(exc, OSError):
+        if exc.filename is not None and exc.strerror:
+            return EXIT_BAD_INPUT, f"{exc.filename}: {exc.strerror}"
+        return EXIT_BAD_INPUT, _first_line(exc)
+    if type(exc).__module__.startswith("yaml"):  # yaml.YAMLError: say where
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or _first_line(exc)
+        return EXIT_BAD_INPUT, f"YAML syntax error{where}: {problem}"
+    if isinstance(exc, ValueError):
+        return EXIT_BAD_INPUT, _first_line(exc)
+    return EXIT_BUG, (f"unexpected error {type(exc).__name__}: {_first_line(exc)} (a bug; rerun with --debug "
+                      "for the traceback)")
+
+
+def _command_name(args: argparse.Namespace) -> str:
+    """``nemsim COMMAND [ACTION]`` of a parsed command line, e.g. ``nemsim data check``."""
+    words = [args.command] + [getattr(args, k) for k in ("rules_command", "data_command", "bench")
+                              if getattr(args, k, None)]  # fmt: skip
+    return " ".join(["nemsim", *words])
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line on stderr (exit 2), like every other error."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: {message} (see `{self.prog} --help`)\n")
+
+
+def _add_debug_option(parser: argparse.ArgumentParser, top: bool = True) -> None:
+    """--debug on the top parser and every subcommand (SUPPRESS: a subcommand does not reset it)."""
+    parser.add_argument("--debug", action="store_true", default=False if top else argparse.SUPPRESS,
+                        help="on an error, show the full traceback instead of one line")
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):
+                _add_debug_option(child, top=False)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    _add_debug_option(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
@@ -1114,12 +1228,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     handler: Handler = args.handler
     try:
         return int(handler(args) or 0)
-    except UserError as exc:
-        print(f"nemsim {args.command}: {exc}", file=sys.stderr)  # noqa: T201
-        return 2
     except KeyboardInterrupt:
         print("interrupted; rerun the same command to resume where supported", file=sys.stderr)  # noqa: T201
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # the CLI's one error boundary, see the module docstring
+        if args.debug:
+            raise
+        code, line = _error_report(exc, args)
+        print(f"{_command_name(args)}: {line}", file=sys.stderr)  # noqa: T201
+        return code
 
 
 if __name__ == "__main__":
