@@ -30,6 +30,7 @@ Handler = Callable[[argparse.Namespace], int]
 EXIT_BAD_INPUT = 2  # bad input, a damaged file or a failed check
 EXIT_BUG = 1  # an unexpected exception (also `stress`'s failing case)
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141  # as if killed by SIGPIPE, the shell convention
 
 
 class UserError(Exception):
@@ -41,6 +42,16 @@ def _output_path(path: str | Path) -> Path:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     return out
+
+
+def _run_output(command: str, checkpoint: str | Path, suffix: str = "") -> Path:
+    """Default output of a command about a checkpoint: runs/<command>/<checkpoint dir>-<checkpoint name><suffix>.
+
+    Under runs/ (ignored by git), so a default never writes into a committed folder such as checkpoints/;
+    committed results are written only through an explicit --out.
+    """
+    ckpt = Path(checkpoint).resolve()
+    return Path("runs") / command / f"{ckpt.parent.name}-{ckpt.stem}{suffix}"
 
 
 def _write_json(path: str, obj: object) -> None:
@@ -149,10 +160,7 @@ def _cmd_rules_compile(args: argparse.Namespace) -> int:
 
     _, rt = _load_compiled_rules(args.path)
     arrays = rt.to_npz_dict()
-    try:
-        np.savez(args.out, **arrays, names=rt.names, sha256=np.array(rt.sha256))
-    except OSError as exc:
-        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    np.savez(_output_path(args.out), **arrays, names=rt.names, sha256=np.array(rt.sha256))
     shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in arrays.items())
     print(f"wrote {args.out}: {shapes}; sha256 {rt.sha256}")  # noqa: T201
     return 0
@@ -175,25 +183,31 @@ def _add_data(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
     p.add_argument("--seed", type=int, default=42, help="LHS seed (default 42, the paper's design)")
-    p.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV (overwritten)")
+    p.add_argument("--out", required=True, metavar="FILE.csv",
+                   help="output CSV (overwritten; missing folders are created)")
     p.set_defaults(handler=_cmd_design)
 
     p = sub.add_parser(
         "splits",
         help="write one split manifest JSON per setting ([supp_protocols])",
         description=(
-            "Partition the cases of a design CSV into train/val/test for every evaluation setting "
-            "(control-id, ood-ar, ood-cl, ood-joint, vis-50, vis-60) and write DIR/<setting>.json, each "
-            "with its nested data-efficiency training subsets (10/20/50/100 %); print the table of set "
-            "sizes. `nemsim train` and `nemsim evaluate` read these from <data dir>/splits by default. "
+            "Partition the cases of a design CSV, or of a trajectory file, into train/val/test for every "
+            "evaluation setting (control-id, ood-ar, ood-cl, ood-joint, vis-50, vis-60) and write "
+            "DIR/<setting>.json, each with its nested data-efficiency training subsets (10/20/50/100 %); "
+            "print the table of set sizes. `nemsim train` and `nemsim evaluate` read these from "
+            "<data dir>/splits by default and refuse manifests whose case ids are not in the data file. "
             "Example: nemsim splits --design data/design.csv --out data/splits"
         ),
     )
-    p.add_argument("--design", required=True, metavar="FILE.csv",
-                   help="design CSV (from `nemsim design`); case id = row index")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--design", metavar="FILE.csv",
+                     help="design CSV (from `nemsim design`); case id = row index")
+    src.add_argument("--data", metavar="FILE.h5",
+                     help="trajectory file (from `nemsim generate`): its case ids and controls")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     p.add_argument("--seed", type=int, default=0, help="partition seed (default 0)")
-    p.add_argument("--transitions", type=int, default=100, help="transitions per trajectory (default 100)")
+    p.add_argument("--transitions", type=int, default=None,
+                   help="transitions per trajectory (default: the data file's horizon, else 100)")
     p.set_defaults(handler=_cmd_splits)
 
     p = sub.add_parser(
@@ -226,30 +240,27 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
     if args.n < 1:
         raise UserError(f"--n must be >= 1, got {args.n}")
-    raw = lhs_design(args.n, args.seed)
-    try:
-        write_controls_csv(args.out, raw)
-    except OSError as exc:
-        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    write_controls_csv(_output_path(args.out), lhs_design(args.n, args.seed))
     print(f"wrote {args.out}: {args.n} cases x 14 controls (LHS seed {args.seed})")  # noqa: T201
     return 0
 
 
 def _cmd_splits(args: argparse.Namespace) -> int:
-    from nemsim.controls import read_controls_csv
     from nemsim.data.splits import make_manifests, split_table, write_manifests
 
-    try:
-        raw = read_controls_csv(args.design)
-    except FileNotFoundError:
-        raise UserError(f"no such file: {args.design}") from None
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    manifests = make_manifests(raw, seed=args.seed, n_transitions=args.transitions)
-    try:
-        paths = write_manifests(manifests, args.out)
-    except OSError as exc:
-        raise UserError(f"cannot write to {args.out}: {exc.strerror}") from None
+    if args.transitions is not None and args.transitions < 1:
+        raise UserError(f"--transitions must be >= 1, got {args.transitions}")
+    if args.data:
+        from nemsim.data.hdf5 import open_trajectories
+
+        with open_trajectories(args.data) as tf:
+            raw, case_ids, horizon = tf.controls_raw, tf.case_ids, tf.scene.n_transitions
+    else:
+        from nemsim.controls import read_controls_csv
+
+        raw, case_ids, horizon = read_controls_csv(args.design), None, 100
+    manifests = make_manifests(raw, case_ids, seed=args.seed, n_transitions=args.transitions or horizon)
+    paths = write_manifests(manifests, args.out)
     print(split_table(manifests))  # noqa: T201
     print(f"wrote {len(paths)} manifests to {args.out}")  # noqa: T201
     return 0
@@ -527,8 +538,8 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", type=Path, help="write the metrics as JSON here")
     p.add_argument("--save-rollouts", type=Path, help="write predictions (N, T+1, 2, D, H, W) to this HDF5")
     p.add_argument("--plot", type=Path,
-                   help="PNG path (default: --json with .png, else eval_<setting>.png next to the "
-                   "checkpoint)")
+                   help="PNG path (default: --json with .png, else "
+                   "runs/evaluate/<checkpoint dir>-<checkpoint name>_<setting>.png)")
     p.add_argument("--steps", type=int, help="rollout length in transitions (default: full horizon, 100)")
     p.add_argument("--batch-size", type=int, default=1,
                    help="trajectories rolled out together (default 1, the paper's per-trajectory timing)")
@@ -558,7 +569,7 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
             "interventions), predict one step from the case's initial state, and relate the change of "
             "each mechanism family's response (ΔM, %) to the change of Si removal (ΔR, %) with "
             "per-group Pearson correlations. Prints the table and writes counterfactual.json, "
-            "counterfactual_table.csv and counterfactual.png to --out. Runs on the CPU. "
+            "counterfactual_table.csv and counterfactual.png to --out (default under runs/). Runs on the CPU. "
             "Example: nemsim counterfactual --checkpoint runs/nemsim/best.pt --data data/small.h5"
         ),
     )
@@ -573,18 +584,16 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--splits", type=Path,
                    help="directory of split manifests <setting>.json (default: <data dir>/splits if present, "
                    "else computed from the data file)")
-    p.add_argument("--out", type=Path, help="output directory (default: <checkpoint dir>/counterfactual)")
+    p.add_argument("--out", type=Path,
+                   help="output directory (default: runs/counterfactual/<checkpoint dir>-<checkpoint name>)")
     p.add_argument("--max-cases", type=int, help="analyse only the first N cases of the split (default: all)")
     p.set_defaults(handler=_cmd_counterfactual)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from nemsim.train import TrainInputError, run
+    from nemsim.train import run
 
-    try:
-        return run(args)
-    except (TrainInputError, FileNotFoundError) as exc:
-        raise UserError(str(exc)) from None
+    return run(args)
 
 
 def _load_for_eval(args: argparse.Namespace):
@@ -592,18 +601,16 @@ def _load_for_eval(args: argparse.Namespace):
     from pathlib import Path
 
     from nemsim.data.hdf5 import open_trajectories
-    from nemsim.train import TrainInputError, _load_manifest
-    from nemsim.training.checkpoint import CheckpointMismatch, load_checkpoint
+    from nemsim.data.splits import resolve_manifest
+    from nemsim.training.checkpoint import load_checkpoint
 
     for path in (args.checkpoint, args.data):
         if not Path(path).is_file():
             raise UserError(f"{path} does not exist")
     tf = open_trajectories(args.data)
-    try:
-        loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
-        manifest = _load_manifest(Path(args.data), args.setting, args.splits, tf)
-    except (CheckpointMismatch, TrainInputError) as exc:
-        raise UserError(str(exc)) from None
+    loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
+    manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw, tf.scene.n_transitions,
+                                   args.splits)  # fmt: skip
     if tf.rules_sha256 and tf.rules_sha256 != loaded.raw["rules_sha256"]:
         logging.getLogger("nemsim.cli").warning(
             "data was generated with rules %s..., the checkpoint's library is %s...",
@@ -617,7 +624,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from nemsim.data.dataset import TrajectoryDataset
     from nemsim.evaluation.evaluate import evaluate, plot_evaluation, write_json
 
+    if args.batch_size < 1:
+        raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
     loaded, tf, manifest = _load_for_eval(args)
+    horizon = loaded.scene.n_transitions
+    if args.steps is not None and not 1 <= args.steps <= horizon:
+        raise UserError(f"--steps must be in [1, {horizon}] (the scene's horizon), got {args.steps}")
     cases = TrajectoryDataset(args.data, manifest, args.split)
     if len(cases) == 0:
         raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
@@ -638,7 +650,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.json:
         write_json(result, args.json, extra)
     plot = args.plot or (args.json.with_suffix(".png") if args.json
-                         else Path(args.checkpoint).with_name(f"eval_{args.setting}.png"))
+                         else _run_output("evaluate", args.checkpoint, f"_{args.setting}.png"))
     plot_evaluation(result, loaded.scene, plot, title=f"{loaded.name} {args.setting}")
     print(f"  figure     {plot}")  # noqa: T201
     return 0
@@ -675,6 +687,8 @@ def _cmd_counterfactual(args: argparse.Namespace) -> int:
 
     from nemsim.analysis.counterfactual import analyze, format_table, write_outputs
 
+    if args.max_cases is not None and args.max_cases < 1:
+        raise UserError(f"--max-cases must be >= 1, got {args.max_cases}")
     args.device = "cpu"
     loaded, tf, manifest = _load_for_eval(args)
     ids = list(manifest[args.split])[: args.max_cases]
@@ -684,7 +698,7 @@ def _cmd_counterfactual(args: argparse.Namespace) -> int:
     raw = np.asarray(tf.controls_raw)
     cases = [(int(c), np.asarray(tf.states[row_of[int(c)], 0]), raw[row_of[int(c)]]) for c in ids]
     result = analyze(loaded.model, cases)
-    out = args.out or Path(args.checkpoint).parent / "counterfactual"
+    out = args.out or _run_output("counterfactual", args.checkpoint)
     paths = write_outputs(result, out)
     print(format_table(result))  # noqa: T201
     print(f"wrote {paths['json']}, {paths['csv']}, {paths['png']}")  # noqa: T201
@@ -1005,8 +1019,8 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=None, help="transitions (default: the scene's horizon)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1: the simulator is single-threaded too)")
-    p.add_argument("--out", default="benchmarks/small", metavar="DIR",
-                   help="output directory (default benchmarks/small)")
+    p.add_argument("--out", default="runs/speed-error", metavar="DIR",
+                   help="output directory (default runs/speed-error; the committed results: --out benchmarks/small)")
     p.set_defaults(handler=_cmd_bench_speed_error)
 
     p = bench_sub.add_parser(
@@ -1030,27 +1044,6 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--readme", default=None, metavar="FILE.md",
                    help="Markdown file for the table (default: README.md next to --out)")
     p.set_defaults(handler=_cmd_bench_collect)
-
-
-def _load_setting_manifest(data: str, setting: str, splits: str | None) -> dict:
-    from pathlib import Path
-
-    from nemsim.data import splits as splits_mod
-
-    directory = Path(splits) if splits else Path(data).parent / "splits"
-    if splits or (directory / f"{setting}.json").is_file():
-        try:
-            return splits_mod.load_manifest(directory, setting)
-        except (OSError, ValueError) as exc:
-            raise UserError(str(exc)) from None
-    from nemsim.data.hdf5 import open_trajectories
-
-    with open_trajectories(data) as tf:
-        manifests = splits_mod.make_manifests(tf.controls_raw, tf.case_ids,
-                                              n_transitions=tf.scene.n_transitions)  # fmt: skip
-    if setting not in manifests:
-        raise UserError(f"unknown setting {setting!r}; expected one of {sorted(manifests)}")
-    return manifests[setting]
 
 
 def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
@@ -1080,7 +1073,12 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
         raise UserError(f"--budgets {args.budgets!r}: each budget must be in (0, 1]")
     precisions = tuple(p.strip() for p in args.precisions.split(",") if p.strip())
     torch.set_num_threads(args.threads)
-    manifest = _load_setting_manifest(args.data, args.setting, args.splits)
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.data.splits import resolve_manifest
+
+    with open_trajectories(args.data) as tf:
+        manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
+                                       tf.scene.n_transitions, args.splits)  # fmt: skip
     cfg = SpeedErrorConfig(cases=args.cases, budgets=budgets, precisions=precisions, seed=args.seed,
                            steps=args.steps)  # fmt: skip
     try:
@@ -1231,6 +1229,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted; rerun the same command to resume where supported", file=sys.stderr)  # noqa: T201
         return EXIT_INTERRUPTED
+    except BrokenPipeError:  # output piped into e.g. `head`, which stopped reading: end quietly
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return EXIT_BROKEN_PIPE
     except Exception as exc:  # the CLI's one error boundary, see the module docstring
         if args.debug:
             raise

@@ -83,6 +83,8 @@ def make_manifests(design_raw, case_ids=None, *, seed: int = 0, n_transitions: i
     raw = np.asarray(design_raw, dtype=np.float64)
     if raw.ndim != 2 or raw.shape[1] != N_CONTROLS:
         raise ValueError(f"design must have shape (N, {N_CONTROLS}); got {raw.shape}")
+    if int(n_transitions) < 1:
+        raise ValueError(f"n_transitions must be >= 1 (transitions per trajectory), got {n_transitions}")
     n = raw.shape[0]
     ids = np.arange(n, dtype=np.int64) if case_ids is None else np.asarray(case_ids, dtype=np.int64).reshape(-1)
     if ids.shape != (n,) or len(np.unique(ids)) != n:
@@ -207,6 +209,45 @@ def load_manifest(path_or_dir: str | Path, setting: str | None = None) -> dict:
     if setting is not None and m["setting"] != setting:
         raise ValueError(f"{p}: manifest is for setting {m['setting']!r}, not {setting!r}")
     return m
+
+
+def resolve_manifest(
+    setting: str, data_path: str | Path, case_ids, controls_raw, n_transitions: int,
+    splits: str | Path | None = None,
+) -> tuple[dict, str]:
+    """The manifest of ``setting`` for a trajectory file, and where it came from (for the log).
+
+    Order: ``<splits>/<setting>.json`` if ``splits`` is given; else ``<data dir>/splits/<setting>.json`` if
+    present; else computed from the file's own controls and case ids with ``make_manifests`` (seed 0).
+    A manifest read from disk must fit the file: ValueError if any train/val/test id is not one of
+    ``case_ids``, saying how to make manifests that fit.
+
+    Args:
+        setting: one of SETTINGS.
+        data_path: the trajectory file (names it in messages; its folder holds the default ``splits/``).
+        case_ids: (N,) the file's case ids; controls_raw: (N, 14) its raw controls.
+        n_transitions: transitions per trajectory of the file's scene.
+        splits: a directory of ``<setting>.json`` manifests (from ``nemsim splits``), or None.
+    """
+    if setting not in SETTINGS:
+        raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
+    data_path = Path(data_path)
+    directory = Path(splits) if splits is not None else data_path.parent / "splits"
+    if splits is None and not (directory / f"{setting}.json").is_file():
+        manifests = make_manifests(controls_raw, case_ids, n_transitions=n_transitions)
+        return manifests[setting], f"computed from the controls of {data_path}"
+    manifest = load_manifest(directory, setting)
+    known = {int(c) for c in np.asarray(case_ids).reshape(-1)}
+    foreign = [int(c) for part in ("train", "val", "test") for c in manifest[part] if int(c) not in known]
+    if foreign:
+        default = " (the default for --splits)" if splits is None else ""
+        raise ValueError(
+            f"{directory / (setting + '.json')}{default} does not fit {data_path}: {len(foreign)} of its "
+            "train/val/test "
+            f"case ids (e.g. {foreign[:3]}) are not in the file; make manifests for this file with "
+            f"`nemsim splits --data {data_path} --out DIR` and pass --splits DIR"
+        )
+    return manifest, str(directory / f"{setting}.json")
 
 
 def split_table(manifests: dict[str, dict]) -> str:
