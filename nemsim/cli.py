@@ -99,8 +99,10 @@ def _add_rules(sub: argparse._SubParsersAction) -> None:
         description=(
             "Validate a rules YAML file against the schema and the species/controls vocabulary, then "
             "print one row per event (family, projectile, target, probability and yield model, products "
-            "or deposition pool) and the library's sha256. Writes nothing. Exit code 0 if the file is "
-            "valid, 2 (with the first error on stderr) if not. Example: nemsim rules check"
+            "or deposition pool) and the library's sha256. The family is physical, chemical or coupled; "
+            "the YAML spells the coupled family's group label `both`, as the paper's schema does "
+            "([eq:supp_group_mapping]). Writes nothing. Exit code 0 if the file is valid, 2 (with the "
+            "first error, and for a YAML syntax error its line, on stderr) if not. Example: nemsim rules check"
         ),
     )
     c.add_argument("path", nargs="?", default=None, help="rules YAML (default: the repo's rules/cl_si.yaml)")
@@ -122,12 +124,9 @@ def _add_rules(sub: argparse._SubParsersAction) -> None:
 
 
 def _load_compiled_rules(path: str | None):
-    from nemsim.rules import RulesError, compile_rules, load_rules
+    from nemsim.rules import compile_rules, load_rules
 
-    try:
-        spec = load_rules(path)
-    except (RulesError, FileNotFoundError) as exc:
-        raise UserError(str(exc).splitlines()[0]) from None
+    spec = load_rules(path)  # RulesError (a ValueError) names the event and field; main() prints it
     return spec, compile_rules(spec)
 
 
@@ -1148,9 +1147,21 @@ def _first_line(exc: BaseException) -> str:
 def _named_file(args: argparse.Namespace, suffixes: tuple[str, ...]) -> str | None:
     """The one file argument of the command with one of these suffixes (None if none or several)."""
     names = {str(v) for k, v in vars(args).items()
-             if k in ("data", "file", "out", "checkpoint") and v is not None
+             if k in ("data", "file", "out", "checkpoint", "path", "config") and v is not None
              and str(v).lower().endswith(suffixes)}  # fmt: skip
     return names.pop() if len(names) == 1 else None
+
+
+def _yaml_error_in(exc: BaseException) -> BaseException | None:
+    """A yaml.YAMLError that is exc or caused it (``raise ... from None`` keeps it as __context__)."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if type(cur).__module__.startswith("yaml"):
+            return cur
+        cur = cur.__cause__ or cur.__context__
+    return None
 
 
 def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
@@ -1180,11 +1191,14 @@ def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
         if exc.filename is not None and exc.strerror:
             return EXIT_BAD_INPUT, f"{exc.filename}: {exc.strerror}"
         return EXIT_BAD_INPUT, _first_line(exc)
-    if type(exc).__module__.startswith("yaml"):  # yaml.YAMLError: say where
-        mark = getattr(exc, "problem_mark", None)
+    yaml_error = _yaml_error_in(exc)
+    if yaml_error is not None:  # say which file, line and column (the library's messages drop them)
+        mark = getattr(yaml_error, "problem_mark", None)
+        name = mark.name if mark is not None and not str(mark.name).startswith("<") else (
+            _named_file(args, (".yaml", ".yml", ".json")))
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or _first_line(exc)
-        return EXIT_BAD_INPUT, f"YAML syntax error{where}: {problem}"
+        problem = getattr(yaml_error, "problem", None) or _first_line(yaml_error)
+        return EXIT_BAD_INPUT, f"{name + ': ' if name else ''}YAML syntax error{where}: {problem}"
     if isinstance(exc, ValueError):
         return EXIT_BAD_INPUT, _first_line(exc)
     return EXIT_BUG, (f"unexpected error {type(exc).__name__}: {_first_line(exc)} (a bug; rerun with --debug "

@@ -62,6 +62,7 @@ class ControlSpec:
     phys_min: float = 0.0  # physically admissible minimum
     phys_max: float = math.inf  # physically admissible maximum
     label: str = ""  # human-readable symbol
+    description: str = ""  # what the control means, for help texts and the service schema
 
     @property
     def t_low(self) -> float:
@@ -75,21 +76,38 @@ class ControlSpec:
 
 
 _FLUX = "mol m^-2 s^-1"
+
+
+def _flux(species: str) -> str:
+    return f"flux of {species} arriving at the wafer"
+
+
+def _angle(species: str) -> str:
+    return (f"angular spread of {species}: the dimensionless exponent m of the cos^m(theta) distribution of "
+            "the polar angle from the vertical at launch (larger m = more collimated, closer to vertical)")
+
+
 CONTROL_SPECS: tuple[ControlSpec, ...] = (
-    ControlSpec("flux_ar_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Ar+)"),
-    ControlSpec("flux_cl_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Cl+)"),
-    ControlSpec("flux_cl2_plus", _FLUX, "log", 1e-6, 2e-4, label="Gamma(Cl2+)"),
-    ControlSpec("flux_cl", _FLUX, "log", 1e-3, 2e-2, label="Gamma(Cl)"),
-    ControlSpec("angle_cl", "1", "int", 0, 20, label="m(Cl)"),
-    ControlSpec("angle_cl_plus", "1", "int", 50, 3000, label="m(Cl+)"),
-    ControlSpec("angle_cl2_plus", "1", "int", 50, 3000, label="m(Cl2+)"),
-    ControlSpec("angle_ar_plus", "1", "int", 50, 3000, label="m(Ar+)"),
-    ControlSpec("energy_mean_cl_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl+)"),
-    ControlSpec("energy_std_cl_plus", "eV", "linear", 5.0, 10.0, label="sigma(Cl+)"),
-    ControlSpec("energy_mean_cl2_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl2+)"),
-    ControlSpec("energy_std_cl2_plus", "eV", "linear", 5.0, 15.0, label="sigma(Cl2+)"),
-    ControlSpec("energy_mean_ar_plus", "eV", "linear", 160.0, 500.0, label="mu(Ar+)"),
-    ControlSpec("energy_std_ar_plus", "eV", "linear", 5.0, 15.0, label="sigma(Ar+)"),
+    ControlSpec("flux_ar_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Ar+)", description=_flux("Ar+ ions")),
+    ControlSpec("flux_cl_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Cl+)", description=_flux("Cl+ ions")),
+    ControlSpec("flux_cl2_plus", _FLUX, "log", 1e-6, 2e-4, label="Gamma(Cl2+)", description=_flux("Cl2+ ions")),
+    ControlSpec("flux_cl", _FLUX, "log", 1e-3, 2e-2, label="Gamma(Cl)", description=_flux("neutral Cl")),
+    ControlSpec("angle_cl", "1", "int", 0, 20, label="m(Cl)", description=_angle("neutral Cl")),
+    ControlSpec("angle_cl_plus", "1", "int", 50, 3000, label="m(Cl+)", description=_angle("Cl+ ions")),
+    ControlSpec("angle_cl2_plus", "1", "int", 50, 3000, label="m(Cl2+)", description=_angle("Cl2+ ions")),
+    ControlSpec("angle_ar_plus", "1", "int", 50, 3000, label="m(Ar+)", description=_angle("Ar+ ions")),
+    ControlSpec("energy_mean_cl_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl+)",
+                description="mean energy of the Cl+ ions"),
+    ControlSpec("energy_std_cl_plus", "eV", "linear", 5.0, 10.0, label="sigma(Cl+)",
+                description="standard deviation of the Cl+ ion energy"),
+    ControlSpec("energy_mean_cl2_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl2+)",
+                description="mean energy of the Cl2+ ions"),
+    ControlSpec("energy_std_cl2_plus", "eV", "linear", 5.0, 15.0, label="sigma(Cl2+)",
+                description="standard deviation of the Cl2+ ion energy"),
+    ControlSpec("energy_mean_ar_plus", "eV", "linear", 160.0, 500.0, label="mu(Ar+)",
+                description="mean energy of the Ar+ ions"),
+    ControlSpec("energy_std_ar_plus", "eV", "linear", 5.0, 15.0, label="sigma(Ar+)",
+                description="standard deviation of the Ar+ ion energy"),
 )
 CONTROL_NAMES: tuple[str, ...] = tuple(s.name for s in CONTROL_SPECS)
 N_CONTROLS = len(CONTROL_SPECS)  # 14
@@ -238,20 +256,29 @@ def lhs_design(n: int = DESIGN_N, seed: int = DESIGN_SEED) -> np.ndarray:
 
 
 def check_admissible(raw: np.ndarray) -> list[str]:
-    """Return one message per physically impossible value of raw (14,) controls (empty if admissible)."""
+    """One message per physically impossible value of raw controls, (14,) or (..., 14); empty if admissible.
+
+    Every row is checked; with more than one row each message starts with ``row i:`` (i indexes the
+    flattened rows).
+    """
     raw = np.asarray(raw, dtype=np.float64)
     _check_last_dim(raw)
+    rows = raw.reshape(-1, N_CONTROLS)  # (N, 14)
+    bad = ~np.isfinite(rows) | (rows < PHYS_MIN) | (rows > PHYS_MAX)  # (N, 14)
     out = []
-    for s, v in zip(CONTROL_SPECS, raw.reshape(-1, N_CONTROLS)[0]):
-        if not np.isfinite(v) or v < s.phys_min or v > s.phys_max:
-            out.append(f"{s.name}={v!r} outside the physically admissible range [{s.phys_min}, {s.phys_max}]")
+    for i, j in zip(*np.nonzero(bad)):
+        s = CONTROL_SPECS[j]
+        where = f"row {i}: " if rows.shape[0] > 1 else ""
+        out.append(f"{where}{s.name}={float(rows[i, j])!r} outside the physically admissible range "
+                   f"[{s.phys_min}, {s.phys_max}]")
     return out
 
 
 def outside_design_range(raw: np.ndarray) -> list[str]:
-    """Names of the controls of raw (14,) outside the configured design (training) range."""
-    raw = np.asarray(raw, dtype=np.float64).reshape(-1, N_CONTROLS)[0]
-    return [s.name for s, v in zip(CONTROL_SPECS, raw) if not (s.low <= v <= s.high)]
+    """Names of the controls outside the configured design (training) range in any row of raw (14,) or (..., 14)."""
+    rows = np.asarray(raw, dtype=np.float64).reshape(-1, N_CONTROLS)  # (N, 14)
+    outside = ((rows < LOW) | (rows > HIGH) | np.isnan(rows)).any(axis=0)  # (14,)
+    return [s.name for s, o in zip(CONTROL_SPECS, outside) if o]
 
 
 # --- CSV -----------------------------------------------------------------------------------------------

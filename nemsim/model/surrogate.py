@@ -58,9 +58,8 @@ from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredInte
 from nemsim.model.encoder import EncoderConfig, StateEncoder
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
+from nemsim.controls import N_CONTROLS
 from nemsim.model.rule_buffers import RuleBuffers
-
-N_CONTROLS = 14
 
 
 @dataclass(frozen=True)
