@@ -121,3 +121,18 @@ def test_readme_toy_workflow(tmp_path):
     for path in ("data/toy/design.csv", "data/toy/tiny.h5", "data/toy/splits/control-id.json", "runs/toy/best.pt",
                  "runs/toy/test.json"):
         assert (tmp_path / path).is_file(), path
+
+
+def test_readme_controls_table_matches_the_controls():
+    """Every control appears in the README's controls table with its unit and design range."""
+    from nemsim.controls import CONTROL_SPECS
+
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## The 14 process controls") :].split("\n## ", 1)[0]
+    rows = [r for r in section.splitlines() if r.startswith("| `")]
+    for spec in CONTROL_SPECS:
+        (row,) = [r for r in rows if f"`{spec.name}`" in r]
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[1] == spec.unit or cells[1].startswith(spec.unit + " ("), (spec.name, cells[1])
+        lo, hi = (float(v) for v in cells[2].split("–"))
+        assert (lo, hi) == (spec.low, spec.high), spec.name
