@@ -45,7 +45,7 @@ def _output_path(path: str | Path) -> Path:
 
 
 def _run_output(command: str, checkpoint: str | Path, suffix: str = "") -> Path:
-    """Default output of a command about a checkpoint: runs/<command>/<checkpoint dir>-<checkpoint name><suffix>.
+    """Default output of a command about a checkpoint: runs/<command>/<ckpt dir>-<ckpt name><suffix>.
 
     Under runs/ (ignored by git), so a default never writes into a committed folder such as checkpoints/;
     committed results are written only through an explicit --out.
@@ -102,7 +102,8 @@ def _add_rules(sub: argparse._SubParsersAction) -> None:
             "or deposition pool) and the library's sha256. The family is physical, chemical or coupled; "
             "the YAML spells the coupled family's group label `both`, as the paper's schema does "
             "([eq:supp_group_mapping]). Writes nothing. Exit code 0 if the file is valid, 2 (with the "
-            "first error, and for a YAML syntax error its line, on stderr) if not. Example: nemsim rules check"
+            "first error, and for a YAML syntax error its line, on stderr) if not. "
+            "Example: nemsim rules check"
         ),
     )
     c.add_argument("path", nargs="?", default=None, help="rules YAML (default: the repo's rules/cl_si.yaml)")
@@ -568,7 +569,8 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
             "interventions), predict one step from the case's initial state, and relate the change of "
             "each mechanism family's response (ΔM, %) to the change of Si removal (ΔR, %) with "
             "per-group Pearson correlations. Prints the table and writes counterfactual.json, "
-            "counterfactual_table.csv and counterfactual.png to --out (default under runs/). Runs on the CPU. "
+            "counterfactual_table.csv and counterfactual.png to --out (default under runs/). "
+            "Runs on the CPU. "
             "Example: nemsim counterfactual --checkpoint runs/nemsim/best.pt --data data/small.h5"
         ),
     )
@@ -608,8 +610,8 @@ def _load_for_eval(args: argparse.Namespace):
             raise UserError(f"{path} does not exist")
     tf = open_trajectories(args.data)
     loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
-    manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw, tf.scene.n_transitions,
-                                   args.splits)  # fmt: skip
+    manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
+                                   tf.scene.n_transitions, args.splits)  # fmt: skip
     if tf.rules_sha256 and tf.rules_sha256 != loaded.raw["rules_sha256"]:
         logging.getLogger("nemsim.cli").warning(
             "data was generated with rules %s..., the checkpoint's library is %s...",
@@ -618,8 +620,6 @@ def _load_for_eval(args: argparse.Namespace):
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from nemsim.data.dataset import TrajectoryDataset
     from nemsim.evaluation.evaluate import evaluate, plot_evaluation, write_json
 
@@ -680,8 +680,6 @@ def _cmd_models(args: argparse.Namespace) -> int:
 
 
 def _cmd_counterfactual(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     import numpy as np
 
     from nemsim.analysis.counterfactual import analyze, format_table, write_outputs
@@ -1019,7 +1017,8 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1: the simulator is single-threaded too)")
     p.add_argument("--out", default="runs/speed-error", metavar="DIR",
-                   help="output directory (default runs/speed-error; the committed results: --out benchmarks/small)")
+                   help="output directory (default runs/speed-error; the committed results: "
+                   "--out benchmarks/small)")
     p.set_defaults(handler=_cmd_bench_speed_error)
 
     p = bench_sub.add_parser(
@@ -1113,8 +1112,8 @@ def build_parser() -> argparse.ArgumentParser:
             "NEMSim: Event Rules Library, Monte Carlo etch simulator, neural surrogate and service. "
             "Typical workflow: design -> splits -> generate -> data check -> train -> evaluate -> serve. "
             "Run `nemsim COMMAND --help` for each command. Exit codes: 0 success, 1 `stress` found a failing "
-            "case, 2 bad input, a damaged file or a failed check (one line on stderr), 1 an unexpected error (a "
-            "bug: one line; --debug shows the traceback), 130 interrupted."
+            "case, 2 bad input, a damaged file or a failed check (one line on stderr), 1 an unexpected "
+            "error (a bug: one line; --debug shows the traceback), 130 interrupted."
         ),
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
@@ -1175,7 +1174,7 @@ def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
         name = _named_file(args, (".h5", ".hdf5"))
         where = f"{name}: " if name else ""
         if isinstance(exc, BlockingIOError):
-            return EXIT_BAD_INPUT, f"{where}file in use (is another nemsim process writing it?): {_first_line(exc)}"
+            return EXIT_BAD_INPUT, f"{where}file in use (by another nemsim process?): {_first_line(exc)}"
         if args.command == "data":
             return EXIT_BAD_INPUT, f"{where}FAILED: the file is damaged: {_first_line(exc)}"
         return EXIT_BAD_INPUT, (f"{where}cannot read HDF5 data: {_first_line(exc)} (damaged or truncated? "
@@ -1184,9 +1183,9 @@ def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
         isinstance(exc, RuntimeError) and _raised_in(exc, "torch", "serialization.py")
     ):
         name = _named_file(args, (".pt", ".pth"))
-        what = _first_line(exc).split(". ")[0]
-        return EXIT_BAD_INPUT, (f"{name + ': ' if name else ''}not a readable checkpoint, damaged or truncated "
-                                f"({type(exc).__name__}: {what})")
+        what = f"{type(exc).__name__}: {_first_line(exc).split('. ')[0]}"
+        where = f"{name}: " if name else ""
+        return EXIT_BAD_INPUT, f"{where}not a readable checkpoint, damaged or truncated ({what})"
     if isinstance(exc, OSError):
         if exc.filename is not None and exc.strerror:
             return EXIT_BAD_INPUT, f"{exc.filename}: {exc.strerror}"

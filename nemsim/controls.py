@@ -8,8 +8,8 @@ authoritative.
 
 Representation ([supp_representation]):
   * transform  eq:supp_control_transformation  u~ = log10(u + eps_u) for fluxes (eps_u = 1e-12), else u;
-  * normalize  eq:supp_control_normalization   u = 2 (u~ - u~min) / (u~max - u~min) - 1 with the fixed bounds of
-    the table (eq:supp_flux_control_bounds), no clipping;
+  * normalize  eq:supp_control_normalization   u = 2 (u~ - u~min) / (u~max - u~min) - 1 with the fixed
+    bounds of the table (eq:supp_flux_control_bounds), no clipping;
   * OOD unit coordinate eq:supp_ood_unit_coordinate  q = (u~ - u~min) / (u~max - u~min) = (u + 1) / 2.
 
 Design ([supp_data_generation], eq:supp_lhs_design, eq:supp_control_mapping): Xi = LHS(500, 14), seed 42,
@@ -23,7 +23,8 @@ Choices where the paper is silent:
     Of the candidates we tried (scipy seed=/rng=, scramble on/off, pyDOE with np.random.seed(42), a
     default_rng classic LHS) only this one reproduces the paper's OOD-Joint test composition
     (14, 15, 13, 11) cases in (L,L), (L,H), (H,L), (H,H); see tests/data/test_splits.py.
-  * Log mapping is the exact inverse of the normalization transform, u = 10^(u~min + xi (u~max - u~min)) - eps_u,
+  * Log mapping is the exact inverse of the normalization transform,
+    u = 10^(u~min + xi (u~max - u~min)) - eps_u,
     so that the OOD coordinate of a design row equals its LHS coordinate (q = xi).
   * Bounded-integer mapping: u = min(low + floor(xi (high - low + 1)), high), i.e. every integer in
     [low, high] has equal probability (both end points included).
@@ -90,7 +91,8 @@ def _angle(species: str) -> str:
 CONTROL_SPECS: tuple[ControlSpec, ...] = (
     ControlSpec("flux_ar_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Ar+)", description=_flux("Ar+ ions")),
     ControlSpec("flux_cl_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Cl+)", description=_flux("Cl+ ions")),
-    ControlSpec("flux_cl2_plus", _FLUX, "log", 1e-6, 2e-4, label="Gamma(Cl2+)", description=_flux("Cl2+ ions")),
+    ControlSpec("flux_cl2_plus", _FLUX, "log", 1e-6, 2e-4, label="Gamma(Cl2+)",
+                description=_flux("Cl2+ ions")),
     ControlSpec("flux_cl", _FLUX, "log", 1e-3, 2e-2, label="Gamma(Cl)", description=_flux("neutral Cl")),
     ControlSpec("angle_cl", "1", "int", 0, 20, label="m(Cl)", description=_angle("neutral Cl")),
     ControlSpec("angle_cl_plus", "1", "int", 50, 3000, label="m(Cl+)", description=_angle("Cl+ ions")),
@@ -112,7 +114,8 @@ CONTROL_SPECS: tuple[ControlSpec, ...] = (
 CONTROL_NAMES: tuple[str, ...] = tuple(s.name for s in CONTROL_SPECS)
 N_CONTROLS = len(CONTROL_SPECS)  # 14
 CONTROL_INDEX: dict[str, int] = {n: i for i, n in enumerate(CONTROL_NAMES)}
-FLUX_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "log")  # F = {1,2,3,4}
+# F = {1, 2, 3, 4} in the paper's 1-based numbering
+FLUX_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "log")
 INT_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "int")
 
 # Fixed bounds as arrays (14,)
@@ -266,7 +269,7 @@ def check_admissible(raw: np.ndarray) -> list[str]:
     rows = raw.reshape(-1, N_CONTROLS)  # (N, 14)
     bad = ~np.isfinite(rows) | (rows < PHYS_MIN) | (rows > PHYS_MAX)  # (N, 14)
     out = []
-    for i, j in zip(*np.nonzero(bad)):
+    for i, j in zip(*np.nonzero(bad), strict=True):
         s = CONTROL_SPECS[j]
         where = f"row {i}: " if rows.shape[0] > 1 else ""
         out.append(f"{where}{s.name}={float(rows[i, j])!r} outside the physically admissible range "
@@ -275,10 +278,10 @@ def check_admissible(raw: np.ndarray) -> list[str]:
 
 
 def outside_design_range(raw: np.ndarray) -> list[str]:
-    """Names of the controls outside the configured design (training) range in any row of raw (14,) or (..., 14)."""
+    """Names of the controls outside the design (training) range in any row of raw (14,) or (..., 14)."""
     rows = np.asarray(raw, dtype=np.float64).reshape(-1, N_CONTROLS)  # (N, 14)
     outside = ((rows < LOW) | (rows > HIGH) | np.isnan(rows)).any(axis=0)  # (14,)
-    return [s.name for s, o in zip(CONTROL_SPECS, outside) if o]
+    return [s.name for s, o in zip(CONTROL_SPECS, outside, strict=True) if o]
 
 
 # --- CSV -----------------------------------------------------------------------------------------------
@@ -294,7 +297,8 @@ def write_controls_csv(path: str | Path, raw: np.ndarray) -> None:
         w = csv.writer(fh)
         w.writerow(CONTROL_NAMES)
         for row in raw:
-            w.writerow([str(int(v)) if k and float(v).is_integer() else repr(float(v)) for v, k in zip(row, is_int)])
+            w.writerow([str(int(v)) if k and float(v).is_integer() else repr(float(v))
+                        for v, k in zip(row, is_int, strict=True)])
 
 
 def read_controls_csv(path: str | Path) -> np.ndarray:
@@ -329,5 +333,7 @@ def read_controls_csv(path: str | Path) -> np.ndarray:
             try:
                 out[r, j] = float(row[c])
             except ValueError:
-                raise ValueError(f"{path}: row {r + 2}, column {CONTROL_NAMES[j]!r}: not a number: {row[c]!r}") from None
+                raise ValueError(
+                    f"{path}: row {r + 2}, column {CONTROL_NAMES[j]!r}: not a number: {row[c]!r}"
+                ) from None
     return out

@@ -56,8 +56,12 @@ def damaged(tmp_path_factory, data_file, tiny_checkpoint) -> dict[str, Path]:
     """Damaged copies: .h5 truncated to half and with its middle third zeroed; .pt truncated and garbage."""
     root = tmp_path_factory.mktemp("damaged")
     h5, pt = data_file.read_bytes(), Path(tiny_checkpoint).read_bytes()
-    out = {"trunc_h5": root / "trunc.h5", "zeroed_h5": root / "zeroed.h5", "trunc_pt": root / "trunc.pt",
-           "garbage_pt": root / "garbage.pt"}
+    out = {
+        "trunc_h5": root / "trunc.h5",
+        "zeroed_h5": root / "zeroed.h5",
+        "trunc_pt": root / "trunc.pt",
+        "garbage_pt": root / "garbage.pt",
+    }
     out["trunc_h5"].write_bytes(h5[: len(h5) // 2])
     n = len(h5)
     out["zeroed_h5"].write_bytes(h5[: n // 3] + bytes(n // 3) + h5[2 * (n // 3) :])
@@ -81,7 +85,7 @@ def _fails_cleanly(capsys, argv: list[str], code: int = 2) -> str:
     return lines[0]
 
 
-# ---- item 1: output folders are created ---------------------------------------------------------------------
+# ---- item 1: output folders are created --------------------------------------------------------------------
 
 
 def test_design_creates_missing_parent_dirs(tmp_path):
@@ -90,7 +94,7 @@ def test_design_creates_missing_parent_dirs(tmp_path):
     assert len(out.read_text().splitlines()) == 6  # header + 5 cases
 
 
-# ---- item 2: splits of a data file, and manifests that do not fit -------------------------------------------
+# ---- item 2: splits of a data file, and manifests that do not fit ------------------------------------------
 
 
 def test_splits_from_data_file_use_its_case_ids_and_horizon(tmp_path, data_file, tiny_scene):
@@ -101,32 +105,61 @@ def test_splits_from_data_file_use_its_case_ids_and_horizon(tmp_path, data_file,
     assert m["visible_transitions"] == tiny_scene.n_transitions
 
 
-def test_default_splits_that_do_not_fit_the_data_file_say_what_to_do(tmp_path, capsys, data_file,
-                                                                     tiny_checkpoint):
+def test_default_splits_that_do_not_fit_the_data_file_say_what_to_do(
+    tmp_path, capsys, data_file, tiny_checkpoint
+):
     data = tmp_path / "tiny.h5"
     shutil.copy(data_file, data)
     design = tmp_path / "design.csv"
     assert main(["design", "--n", "50", "--out", str(design)]) == 0
     assert main(["splits", "--design", str(design), "--out", str(tmp_path / "splits")]) == 0
-    for argv in (["evaluate", "--checkpoint", tiny_checkpoint, "--data", data, "--setting", "control-id"],
-                 ["train", "--model", "nemsim", "--data", data, "--setting", "control-id", "--out",
-                  tmp_path / "run", "--max-steps", "1", "--no-progress"]):
+    for argv in (
+        ["evaluate", "--checkpoint", tiny_checkpoint, "--data", data, "--setting", "control-id"],
+        [
+            "train",
+            "--model",
+            "nemsim",
+            "--data",
+            data,
+            "--setting",
+            "control-id",
+            "--out",
+            tmp_path / "run",
+            "--max-steps",
+            "1",
+            "--no-progress",
+        ],
+    ):
         line = _fails_cleanly(capsys, argv)
         assert "does not fit" in line and f"nemsim splits --data {data}" in line
 
 
-# ---- item 6: values out of range ----------------------------------------------------------------------------
+# ---- item 6: values out of range ---------------------------------------------------------------------------
 
 
 def test_splits_transitions_zero_is_refused(tmp_path, capsys, data_file):
-    line = _fails_cleanly(capsys, ["splits", "--data", data_file, "--out", tmp_path / "s", "--transitions", "0"])
+    line = _fails_cleanly(
+        capsys, ["splits", "--data", data_file, "--out", tmp_path / "s", "--transitions", "0"]
+    )
     assert "--transitions" in line
     assert not (tmp_path / "s").exists()
 
 
 def test_evaluate_negative_steps_is_refused(capsys, data_file, tiny_checkpoint):
-    line = _fails_cleanly(capsys, ["evaluate", "--checkpoint", tiny_checkpoint, "--data", data_file,
-                                   "--setting", "control-id", "--steps", "-4"])
+    line = _fails_cleanly(
+        capsys,
+        [
+            "evaluate",
+            "--checkpoint",
+            tiny_checkpoint,
+            "--data",
+            data_file,
+            "--setting",
+            "control-id",
+            "--steps",
+            "-4",
+        ],
+    )
     assert "--steps must be in [1," in line
 
 
@@ -135,7 +168,7 @@ def test_usage_error_is_one_line(capsys):
     assert "invalid choice" in line and "nemsim evaluate --help" in line
 
 
-# ---- item 3: damaged files ----------------------------------------------------------------------------------
+# ---- item 3: damaged files ---------------------------------------------------------------------------------
 
 
 def test_data_check_reports_a_damaged_file(capsys, damaged):
@@ -150,12 +183,24 @@ def test_data_check_reports_a_truncated_file(capsys, damaged):
     assert "FAIL" in out and "truncated" in out and "Traceback" not in err
 
 
-@pytest.mark.parametrize("command", ["train", "evaluate", "generate", "sensitivity", "splits", "counterfactual"])
+@pytest.mark.parametrize(
+    "command", ["train", "evaluate", "generate", "sensitivity", "splits", "counterfactual"]
+)
 def test_truncated_hdf5_is_one_line(tmp_path, capsys, damaged, tiny_checkpoint, command):
     h5 = tmp_path / "trunc.h5"
     shutil.copy(damaged["trunc_h5"], h5)
     argv = {
-        "train": ["train", "--model", "nemsim", "--data", h5, "--setting", "control-id", "--out", tmp_path / "r"],
+        "train": [
+            "train",
+            "--model",
+            "nemsim",
+            "--data",
+            h5,
+            "--setting",
+            "control-id",
+            "--out",
+            tmp_path / "r",
+        ],
         "evaluate": ["evaluate", "--checkpoint", tiny_checkpoint, "--data", h5, "--setting", "control-id"],
         "generate": ["generate", "--scene", "tiny", "--n", "1", "--out", h5, "--no-progress"],
         "sensitivity": ["sensitivity", h5],
@@ -169,8 +214,10 @@ def test_truncated_hdf5_is_one_line(tmp_path, capsys, damaged, tiny_checkpoint, 
 
 @pytest.mark.parametrize("kind", ["trunc_pt", "garbage_pt"])
 def test_damaged_checkpoint_is_one_line(capsys, damaged, data_file, kind):
-    for argv in (["evaluate", "--checkpoint", damaged[kind], "--data", data_file, "--setting", "control-id"],
-                 ["stress", "--checkpoint", damaged[kind], "--steps", "2"]):
+    for argv in (
+        ["evaluate", "--checkpoint", damaged[kind], "--data", data_file, "--setting", "control-id"],
+        ["stress", "--checkpoint", damaged[kind], "--steps", "2"],
+    ):
         line = _fails_cleanly(capsys, argv)
         assert str(damaged[kind]) in line and "not a readable checkpoint" in line
 
@@ -187,7 +234,7 @@ def test_yaml_syntax_error_names_the_line(tmp_path, capsys):
     assert f"{bad}: YAML syntax error at line 4" in line
 
 
-# ---- the boundary: bugs stay visible ------------------------------------------------------------------------
+# ---- the boundary: bugs stay visible -----------------------------------------------------------------------
 
 
 def _buggy(args):
@@ -206,14 +253,15 @@ def test_unexpected_error_is_one_line_with_exit_1_and_debug_shows_it(monkeypatch
 
 def test_entry_point_prints_no_traceback(damaged, data_file):
     env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).parents[1]), "OMP_NUM_THREADS": "1"}
-    res = subprocess.run([sys.executable, "-m", "nemsim.cli", "evaluate", "--checkpoint", str(damaged["trunc_pt"]),
-                          "--data", str(data_file), "--setting", "control-id"],
-                         capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    argv = ["evaluate", "--checkpoint", str(damaged["trunc_pt"]), "--data", str(data_file), "--setting",
+            "control-id"]
+    res = subprocess.run([sys.executable, "-m", "nemsim.cli", *argv], capture_output=True, text=True, env=env,
+                         timeout=120)  # fmt: skip
     assert res.returncode == 2, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr
 
 
-# ---- item 8: defaults never write into committed folders ----------------------------------------------------
+# ---- item 8: defaults never write into committed folders ---------------------------------------------------
 
 
 def test_default_outputs_are_under_runs(tmp_path, monkeypatch, capsys, data_file, tiny_checkpoint):
@@ -223,15 +271,26 @@ def test_default_outputs_are_under_runs(tmp_path, monkeypatch, capsys, data_file
     monkeypatch.chdir(tmp_path)
     splits = tmp_path / "splits"
     assert main(["splits", "--data", str(data_file), "--out", str(splits)]) == 0
-    rc = main(["counterfactual", "--checkpoint", str(tiny_checkpoint), "--data", str(data_file),
-               "--splits", str(splits), "--max-cases", "1"])
+    rc = main(
+        [
+            "counterfactual",
+            "--checkpoint",
+            str(tiny_checkpoint),
+            "--data",
+            str(data_file),
+            "--splits",
+            str(splits),
+            "--max-cases",
+            "1",
+        ]
+    )
     assert rc == 0
     written = list((tmp_path / "runs" / "counterfactual").glob("*/counterfactual.json"))
     assert len(written) == 1
     assert not (Path(tiny_checkpoint).parent / "counterfactual").exists()
 
 
-# ---- item 7: `make test` prints its count -------------------------------------------------------------------
+# ---- item 7: `make test` prints its count ------------------------------------------------------------------
 
 
 def test_make_test_runs_pytest_with_a_single_quiet_flag():
@@ -240,6 +299,7 @@ def test_make_test_runs_pytest_with_a_single_quiet_flag():
     root = Path(__file__).parents[1]
     recipe = [ln for ln in (root / "Makefile").read_text().splitlines() if "-m pytest" in ln]
     addopts = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"].get(
-        "addopts", "")
+        "addopts", ""
+    )
     quiet = sum(tok.count("q") for tok in (recipe[0] + " " + addopts).split() if tok.startswith("-q"))
     assert len(recipe) == 1 and quiet == 1  # -qq hides the "N passed, M skipped" line

@@ -134,7 +134,7 @@ def test_n_controls_is_defined_once():
     from pathlib import Path
 
     root = Path(C.__file__).parent
-    defining = [p.relative_to(root).as_posix() for p in root.rglob("*.py")
-                if re.search(r"^N_CONTROLS\s*=", p.read_text(), re.MULTILINE)]
+    pattern = re.compile(r"^N_CONTROLS\s*=", re.MULTILINE)
+    defining = [p.relative_to(root).as_posix() for p in root.rglob("*.py") if pattern.search(p.read_text())]
     assert defining == ["controls.py"]
     assert C.N_CONTROLS == len(C.CONTROL_SPECS) == 14

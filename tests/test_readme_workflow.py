@@ -1,4 +1,4 @@
-"""The README's toy workflow, run line by line exactly as written (parsed from the README, so they cannot drift).
+"""The README's toy workflow, run line by line exactly as written (parsed from the README: they cannot drift).
 
 The block between ``<!-- toy-workflow:begin -->`` and ``<!-- toy-workflow:end -->`` may hold only ``nemsim``
 commands (one ending in ``&`` runs in the background), ``curl`` requests and ``kill %1``. ``nemsim`` runs as
@@ -95,7 +95,8 @@ def test_readme_toy_workflow(tmp_path):
                 args = [a if a != "8001" else str(port) for a in (words[1:-1] if bg else words[1:])]
                 argv = [sys.executable, "-m", "nemsim.cli", *args]
                 if bg:
-                    background.append(subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=server_log.open("w"),
+                    log = server_log.open("w")
+                    background.append(subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=log,
                                                        stderr=subprocess.STDOUT))  # fmt: skip
                     continue
                 res = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=170)
@@ -118,8 +119,13 @@ def test_readme_toy_workflow(tmp_path):
         for proc in background:
             proc.kill()
             proc.wait()
-    for path in ("data/toy/design.csv", "data/toy/tiny.h5", "data/toy/splits/control-id.json", "runs/toy/best.pt",
-                 "runs/toy/test.json"):
+    for path in (
+        "data/toy/design.csv",
+        "data/toy/tiny.h5",
+        "data/toy/splits/control-id.json",
+        "runs/toy/best.pt",
+        "runs/toy/test.json",
+    ):
         assert (tmp_path / path).is_file(), path
 
 

@@ -53,12 +53,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nemsim.controls import N_CONTROLS
 from nemsim.model.decoder import DecoderConfig, ResidualDecoder
 from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredIntensity
 from nemsim.model.encoder import EncoderConfig, StateEncoder
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
-from nemsim.controls import N_CONTROLS
 from nemsim.model.rule_buffers import RuleBuffers
 
 
