@@ -713,6 +713,8 @@ def _add_metrics(sub: argparse._SubParsersAction) -> None:
             "Importance score I = 0.7|beta| + 0.3|rho| ([supp_protocols], eq:supp_control_importance) of "
             "each control for etch depth, top-opening width, neck width, bottom width and bowing at the "
             "final state, averaged over the quantities; printed as a ranked table with percentages. "
+            "It reads only the controls and the final states, so damage elsewhere in the file goes "
+            "unnoticed here: `nemsim data check` reads every state. "
             "Writes nothing unless --json is given. Example: nemsim sensitivity data/small.h5"
         ),
     )
