@@ -1039,8 +1039,9 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
                    help="run dirs with test_metrics.json (from `nemsim train`)")
     p.add_argument("--speed-error", default=None, metavar="FILE.json",
                    help="speed_error.json of `nemsim bench speed-error` (noise floor and speed)")
-    p.add_argument("--out", default="benchmarks/small/results.json", metavar="FILE.json",
-                   help="output JSON (default benchmarks/small/results.json)")
+    p.add_argument("--out", default="runs/results/results.json", metavar="FILE.json",
+                   help="output JSON (default runs/results/results.json; the committed table: "
+                   "--out benchmarks/small/results.json)")
     p.add_argument("--readme", default=None, metavar="FILE.md",
                    help="Markdown file for the table (default: README.md next to --out)")
     p.set_defaults(handler=_cmd_bench_collect)
@@ -1124,6 +1125,7 @@ def build_parser() -> argparse.ArgumentParser:
     for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress,
                 _add_speed_error):
         add(sub)
+    _add_debug_option(parser)
     return parser
 
 
@@ -1231,9 +1233,7 @@ def _add_debug_option(parser: argparse.ArgumentParser, top: bool = True) -> None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    _add_debug_option(parser)
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

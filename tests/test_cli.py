@@ -267,7 +267,8 @@ def test_entry_point_prints_no_traceback(damaged, data_file):
 def test_default_outputs_are_under_runs(tmp_path, monkeypatch, capsys, data_file, tiny_checkpoint):
     parser = cli.build_parser()
     se = parser.parse_args(["bench", "speed-error", "--data", "x.h5"])
-    assert Path(se.out).parts[0] == "runs"
+    collect = parser.parse_args(["bench", "collect", "--runs", "r"])
+    assert Path(se.out).parts[0] == "runs" and Path(collect.out).parts[0] == "runs"
     monkeypatch.chdir(tmp_path)
     splits = tmp_path / "splits"
     assert main(["splits", "--data", str(data_file), "--out", str(splits)]) == 0
