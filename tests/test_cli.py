@@ -261,6 +261,22 @@ def test_entry_point_prints_no_traceback(damaged, data_file):
     assert len(res.stderr.strip().splitlines()) == 1 and "Traceback" not in res.stderr
 
 
+def test_file_in_use_is_one_line(tmp_path, data_file):
+    """A second writer on a file another process holds open (h5py's BlockingIOError) is one line, exit 2."""
+    import h5py
+
+    h5 = tmp_path / "busy.h5"
+    shutil.copy(data_file, h5)
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).parents[1]), "OMP_NUM_THREADS": "1"}
+    with h5py.File(h5, "a"):  # holds the HDF5 file lock, as a running `nemsim generate` does
+        res = subprocess.run([sys.executable, "-m", "nemsim.cli", "generate", "--scene", "tiny", "--n", "1",
+                              "--out", str(h5), "--no-progress"], capture_output=True, text=True, env=env,
+                             timeout=120)  # fmt: skip
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "file in use" in lines[0] and "Traceback" not in res.stderr
+
+
 # ---- item 8: defaults never write into committed folders ---------------------------------------------------
 
 
