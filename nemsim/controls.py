@@ -39,7 +39,7 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
@@ -160,46 +160,46 @@ def _consts(x: object, *arrays: np.ndarray) -> list:
 def transform(raw: A) -> A:
     """eq:supp_control_transformation: log10(u + eps_u) for the fluxes, identity otherwise. (..., 14)."""
     _check_last_dim(raw)
-    if _is_torch(raw):
+    x: Any = raw  # numpy array or torch tensor; A keeps the caller's type in the signature
+    if _is_torch(x):
         import torch
 
-        raw_f = raw if raw.is_floating_point() else raw.double()  # type: ignore[attr-defined]
-        is_log = torch.as_tensor(IS_LOG, device=raw_f.device)
-        return torch.where(is_log, torch.log10(raw_f + EPS_U), raw_f)
-    raw = np.asarray(raw, dtype=np.float64)
+        x = x if x.is_floating_point() else x.double()
+        is_log = torch.as_tensor(IS_LOG, device=x.device)
+        return torch.where(is_log, torch.log10(x + EPS_U), x)  # type: ignore[return-value]
+    x = np.asarray(x, dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        logged = np.log10(np.where(IS_LOG, raw, 0.0) + EPS_U)
-    return np.where(IS_LOG, logged, raw)
+        logged = np.log10(np.where(IS_LOG, x, 0.0) + EPS_U)
+    return np.where(IS_LOG, logged, x)  # type: ignore[return-value]
 
 
 def inverse_transform(transformed: A) -> A:
     """Inverse of ``transform``: 10**u~ - eps_u for the fluxes. (..., 14)."""
     _check_last_dim(transformed)
-    if _is_torch(transformed):
+    x: Any = transformed
+    if _is_torch(x):
         import torch
 
-        is_log = torch.as_tensor(IS_LOG, device=transformed.device)  # type: ignore[attr-defined]
-        return torch.where(is_log, torch.pow(10.0, transformed) - EPS_U, transformed)
-    t = np.asarray(transformed, dtype=np.float64)
-    return np.where(IS_LOG, np.power(10.0, np.where(IS_LOG, t, 0.0)) - EPS_U, t)
+        is_log = torch.as_tensor(IS_LOG, device=x.device)
+        return torch.where(is_log, torch.pow(10.0, x) - EPS_U, x)  # type: ignore[return-value]
+    t = np.asarray(x, dtype=np.float64)
+    return np.where(IS_LOG, np.power(10.0, np.where(IS_LOG, t, 0.0)) - EPS_U, t)  # type: ignore[return-value]
 
 
 def normalize(transformed: A) -> A:
     """eq:supp_control_normalization: 2 (u~ - u~min) / (u~max - u~min) - 1, fixed bounds, no clipping."""
     _check_last_dim(transformed)
     lo, hi = _consts(transformed, T_LOW, T_HIGH)
-    if not _is_torch(transformed):
-        transformed = np.asarray(transformed, dtype=np.float64)
-    return 2.0 * (transformed - lo) / (hi - lo) - 1.0
+    x: Any = transformed if _is_torch(transformed) else np.asarray(transformed, dtype=np.float64)
+    return 2.0 * (x - lo) / (hi - lo) - 1.0
 
 
 def denormalize(normalized: A) -> A:
     """Inverse of ``normalize``: transformed controls from [-1, 1] coordinates. (..., 14)."""
     _check_last_dim(normalized)
     lo, hi = _consts(normalized, T_LOW, T_HIGH)
-    if not _is_torch(normalized):
-        normalized = np.asarray(normalized, dtype=np.float64)
-    return lo + (normalized + 1.0) * 0.5 * (hi - lo)
+    x: Any = normalized if _is_torch(normalized) else np.asarray(normalized, dtype=np.float64)
+    return lo + (x + 1.0) * 0.5 * (hi - lo)
 
 
 def to_normalized(raw: A) -> A:
@@ -280,7 +280,7 @@ def check_admissible(raw: np.ndarray) -> list[str]:
 def outside_design_range(raw: np.ndarray) -> list[str]:
     """Names of the controls outside the design (training) range in any row of raw (14,) or (..., 14)."""
     rows = np.asarray(raw, dtype=np.float64).reshape(-1, N_CONTROLS)  # (N, 14)
-    outside = ((rows < LOW) | (rows > HIGH) | np.isnan(rows)).any(axis=0)  # (14,)
+    outside = np.asarray(((rows < LOW) | (rows > HIGH) | np.isnan(rows)).any(axis=0))  # (14,)
     return [s.name for s, o in zip(CONTROL_SPECS, outside, strict=True) if o]
 
 
