@@ -1047,6 +1047,16 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=_cmd_bench_collect)
 
 
+def _load_setting_manifest(data: str, setting: str, splits: str | None) -> dict:
+    """The split manifest of ``setting`` for the trajectory file ``data`` (see resolve_manifest)."""
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.data.splits import resolve_manifest
+
+    with open_trajectories(data) as tf:
+        manifest, _ = resolve_manifest(setting, data, tf.case_ids, tf.controls_raw, tf.scene.n_transitions, splits)
+    return manifest
+
+
 def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
     import os
 
@@ -1074,12 +1084,7 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
         raise UserError(f"--budgets {args.budgets!r}: each budget must be in (0, 1]")
     precisions = tuple(p.strip() for p in args.precisions.split(",") if p.strip())
     torch.set_num_threads(args.threads)
-    from nemsim.data.hdf5 import open_trajectories
-    from nemsim.data.splits import resolve_manifest
-
-    with open_trajectories(args.data) as tf:
-        manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
-                                       tf.scene.n_transitions, args.splits)  # fmt: skip
+    manifest = _load_setting_manifest(args.data, args.setting, args.splits)
     cfg = SpeedErrorConfig(cases=args.cases, budgets=budgets, precisions=precisions, seed=args.seed,
                            steps=args.steps)  # fmt: skip
     try:
