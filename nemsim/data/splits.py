@@ -202,12 +202,13 @@ def write_manifests(manifests: dict[str, dict], out_dir: str | Path) -> list[Pat
 def load_manifest(path_or_dir: str | Path, setting: str | None = None) -> dict:
     """Load a manifest from a JSON file, or ``<dir>/<setting>.json``. ValueError if absent or malformed."""
     p = Path(path_or_dir)
-    if p.is_dir():
+    if p.is_dir() or (setting is not None and p.suffix != ".json"):
         if setting not in SETTINGS:
             raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
         p = p / f"{setting}.json"
     if not p.is_file():
-        raise ValueError(f"no split manifest {p}; create it with `nemsim splits --design FILE.csv --out DIR`")
+        raise ValueError(f"no split manifest {p}; make the manifests with `nemsim splits --data FILE.h5 --out "
+                         f"{p.parent}` (or --design FILE.csv)")
     m = json.loads(p.read_text())
     missing = [k for k in ("setting", "train", "val", "test", "unused", "visible_transitions") if k not in m]
     if missing:
