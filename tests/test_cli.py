@@ -92,6 +92,8 @@ def test_design_creates_missing_parent_dirs(tmp_path):
     out = tmp_path / "fresh" / "data" / "design.csv"
     assert main(["design", "--n", "5", "--out", str(out)]) == 0
     assert len(out.read_text().splitlines()) == 6  # header + 5 cases
+    npz = tmp_path / "new" / "rules.npz"
+    assert main(["rules", "compile", "--out", str(npz)]) == 0 and npz.is_file()
 
 
 # ---- item 2: splits of a data file, and manifests that do not fit ------------------------------------------
