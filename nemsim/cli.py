@@ -1184,7 +1184,7 @@ def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
         where = f"{name}: " if name else ""
         if isinstance(exc, BlockingIOError):
             return EXIT_BAD_INPUT, f"{where}file in use (by another nemsim process?): {_first_line(exc)}"
-        if args.command == "data":
+        if getattr(args, "data_command", None) == "check":  # the check's own verdict
             return EXIT_BAD_INPUT, f"{where}FAILED: the file is damaged: {_first_line(exc)}"
         return EXIT_BAD_INPUT, (f"{where}cannot read HDF5 data: {_first_line(exc)} (damaged or truncated? "
                                 f"`nemsim data check {name or 'FILE'}` tells)")
