@@ -1053,7 +1053,8 @@ def _load_setting_manifest(data: str, setting: str, splits: str | None) -> dict:
     from nemsim.data.splits import resolve_manifest
 
     with open_trajectories(data) as tf:
-        manifest, _ = resolve_manifest(setting, data, tf.case_ids, tf.controls_raw, tf.scene.n_transitions, splits)
+        manifest, _ = resolve_manifest(setting, data, tf.case_ids, tf.controls_raw, tf.scene.n_transitions,
+                                       splits)
     return manifest
 
 

@@ -207,8 +207,8 @@ def load_manifest(path_or_dir: str | Path, setting: str | None = None) -> dict:
             raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
         p = p / f"{setting}.json"
     if not p.is_file():
-        raise ValueError(f"no split manifest {p}; make the manifests with `nemsim splits --data FILE.h5 --out "
-                         f"{p.parent}` (or --design FILE.csv)")
+        raise ValueError(f"no split manifest {p}; make the manifests with `nemsim splits --data FILE.h5 "
+                         f"--out {p.parent}` (or --design FILE.csv)")
     m = json.loads(p.read_text())
     missing = [k for k in ("setting", "train", "val", "test", "unused", "visible_transitions") if k not in m]
     if missing:
