@@ -2,7 +2,18 @@
 
 Each subcommand parses its flags and calls one library function; heavy imports (torch, numba, h5py)
 happen inside the handlers so `nemsim --help` stays instant. Handlers return a process exit code:
-0 success, 2 bad input or failed check (with one readable line on stderr).
+0 success, 1 `stress` found a failing case, 2 bad input or failed check.
+
+Errors have one boundary, ``main()``: handlers raise, they do not print. ``_error_report`` sorts what
+reaches it into
+  * bad input or a damaged file (exit 2, one line on stderr): ``UserError``; ``ValueError``, the library's
+    kind for bad input (``TrainInputError``, ``CheckpointMismatch``, ``RulesError`` derive from it);
+    ``OSError`` (missing, unwritable, locked or truncated files, h5py's errors); a YAML syntax error (with
+    its line); and anything raised while h5py or ``torch.load`` read a file (a damaged ``.h5`` or ``.pt``);
+  * a bug (exit 1): one line naming the exception and the hint to rerun with ``--debug``, which re-raises
+    so the traceback shows.
+Handlers still turn a library error into a ``UserError`` where they can say more (which option, what to do).
+Output paths the user names get their missing parent directories created (``_output_path``).
 """
 
 from __future__ import annotations
@@ -10,20 +21,44 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import typing
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 Handler = Callable[[argparse.Namespace], int]
+
+EXIT_BAD_INPUT = 2  # bad input, a damaged file or a failed check
+EXIT_BUG = 1  # an unexpected exception (also `stress`'s failing case)
+EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141  # as if killed by SIGPIPE, the shell convention
 
 
 class UserError(Exception):
     """Bad input from the command line: printed as one line, exit code 2."""
 
 
+def _output_path(path: str | Path) -> Path:
+    """A file path the user named for output, with its missing parent directories created."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _run_output(command: str, checkpoint: str | Path, suffix: str = "") -> Path:
+    """Default output of a command about a checkpoint: runs/<command>/<ckpt dir>-<ckpt name><suffix>.
+
+    Under runs/ (ignored by git), so a default never writes into a committed folder such as checkpoints/;
+    committed results are written only through an explicit --out.
+    """
+    ckpt = Path(checkpoint).resolve()
+    return Path("runs") / command / f"{ckpt.parent.name}-{ckpt.stem}{suffix}"
+
+
 def _write_json(path: str, obj: object) -> None:
     """Write a report as indented JSON (the --json option of several commands)."""
     import json
 
-    with open(path, "w") as fh:
+    with open(_output_path(path), "w") as fh:
         json.dump(obj, fh, indent=2)
 
 
@@ -64,8 +99,11 @@ def _add_rules(sub: argparse._SubParsersAction) -> None:
         description=(
             "Validate a rules YAML file against the schema and the species/controls vocabulary, then "
             "print one row per event (family, projectile, target, probability and yield model, products "
-            "or deposition pool) and the library's sha256. Writes nothing. Exit code 0 if the file is "
-            "valid, 2 (with the first error on stderr) if not. Example: nemsim rules check"
+            "or deposition pool) and the library's sha256. The family is physical, chemical or coupled; "
+            "the YAML spells the coupled family's group label `both`, as the paper's schema does "
+            "([eq:supp_group_mapping]). Writes nothing. Exit code 0 if the file is valid, 2 (with the "
+            "first error, and for a YAML syntax error its line, on stderr) if not. "
+            "Example: nemsim rules check"
         ),
     )
     c.add_argument("path", nargs="?", default=None, help="rules YAML (default: the repo's rules/cl_si.yaml)")
@@ -87,12 +125,9 @@ def _add_rules(sub: argparse._SubParsersAction) -> None:
 
 
 def _load_compiled_rules(path: str | None):
-    from nemsim.rules import RulesError, compile_rules, load_rules
+    from nemsim.rules import compile_rules, load_rules
 
-    try:
-        spec = load_rules(path)
-    except (RulesError, FileNotFoundError) as exc:
-        raise UserError(str(exc).splitlines()[0]) from None
+    spec = load_rules(path)  # RulesError (a ValueError) names the event and field; main() prints it
     return spec, compile_rules(spec)
 
 
@@ -125,10 +160,7 @@ def _cmd_rules_compile(args: argparse.Namespace) -> int:
 
     _, rt = _load_compiled_rules(args.path)
     arrays = rt.to_npz_dict()
-    try:
-        np.savez(args.out, **arrays, names=rt.names, sha256=np.array(rt.sha256))
-    except OSError as exc:
-        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    np.savez(_output_path(args.out), **arrays, names=rt.names, sha256=np.array(rt.sha256))
     shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in arrays.items())
     print(f"wrote {args.out}: {shapes}; sha256 {rt.sha256}")  # noqa: T201
     return 0
@@ -151,25 +183,31 @@ def _add_data(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
     p.add_argument("--seed", type=int, default=42, help="LHS seed (default 42, the paper's design)")
-    p.add_argument("--out", required=True, metavar="FILE.csv", help="output CSV (overwritten)")
+    p.add_argument("--out", required=True, metavar="FILE.csv",
+                   help="output CSV (overwritten; missing folders are created)")
     p.set_defaults(handler=_cmd_design)
 
     p = sub.add_parser(
         "splits",
         help="write one split manifest JSON per setting ([supp_protocols])",
         description=(
-            "Partition the cases of a design CSV into train/val/test for every evaluation setting "
-            "(control-id, ood-ar, ood-cl, ood-joint, vis-50, vis-60) and write DIR/<setting>.json, each "
-            "with its nested data-efficiency training subsets (10/20/50/100 %); print the table of set "
-            "sizes. `nemsim train` and `nemsim evaluate` read these from <data dir>/splits by default. "
+            "Partition the cases of a design CSV, or of a trajectory file, into train/val/test for every "
+            "evaluation setting (control-id, ood-ar, ood-cl, ood-joint, vis-50, vis-60) and write "
+            "DIR/<setting>.json, each with its nested data-efficiency training subsets (10/20/50/100 %); "
+            "print the table of set sizes. `nemsim train` and `nemsim evaluate` read these from "
+            "<data dir>/splits by default and refuse manifests whose case ids are not in the data file. "
             "Example: nemsim splits --design data/design.csv --out data/splits"
         ),
     )
-    p.add_argument("--design", required=True, metavar="FILE.csv",
-                   help="design CSV (from `nemsim design`); case id = row index")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--design", metavar="FILE.csv",
+                     help="design CSV (from `nemsim design`); case id = row index")
+    src.add_argument("--data", metavar="FILE.h5",
+                     help="trajectory file (from `nemsim generate`): its case ids and controls")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     p.add_argument("--seed", type=int, default=0, help="partition seed (default 0)")
-    p.add_argument("--transitions", type=int, default=100, help="transitions per trajectory (default 100)")
+    p.add_argument("--transitions", type=int, default=None,
+                   help="transitions per trajectory (default: the data file's horizon, else 100)")
     p.set_defaults(handler=_cmd_splits)
 
     p = sub.add_parser(
@@ -202,30 +240,27 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
     if args.n < 1:
         raise UserError(f"--n must be >= 1, got {args.n}")
-    raw = lhs_design(args.n, args.seed)
-    try:
-        write_controls_csv(args.out, raw)
-    except OSError as exc:
-        raise UserError(f"cannot write {args.out}: {exc.strerror}") from None
+    write_controls_csv(_output_path(args.out), lhs_design(args.n, args.seed))
     print(f"wrote {args.out}: {args.n} cases x 14 controls (LHS seed {args.seed})")  # noqa: T201
     return 0
 
 
 def _cmd_splits(args: argparse.Namespace) -> int:
-    from nemsim.controls import read_controls_csv
     from nemsim.data.splits import make_manifests, split_table, write_manifests
 
-    try:
-        raw = read_controls_csv(args.design)
-    except FileNotFoundError:
-        raise UserError(f"no such file: {args.design}") from None
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    manifests = make_manifests(raw, seed=args.seed, n_transitions=args.transitions)
-    try:
-        paths = write_manifests(manifests, args.out)
-    except OSError as exc:
-        raise UserError(f"cannot write to {args.out}: {exc.strerror}") from None
+    if args.transitions is not None and args.transitions < 1:
+        raise UserError(f"--transitions must be >= 1, got {args.transitions}")
+    if args.data:
+        from nemsim.data.hdf5 import open_trajectories
+
+        with open_trajectories(args.data) as tf:
+            raw, case_ids, horizon = tf.controls_raw, tf.case_ids, tf.scene.n_transitions
+    else:
+        from nemsim.controls import read_controls_csv
+
+        raw, case_ids, horizon = read_controls_csv(args.design), None, 100
+    manifests = make_manifests(raw, case_ids, seed=args.seed, n_transitions=args.transitions or horizon)
+    paths = write_manifests(manifests, args.out)
     print(split_table(manifests))  # noqa: T201
     print(f"wrote {len(paths)} manifests to {args.out}")  # noqa: T201
     return 0
@@ -618,8 +653,8 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", type=Path, help="write the metrics as JSON here")
     p.add_argument("--save-rollouts", type=Path, help="write predictions (N, T+1, 2, D, H, W) to this HDF5")
     p.add_argument("--plot", type=Path,
-                   help="PNG path (default: --json with .png, else eval_<setting>.png next to the "
-                   "checkpoint)")
+                   help="PNG path (default: --json with .png, else "
+                   "runs/evaluate/<checkpoint dir>-<checkpoint name>_<setting>.png)")
     p.add_argument("--steps", type=int, help="rollout length in transitions (default: full horizon, 100)")
     p.add_argument("--batch-size", type=int, default=1,
                    help="trajectories rolled out together (default 1, the paper's per-trajectory timing)")
@@ -649,7 +684,8 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
             "interventions), predict one step from the case's initial state, and relate the change of "
             "each mechanism family's response (ΔM, %) to the change of Si removal (ΔR, %) with "
             "per-group Pearson correlations. Prints the table and writes counterfactual.json, "
-            "counterfactual_table.csv and counterfactual.png to --out. Runs on the CPU. "
+            "counterfactual_table.csv and counterfactual.png to --out (default under runs/). "
+            "Runs on the CPU. "
             "Example: nemsim counterfactual --checkpoint runs/nemsim/best.pt --data data/small.h5"
         ),
     )
@@ -664,18 +700,16 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--splits", type=Path,
                    help="directory of split manifests <setting>.json (default: <data dir>/splits if present, "
                    "else computed from the data file)")
-    p.add_argument("--out", type=Path, help="output directory (default: <checkpoint dir>/counterfactual)")
+    p.add_argument("--out", type=Path,
+                   help="output directory (default: runs/counterfactual/<checkpoint dir>-<checkpoint name>)")
     p.add_argument("--max-cases", type=int, help="analyse only the first N cases of the split (default: all)")
     p.set_defaults(handler=_cmd_counterfactual)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from nemsim.train import TrainInputError, run
+    from nemsim.train import run
 
-    try:
-        return run(args)
-    except (TrainInputError, FileNotFoundError) as exc:
-        raise UserError(str(exc)) from None
+    return run(args)
 
 
 def _load_for_eval(args: argparse.Namespace):
@@ -683,18 +717,16 @@ def _load_for_eval(args: argparse.Namespace):
     from pathlib import Path
 
     from nemsim.data.hdf5 import open_trajectories
-    from nemsim.train import TrainInputError, _load_manifest
-    from nemsim.training.checkpoint import CheckpointMismatch, load_checkpoint
+    from nemsim.data.splits import resolve_manifest
+    from nemsim.training.checkpoint import load_checkpoint
 
     for path in (args.checkpoint, args.data):
         if not Path(path).is_file():
             raise UserError(f"{path} does not exist")
     tf = open_trajectories(args.data)
-    try:
-        loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
-        manifest = _load_manifest(Path(args.data), args.setting, args.splits, tf)
-    except (CheckpointMismatch, TrainInputError) as exc:
-        raise UserError(str(exc)) from None
+    loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
+    manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
+                                   tf.scene.n_transitions, args.splits)  # fmt: skip
     if tf.rules_sha256 and tf.rules_sha256 != loaded.raw["rules_sha256"]:
         logging.getLogger("nemsim.cli").warning(
             "data was generated with rules %s..., the checkpoint's library is %s...",
@@ -703,12 +735,15 @@ def _load_for_eval(args: argparse.Namespace):
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from nemsim.data.dataset import TrajectoryDataset
     from nemsim.evaluation.evaluate import evaluate, plot_evaluation, write_json
 
+    if args.batch_size < 1:
+        raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
     loaded, tf, manifest = _load_for_eval(args)
+    horizon = loaded.scene.n_transitions
+    if args.steps is not None and not 1 <= args.steps <= horizon:
+        raise UserError(f"--steps must be in [1, {horizon}] (the scene's horizon), got {args.steps}")
     cases = TrajectoryDataset(args.data, manifest, args.split)
     if len(cases) == 0:
         raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
@@ -729,7 +764,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.json:
         write_json(result, args.json, extra)
     plot = args.plot or (args.json.with_suffix(".png") if args.json
-                         else Path(args.checkpoint).with_name(f"eval_{args.setting}.png"))
+                         else _run_output("evaluate", args.checkpoint, f"_{args.setting}.png"))
     plot_evaluation(result, loaded.scene, plot, title=f"{loaded.name} {args.setting}")
     print(f"  figure     {plot}")  # noqa: T201
     return 0
@@ -760,12 +795,12 @@ def _cmd_models(args: argparse.Namespace) -> int:
 
 
 def _cmd_counterfactual(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     import numpy as np
 
     from nemsim.analysis.counterfactual import analyze, format_table, write_outputs
 
+    if args.max_cases is not None and args.max_cases < 1:
+        raise UserError(f"--max-cases must be >= 1, got {args.max_cases}")
     args.device = "cpu"
     loaded, tf, manifest = _load_for_eval(args)
     ids = list(manifest[args.split])[: args.max_cases]
@@ -775,7 +810,7 @@ def _cmd_counterfactual(args: argparse.Namespace) -> int:
     raw = np.asarray(tf.controls_raw)
     cases = [(int(c), np.asarray(tf.states[row_of[int(c)], 0]), raw[row_of[int(c)]]) for c in ids]
     result = analyze(loaded.model, cases)
-    out = args.out or Path(args.checkpoint).parent / "counterfactual"
+    out = args.out or _run_output("counterfactual", args.checkpoint)
     paths = write_outputs(result, out)
     print(format_table(result))  # noqa: T201
     print(f"wrote {paths['json']}, {paths['csv']}, {paths['png']}")  # noqa: T201
@@ -793,6 +828,8 @@ def _add_metrics(sub: argparse._SubParsersAction) -> None:
             "Importance score I = 0.7|beta| + 0.3|rho| ([supp_protocols], eq:supp_control_importance) of "
             "each control for etch depth, top-opening width, neck width, bottom width and bowing at the "
             "final state, averaged over the quantities; printed as a ranked table with percentages. "
+            "It reads only the controls and the final states, so damage elsewhere in the file goes "
+            "unnoticed here: `nemsim data check` reads every state. "
             "Writes nothing unless --json is given. Example: nemsim sensitivity data/small.h5"
         ),
     )
@@ -1352,8 +1389,9 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=None, help="transitions (default: the scene's horizon)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1: the simulator is single-threaded too)")
-    p.add_argument("--out", default="benchmarks/small", metavar="DIR",
-                   help="output directory (default benchmarks/small)")
+    p.add_argument("--out", default="runs/speed-error", metavar="DIR",
+                   help="output directory (default runs/speed-error; the committed results: "
+                   "--out benchmarks/small)")
     p.set_defaults(handler=_cmd_bench_speed_error)
 
     p = bench_sub.add_parser(
@@ -1372,32 +1410,23 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
                    help="run dirs with test_metrics.json (from `nemsim train`)")
     p.add_argument("--speed-error", default=None, metavar="FILE.json",
                    help="speed_error.json of `nemsim bench speed-error` (noise floor and speed)")
-    p.add_argument("--out", default="benchmarks/small/results.json", metavar="FILE.json",
-                   help="output JSON (default benchmarks/small/results.json)")
+    p.add_argument("--out", default="runs/results/results.json", metavar="FILE.json",
+                   help="output JSON (default runs/results/results.json; the committed table: "
+                   "--out benchmarks/small/results.json)")
     p.add_argument("--readme", default=None, metavar="FILE.md",
                    help="Markdown file for the table (default: README.md next to --out)")
     p.set_defaults(handler=_cmd_bench_collect)
 
 
 def _load_setting_manifest(data: str, setting: str, splits: str | None) -> dict:
-    from pathlib import Path
-
-    from nemsim.data import splits as splits_mod
-
-    directory = Path(splits) if splits else Path(data).parent / "splits"
-    if splits or (directory / f"{setting}.json").is_file():
-        try:
-            return splits_mod.load_manifest(directory, setting)
-        except (OSError, ValueError) as exc:
-            raise UserError(str(exc)) from None
+    """The split manifest of ``setting`` for the trajectory file ``data`` (see resolve_manifest)."""
     from nemsim.data.hdf5 import open_trajectories
+    from nemsim.data.splits import resolve_manifest
 
     with open_trajectories(data) as tf:
-        manifests = splits_mod.make_manifests(tf.controls_raw, tf.case_ids,
-                                              n_transitions=tf.scene.n_transitions)  # fmt: skip
-    if setting not in manifests:
-        raise UserError(f"unknown setting {setting!r}; expected one of {sorted(manifests)}")
-    return manifests[setting]
+        manifest, _ = resolve_manifest(setting, data, tf.case_ids, tf.controls_raw, tf.scene.n_transitions,
+                                       splits)
+    return manifest
 
 
 def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
@@ -1457,13 +1486,14 @@ def _cmd_bench_collect(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="nemsim",
         description=(
             "NEMSim: Event Rules Library, Monte Carlo etch simulator, neural surrogate and service. "
             "Typical workflow: design -> splits -> generate -> data check -> train -> evaluate -> serve. "
             "Run `nemsim COMMAND --help` for each command. Exit codes: 0 success, 1 `stress` found a failing "
-            "case, 2 bad input or failed check (one line on stderr), 130 interrupted."
+            "case, 2 bad input, a damaged file or a failed check (one line on stderr), 1 an unexpected "
+            "error (a bug: one line; --debug shows the traceback), 130 interrupted."
         ),
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
@@ -1472,12 +1502,115 @@ def build_parser() -> argparse.ArgumentParser:
     for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress,
                 _add_truth_benches, _add_speed_error):
         add(sub)
+    _add_debug_option(parser)
     return parser
 
 
+def _raised_in(exc: BaseException, package: str, module: str | None = None) -> bool:
+    """Whether the innermost Python frame of exc's traceback lies in ``package`` (and file ``module``)."""
+    tb = exc.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    parts = Path(tb.tb_frame.f_code.co_filename).parts
+    return package in parts and (module is None or parts[-1] == module)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    if isinstance(exc, KeyError) and len(exc.args) == 1:
+        text = str(exc.args[0])
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _named_file(args: argparse.Namespace, suffixes: tuple[str, ...]) -> str | None:
+    """The one file argument of the command with one of these suffixes (None if none or several)."""
+    names = {str(v) for k, v in vars(args).items()
+             if k in ("data", "file", "out", "checkpoint", "path", "config") and v is not None
+             and str(v).lower().endswith(suffixes)}  # fmt: skip
+    return names.pop() if len(names) == 1 else None
+
+
+def _yaml_error_in(exc: BaseException) -> BaseException | None:
+    """A yaml.YAMLError that is exc or caused it (``raise ... from None`` keeps it as __context__)."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if type(cur).__module__.startswith("yaml"):
+            return cur
+        cur = cur.__cause__ or cur.__context__
+    return None
+
+
+def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
+    """(exit code, one-line message) for an exception that reached main(); see the module docstring."""
+    import pickle
+    import zipfile
+
+    if isinstance(exc, UserError):
+        return EXIT_BAD_INPUT, _first_line(exc)
+    if _raised_in(exc, "h5py"):
+        name = _named_file(args, (".h5", ".hdf5"))
+        where = f"{name}: " if name else ""
+        if isinstance(exc, BlockingIOError):
+            return EXIT_BAD_INPUT, f"{where}file in use (by another nemsim process?): {_first_line(exc)}"
+        if getattr(args, "data_command", None) == "check":  # the check's own verdict
+            return EXIT_BAD_INPUT, f"{where}FAILED: the file is damaged: {_first_line(exc)}"
+        return EXIT_BAD_INPUT, (f"{where}cannot read HDF5 data: {_first_line(exc)} (damaged or truncated? "
+                                f"`nemsim data check {name or 'FILE'}` tells)")
+    if isinstance(exc, (EOFError, pickle.UnpicklingError, zipfile.BadZipFile)) or (
+        isinstance(exc, RuntimeError) and _raised_in(exc, "torch", "serialization.py")
+    ):
+        name = _named_file(args, (".pt", ".pth"))
+        what = f"{type(exc).__name__}: {_first_line(exc).split('. ')[0]}"
+        where = f"{name}: " if name else ""
+        return EXIT_BAD_INPUT, f"{where}not a readable checkpoint, damaged or truncated ({what})"
+    if isinstance(exc, OSError):
+        if exc.filename is not None and exc.strerror:
+            return EXIT_BAD_INPUT, f"{exc.filename}: {exc.strerror}"
+        return EXIT_BAD_INPUT, _first_line(exc)
+    yaml_error = _yaml_error_in(exc)
+    if yaml_error is not None:  # say which file, line and column (the library's messages drop them)
+        mark = getattr(yaml_error, "problem_mark", None)
+        name = mark.name if mark is not None and not str(mark.name).startswith("<") else (
+            _named_file(args, (".yaml", ".yml", ".json")))
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(yaml_error, "problem", None) or _first_line(yaml_error)
+        return EXIT_BAD_INPUT, f"{name + ': ' if name else ''}YAML syntax error{where}: {problem}"
+    if isinstance(exc, ValueError):
+        return EXIT_BAD_INPUT, _first_line(exc)
+    return EXIT_BUG, (f"unexpected error {type(exc).__name__}: {_first_line(exc)} (a bug; rerun with --debug "
+                      "for the traceback)")
+
+
+def _command_name(args: argparse.Namespace) -> str:
+    """``nemsim COMMAND [ACTION]`` of a parsed command line, e.g. ``nemsim data check``."""
+    words = [args.command] + [getattr(args, k) for k in ("rules_command", "data_command", "bench")
+                              if getattr(args, k, None)]  # fmt: skip
+    return " ".join(["nemsim", *words])
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line on stderr (exit 2), like every other error."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: {message} (see `{self.prog} --help`)\n")
+
+
+def _add_debug_option(parser: argparse.ArgumentParser, top: bool = True) -> None:
+    """--debug on the top parser and every subcommand (SUPPRESS: a subcommand does not reset it)."""
+    parser.add_argument("--debug", action="store_true", default=False if top else argparse.SUPPRESS,
+                        help="on an error, show the full traceback instead of one line")
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):
+                _add_debug_option(child, top=False)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
@@ -1485,12 +1618,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     handler: Handler = args.handler
     try:
         return int(handler(args) or 0)
-    except UserError as exc:
-        print(f"nemsim {args.command}: {exc}", file=sys.stderr)  # noqa: T201
-        return 2
     except KeyboardInterrupt:
         print("interrupted; rerun the same command to resume where supported", file=sys.stderr)  # noqa: T201
-        return 130
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # output piped into e.g. `head`, which stopped reading: end quietly
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        return EXIT_BROKEN_PIPE
+    except Exception as exc:  # the CLI's one error boundary, see the module docstring
+        if args.debug:
+            raise
+        code, line = _error_report(exc, args)
+        print(f"{_command_name(args)}: {line}", file=sys.stderr)  # noqa: T201
+        return code
 
 
 if __name__ == "__main__":

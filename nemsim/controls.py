@@ -8,8 +8,8 @@ authoritative.
 
 Representation ([supp_representation]):
   * transform  eq:supp_control_transformation  u~ = log10(u + eps_u) for fluxes (eps_u = 1e-12), else u;
-  * normalize  eq:supp_control_normalization   u = 2 (u~ - u~min) / (u~max - u~min) - 1 with the fixed bounds of
-    the table (eq:supp_flux_control_bounds), no clipping;
+  * normalize  eq:supp_control_normalization   u = 2 (u~ - u~min) / (u~max - u~min) - 1 with the fixed
+    bounds of the table (eq:supp_flux_control_bounds), no clipping;
   * OOD unit coordinate eq:supp_ood_unit_coordinate  q = (u~ - u~min) / (u~max - u~min) = (u + 1) / 2.
 
 Design ([supp_data_generation], eq:supp_lhs_design, eq:supp_control_mapping): Xi = LHS(500, 14), seed 42,
@@ -23,7 +23,8 @@ Choices where the paper is silent:
     Of the candidates we tried (scipy seed=/rng=, scramble on/off, pyDOE with np.random.seed(42), a
     default_rng classic LHS) only this one reproduces the paper's OOD-Joint test composition
     (14, 15, 13, 11) cases in (L,L), (L,H), (H,L), (H,H); see tests/data/test_splits.py.
-  * Log mapping is the exact inverse of the normalization transform, u = 10^(u~min + xi (u~max - u~min)) - eps_u,
+  * Log mapping is the exact inverse of the normalization transform,
+    u = 10^(u~min + xi (u~max - u~min)) - eps_u,
     so that the OOD coordinate of a design row equals its LHS coordinate (q = xi).
   * Bounded-integer mapping: u = min(low + floor(xi (high - low + 1)), high), i.e. every integer in
     [low, high] has equal probability (both end points included).
@@ -38,7 +39,7 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
@@ -62,6 +63,7 @@ class ControlSpec:
     phys_min: float = 0.0  # physically admissible minimum
     phys_max: float = math.inf  # physically admissible maximum
     label: str = ""  # human-readable symbol
+    description: str = ""  # what the control means, for help texts and the service schema
 
     @property
     def t_low(self) -> float:
@@ -75,26 +77,45 @@ class ControlSpec:
 
 
 _FLUX = "mol m^-2 s^-1"
+
+
+def _flux(species: str) -> str:
+    return f"flux of {species} arriving at the wafer"
+
+
+def _angle(species: str) -> str:
+    return (f"angular spread of {species}: the dimensionless exponent m of the cos^m(theta) distribution of "
+            "the polar angle from the vertical at launch (larger m = more collimated, closer to vertical)")
+
+
 CONTROL_SPECS: tuple[ControlSpec, ...] = (
-    ControlSpec("flux_ar_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Ar+)"),
-    ControlSpec("flux_cl_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Cl+)"),
-    ControlSpec("flux_cl2_plus", _FLUX, "log", 1e-6, 2e-4, label="Gamma(Cl2+)"),
-    ControlSpec("flux_cl", _FLUX, "log", 1e-3, 2e-2, label="Gamma(Cl)"),
-    ControlSpec("angle_cl", "1", "int", 0, 20, label="m(Cl)"),
-    ControlSpec("angle_cl_plus", "1", "int", 50, 3000, label="m(Cl+)"),
-    ControlSpec("angle_cl2_plus", "1", "int", 50, 3000, label="m(Cl2+)"),
-    ControlSpec("angle_ar_plus", "1", "int", 50, 3000, label="m(Ar+)"),
-    ControlSpec("energy_mean_cl_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl+)"),
-    ControlSpec("energy_std_cl_plus", "eV", "linear", 5.0, 10.0, label="sigma(Cl+)"),
-    ControlSpec("energy_mean_cl2_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl2+)"),
-    ControlSpec("energy_std_cl2_plus", "eV", "linear", 5.0, 15.0, label="sigma(Cl2+)"),
-    ControlSpec("energy_mean_ar_plus", "eV", "linear", 160.0, 500.0, label="mu(Ar+)"),
-    ControlSpec("energy_std_ar_plus", "eV", "linear", 5.0, 15.0, label="sigma(Ar+)"),
+    ControlSpec("flux_ar_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Ar+)", description=_flux("Ar+ ions")),
+    ControlSpec("flux_cl_plus", _FLUX, "log", 1e-4, 7e-3, label="Gamma(Cl+)", description=_flux("Cl+ ions")),
+    ControlSpec("flux_cl2_plus", _FLUX, "log", 1e-6, 2e-4, label="Gamma(Cl2+)",
+                description=_flux("Cl2+ ions")),
+    ControlSpec("flux_cl", _FLUX, "log", 1e-3, 2e-2, label="Gamma(Cl)", description=_flux("neutral Cl")),
+    ControlSpec("angle_cl", "1", "int", 0, 20, label="m(Cl)", description=_angle("neutral Cl")),
+    ControlSpec("angle_cl_plus", "1", "int", 50, 3000, label="m(Cl+)", description=_angle("Cl+ ions")),
+    ControlSpec("angle_cl2_plus", "1", "int", 50, 3000, label="m(Cl2+)", description=_angle("Cl2+ ions")),
+    ControlSpec("angle_ar_plus", "1", "int", 50, 3000, label="m(Ar+)", description=_angle("Ar+ ions")),
+    ControlSpec("energy_mean_cl_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl+)",
+                description="mean energy of the Cl+ ions"),
+    ControlSpec("energy_std_cl_plus", "eV", "linear", 5.0, 10.0, label="sigma(Cl+)",
+                description="standard deviation of the Cl+ ion energy"),
+    ControlSpec("energy_mean_cl2_plus", "eV", "linear", 160.0, 500.0, label="mu(Cl2+)",
+                description="mean energy of the Cl2+ ions"),
+    ControlSpec("energy_std_cl2_plus", "eV", "linear", 5.0, 15.0, label="sigma(Cl2+)",
+                description="standard deviation of the Cl2+ ion energy"),
+    ControlSpec("energy_mean_ar_plus", "eV", "linear", 160.0, 500.0, label="mu(Ar+)",
+                description="mean energy of the Ar+ ions"),
+    ControlSpec("energy_std_ar_plus", "eV", "linear", 5.0, 15.0, label="sigma(Ar+)",
+                description="standard deviation of the Ar+ ion energy"),
 )
 CONTROL_NAMES: tuple[str, ...] = tuple(s.name for s in CONTROL_SPECS)
 N_CONTROLS = len(CONTROL_SPECS)  # 14
 CONTROL_INDEX: dict[str, int] = {n: i for i, n in enumerate(CONTROL_NAMES)}
-FLUX_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "log")  # F = {1,2,3,4}
+# F = {1, 2, 3, 4} in the paper's 1-based numbering
+FLUX_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "log")
 INT_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "int")
 
 # Fixed bounds as arrays (14,)
@@ -139,46 +160,46 @@ def _consts(x: object, *arrays: np.ndarray) -> list:
 def transform(raw: A) -> A:
     """eq:supp_control_transformation: log10(u + eps_u) for the fluxes, identity otherwise. (..., 14)."""
     _check_last_dim(raw)
-    if _is_torch(raw):
+    x: Any = raw  # numpy array or torch tensor; A keeps the caller's type in the signature
+    if _is_torch(x):
         import torch
 
-        raw_f = raw if raw.is_floating_point() else raw.double()  # type: ignore[attr-defined]
-        is_log = torch.as_tensor(IS_LOG, device=raw_f.device)
-        return torch.where(is_log, torch.log10(raw_f + EPS_U), raw_f)
-    raw = np.asarray(raw, dtype=np.float64)
+        x = x if x.is_floating_point() else x.double()
+        is_log = torch.as_tensor(IS_LOG, device=x.device)
+        return torch.where(is_log, torch.log10(x + EPS_U), x)  # type: ignore[return-value]
+    x = np.asarray(x, dtype=np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        logged = np.log10(np.where(IS_LOG, raw, 0.0) + EPS_U)
-    return np.where(IS_LOG, logged, raw)
+        logged = np.log10(np.where(IS_LOG, x, 0.0) + EPS_U)
+    return np.where(IS_LOG, logged, x)  # type: ignore[return-value]
 
 
 def inverse_transform(transformed: A) -> A:
     """Inverse of ``transform``: 10**u~ - eps_u for the fluxes. (..., 14)."""
     _check_last_dim(transformed)
-    if _is_torch(transformed):
+    x: Any = transformed
+    if _is_torch(x):
         import torch
 
-        is_log = torch.as_tensor(IS_LOG, device=transformed.device)  # type: ignore[attr-defined]
-        return torch.where(is_log, torch.pow(10.0, transformed) - EPS_U, transformed)
-    t = np.asarray(transformed, dtype=np.float64)
-    return np.where(IS_LOG, np.power(10.0, np.where(IS_LOG, t, 0.0)) - EPS_U, t)
+        is_log = torch.as_tensor(IS_LOG, device=x.device)
+        return torch.where(is_log, torch.pow(10.0, x) - EPS_U, x)  # type: ignore[return-value]
+    t = np.asarray(x, dtype=np.float64)
+    return np.where(IS_LOG, np.power(10.0, np.where(IS_LOG, t, 0.0)) - EPS_U, t)  # type: ignore[return-value]
 
 
 def normalize(transformed: A) -> A:
     """eq:supp_control_normalization: 2 (u~ - u~min) / (u~max - u~min) - 1, fixed bounds, no clipping."""
     _check_last_dim(transformed)
     lo, hi = _consts(transformed, T_LOW, T_HIGH)
-    if not _is_torch(transformed):
-        transformed = np.asarray(transformed, dtype=np.float64)
-    return 2.0 * (transformed - lo) / (hi - lo) - 1.0
+    x: Any = transformed if _is_torch(transformed) else np.asarray(transformed, dtype=np.float64)
+    return 2.0 * (x - lo) / (hi - lo) - 1.0
 
 
 def denormalize(normalized: A) -> A:
     """Inverse of ``normalize``: transformed controls from [-1, 1] coordinates. (..., 14)."""
     _check_last_dim(normalized)
     lo, hi = _consts(normalized, T_LOW, T_HIGH)
-    if not _is_torch(normalized):
-        normalized = np.asarray(normalized, dtype=np.float64)
-    return lo + (normalized + 1.0) * 0.5 * (hi - lo)
+    x: Any = normalized if _is_torch(normalized) else np.asarray(normalized, dtype=np.float64)
+    return lo + (x + 1.0) * 0.5 * (hi - lo)
 
 
 def to_normalized(raw: A) -> A:
@@ -238,20 +259,29 @@ def lhs_design(n: int = DESIGN_N, seed: int = DESIGN_SEED) -> np.ndarray:
 
 
 def check_admissible(raw: np.ndarray) -> list[str]:
-    """Return one message per physically impossible value of raw (14,) controls (empty if admissible)."""
+    """One message per physically impossible value of raw controls, (14,) or (..., 14); empty if admissible.
+
+    Every row is checked; with more than one row each message starts with ``row i:`` (i indexes the
+    flattened rows).
+    """
     raw = np.asarray(raw, dtype=np.float64)
     _check_last_dim(raw)
+    rows = raw.reshape(-1, N_CONTROLS)  # (N, 14)
+    bad = ~np.isfinite(rows) | (rows < PHYS_MIN) | (rows > PHYS_MAX)  # (N, 14)
     out = []
-    for s, v in zip(CONTROL_SPECS, raw.reshape(-1, N_CONTROLS)[0]):
-        if not np.isfinite(v) or v < s.phys_min or v > s.phys_max:
-            out.append(f"{s.name}={v!r} outside the physically admissible range [{s.phys_min}, {s.phys_max}]")
+    for i, j in zip(*np.nonzero(bad), strict=True):
+        s = CONTROL_SPECS[j]
+        where = f"row {i}: " if rows.shape[0] > 1 else ""
+        out.append(f"{where}{s.name}={float(rows[i, j])!r} outside the physically admissible range "
+                   f"[{s.phys_min}, {s.phys_max}]")
     return out
 
 
 def outside_design_range(raw: np.ndarray) -> list[str]:
-    """Names of the controls of raw (14,) outside the configured design (training) range."""
-    raw = np.asarray(raw, dtype=np.float64).reshape(-1, N_CONTROLS)[0]
-    return [s.name for s, v in zip(CONTROL_SPECS, raw) if not (s.low <= v <= s.high)]
+    """Names of the controls outside the design (training) range in any row of raw (14,) or (..., 14)."""
+    rows = np.asarray(raw, dtype=np.float64).reshape(-1, N_CONTROLS)  # (N, 14)
+    outside = np.asarray(((rows < LOW) | (rows > HIGH) | np.isnan(rows)).any(axis=0))  # (14,)
+    return [s.name for s, o in zip(CONTROL_SPECS, outside, strict=True) if o]
 
 
 # --- CSV -----------------------------------------------------------------------------------------------
@@ -267,7 +297,8 @@ def write_controls_csv(path: str | Path, raw: np.ndarray) -> None:
         w = csv.writer(fh)
         w.writerow(CONTROL_NAMES)
         for row in raw:
-            w.writerow([str(int(v)) if k and float(v).is_integer() else repr(float(v)) for v, k in zip(row, is_int)])
+            w.writerow([str(int(v)) if k and float(v).is_integer() else repr(float(v))
+                        for v, k in zip(row, is_int, strict=True)])
 
 
 def read_controls_csv(path: str | Path) -> np.ndarray:
@@ -302,5 +333,7 @@ def read_controls_csv(path: str | Path) -> np.ndarray:
             try:
                 out[r, j] = float(row[c])
             except ValueError:
-                raise ValueError(f"{path}: row {r + 2}, column {CONTROL_NAMES[j]!r}: not a number: {row[c]!r}") from None
+                raise ValueError(
+                    f"{path}: row {r + 2}, column {CONTROL_NAMES[j]!r}: not a number: {row[c]!r}"
+                ) from None
     return out

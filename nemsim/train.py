@@ -8,7 +8,8 @@ is initialized here: gloo on CPU, NCCL on CUDA. Only rank 0 writes the log file 
 Choices where the paper is silent:
   * the split manifest is ``--splits DIR/<setting>.json`` if given, else ``<data dir>/splits/<setting>.json``
     if present, else computed from the data file's own design with ``nemsim.data.splits.make_manifests``
-    (the same seeded function the ``nemsim splits`` command uses);
+    (the same seeded function the ``nemsim splits`` command uses); a manifest from disk must fit the data
+    file (``nemsim.data.splits.resolve_manifest``);
   * ``--fraction F`` (data efficiency, [supp_data_efficiency]) keeps the training subset of
     ``nemsim.data.splits.data_efficiency_subsets`` for F; validation and test are unchanged;
   * the model's scene is the data file's scene.
@@ -70,23 +71,6 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _load_manifest(data: Path, setting: str, splits: Path | None, tf: Any) -> dict:
-    from nemsim.data import splits as splits_mod
-
-    directory = splits if splits is not None else data.parent / "splits"
-    if splits is not None or (directory / f"{setting}.json").is_file():
-        try:
-            return splits_mod.load_manifest(directory, setting)
-        except ValueError as exc:
-            raise TrainInputError(str(exc)) from None
-    log.info("no %s; computing the %s manifest from the data file's design", directory / f"{setting}.json",
-             setting)
-    manifests = splits_mod.make_manifests(tf.controls_raw, tf.case_ids, n_transitions=tf.scene.n_transitions)
-    if setting not in manifests:
-        raise TrainInputError(f"setting {setting!r} not produced by make_manifests; got {sorted(manifests)}")
-    return manifests[setting]
-
-
 def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
     import numpy as np
 
@@ -120,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
 
     from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
     from nemsim.data.hdf5 import open_trajectories
+    from nemsim.data.splits import resolve_manifest
     from nemsim.model.registry import available_models, build_model, model_config
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
@@ -167,7 +152,12 @@ def run(args: argparse.Namespace) -> int:
         # ---- data ----
         tf = open_trajectories(args.data)
         scene = tf.scene
-        manifest = _load_manifest(Path(args.data), args.setting, args.splits, tf)
+        try:
+            manifest, source = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
+                                                tf.scene.n_transitions, args.splits)
+        except ValueError as exc:
+            raise TrainInputError(str(exc)) from None
+        log.info("split manifest: %s", source)
         if args.fraction is not None:
             manifest = _apply_fraction(manifest, args.fraction, tf)
         for split, limit in (("val", cfg.val_cases), ("test", cfg.test_cases)):

@@ -114,3 +114,27 @@ def test_csv_roundtrip_and_header_validation(tmp_path):
     (tmp_path / "n.csv").write_text(",".join(C.CONTROL_NAMES) + "\n" + ",".join(["x"] + ["1"] * 13) + "\n")
     with pytest.raises(ValueError, match="row 2, column 'flux_ar_plus'"):
         C.read_controls_csv(tmp_path / "n.csv")
+
+
+def test_check_admissible_checks_every_row():
+    raw = C.lhs_design(3, 0)
+    assert C.check_admissible(raw) == []
+    raw[2, 0] = -1.0  # only the last row is impossible
+    raw[1, 9] = float("nan")
+    msgs = C.check_admissible(raw)
+    assert len(msgs) == 2
+    assert msgs[0].startswith("row 1: energy_std_cl_plus") and msgs[1].startswith("row 2: flux_ar_plus")
+    raw[0, 8] = 900.0
+    assert C.outside_design_range(raw) == ["flux_ar_plus", "energy_mean_cl_plus", "energy_std_cl_plus"]
+
+
+def test_n_controls_is_defined_once():
+    """Other modules import N_CONTROLS from nemsim.controls instead of typing 14 again."""
+    import re
+    from pathlib import Path
+
+    root = Path(C.__file__).parent
+    pattern = re.compile(r"^N_CONTROLS\s*=", re.MULTILINE)
+    defining = [p.relative_to(root).as_posix() for p in root.rglob("*.py") if pattern.search(p.read_text())]
+    assert defining == ["controls.py"]
+    assert C.N_CONTROLS == len(C.CONTROL_SPECS) == 14

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-N_CONTROLS = 14  # U
+from nemsim.controls import N_CONTROLS  # U
 
 
 def coordinate_grid(shape: tuple[int, int, int], device=None, dtype=torch.float32) -> torch.Tensor:

@@ -3,7 +3,8 @@ subsets ([supp_data_efficiency]).
 
 Settings:
   control-id  random 60/20/20 partition of all cases.
-  ood-ar      q(Ar+ flux) in I_in = [0.15, 0.85] -> train/val pool, q in I_out -> test (eq:supp_ood_intervals).
+  ood-ar      q(Ar+ flux) in I_in = [0.15, 0.85] -> train/val pool, q in I_out -> test
+              (eq:supp_ood_intervals).
   ood-cl      the same on q(Cl+ flux) (the ionic flux, not neutral Cl).
   ood-joint   A and C (both in) -> pool, (not A) and (not C) -> test, A xor C -> unused
               (eq:supp_joint_ood_indicators).
@@ -16,13 +17,15 @@ informational keys: "seed", "n_transitions", for OOD settings "ood_controls", "i
 
 Choices where the paper is silent:
   * Partitions are drawn with ``numpy.random.default_rng(seed)``, seed 0: control-id permutes all case ids
-    (train = round(0.6 N), val = round(0.2 N), test = rest); each OOD pool is permuted and val = round(0.2 pool)
-    (gives 280/70, 279-280/70, 202/50-51 as in the paper's table). vis-50/vis-60 reuse the control-id partition.
+    (train = round(0.6 N), val = round(0.2 N), test = rest); each OOD pool is permuted and
+    val = round(0.2 pool) (gives 280/70, 279-280/70, 202/50-51 as in the paper's table). vis-50/vis-60 reuse
+    the control-id partition.
   * Data-efficiency strata: a 3 x 3 grid of equal-width bins over [min, max] of the training cases' log10
     Ar+ and Cl+ fluxes. Each stratum's members are shuffled once (seed 0); a fraction f keeps
     n_f = floor(f n + 1/2) cases, allocated to strata proportionally to their size by growing the previous
     fraction's allocation one case at a time (largest deficit f n_s - k_s first, ties by stratum index), and
-    takes the first k_s of each stratum's order. So D_10% subset D_20% subset D_50% subset D_100% by construction.
+    takes the first k_s of each stratum's order. So D_10% subset D_20% subset D_50% subset D_100% by
+    construction.
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ INTERVAL_IN = (0.15, 0.85)  # I_in, eq:supp_ood_intervals
 VAL_FRACTION = 0.2
 CONTROL_ID_FRACTIONS = (0.6, 0.2, 0.2)
 DATA_EFFICIENCY_FRACTIONS = (0.1, 0.2, 0.5, 1.0)
-OOD_CONTROLS = {"ood-ar": ("flux_ar_plus",), "ood-cl": ("flux_cl_plus",), "ood-joint": ("flux_ar_plus", "flux_cl_plus")}
+OOD_CONTROLS = {"ood-ar": ("flux_ar_plus",), "ood-cl": ("flux_cl_plus",),
+                "ood-joint": ("flux_ar_plus", "flux_cl_plus")}
 
 
 def _region(q: np.ndarray) -> np.ndarray:
@@ -83,8 +87,11 @@ def make_manifests(design_raw, case_ids=None, *, seed: int = 0, n_transitions: i
     raw = np.asarray(design_raw, dtype=np.float64)
     if raw.ndim != 2 or raw.shape[1] != N_CONTROLS:
         raise ValueError(f"design must have shape (N, {N_CONTROLS}); got {raw.shape}")
+    if int(n_transitions) < 1:
+        raise ValueError(f"n_transitions must be >= 1 (transitions per trajectory), got {n_transitions}")
     n = raw.shape[0]
-    ids = np.arange(n, dtype=np.int64) if case_ids is None else np.asarray(case_ids, dtype=np.int64).reshape(-1)
+    ids = (np.arange(n, dtype=np.int64) if case_ids is None
+           else np.asarray(case_ids, dtype=np.int64).reshape(-1))
     if ids.shape != (n,) or len(np.unique(ids)) != n:
         raise ValueError(f"case_ids must be {n} unique integers; got shape {ids.shape}")
     out: dict[str, dict] = {}
@@ -95,7 +102,8 @@ def make_manifests(design_raw, case_ids=None, *, seed: int = 0, n_transitions: i
     tr, va, te = perm[:n_tr], perm[n_tr : n_tr + n_va], perm[n_tr + n_va :]
     out["control-id"] = _manifest("control-id", tr, va, te, [], n_transitions, n_transitions, seed)
     for p in (50, 60):
-        out[f"vis-{p}"] = _manifest(f"vis-{p}", tr, va, te, [], round(p / 100 * n_transitions), n_transitions, seed)
+        out[f"vis-{p}"] = _manifest(f"vis-{p}", tr, va, te, [], round(p / 100 * n_transitions), n_transitions,
+                                    seed)
 
     regions = {name: _region(ood_coordinate(raw, name)) for name in ("flux_ar_plus", "flux_cl_plus")}
     for setting in ("ood-ar", "ood-cl"):
@@ -194,12 +202,13 @@ def write_manifests(manifests: dict[str, dict], out_dir: str | Path) -> list[Pat
 def load_manifest(path_or_dir: str | Path, setting: str | None = None) -> dict:
     """Load a manifest from a JSON file, or ``<dir>/<setting>.json``. ValueError if absent or malformed."""
     p = Path(path_or_dir)
-    if p.is_dir():
+    if p.is_dir() or (setting is not None and p.suffix != ".json"):
         if setting not in SETTINGS:
             raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
         p = p / f"{setting}.json"
     if not p.is_file():
-        raise ValueError(f"no split manifest {p}; create it with `nemsim splits --design FILE.csv --out DIR`")
+        raise ValueError(f"no split manifest {p}; make the manifests with `nemsim splits --data FILE.h5 "
+                         f"--out {p.parent}` (or --design FILE.csv)")
     m = json.loads(p.read_text())
     missing = [k for k in ("setting", "train", "val", "test", "unused", "visible_transitions") if k not in m]
     if missing:
@@ -209,9 +218,49 @@ def load_manifest(path_or_dir: str | Path, setting: str | None = None) -> dict:
     return m
 
 
+def resolve_manifest(
+    setting: str, data_path: str | Path, case_ids, controls_raw, n_transitions: int,
+    splits: str | Path | None = None,
+) -> tuple[dict, str]:
+    """The manifest of ``setting`` for a trajectory file, and where it came from (for the log).
+
+    Order: ``<splits>/<setting>.json`` if ``splits`` is given; else ``<data dir>/splits/<setting>.json`` if
+    present; else computed from the file's own controls and case ids with ``make_manifests`` (seed 0).
+    A manifest read from disk must fit the file: ValueError if any train/val/test id is not one of
+    ``case_ids``, saying how to make manifests that fit.
+
+    Args:
+        setting: one of SETTINGS.
+        data_path: the trajectory file (names it in messages; its folder holds the default ``splits/``).
+        case_ids: (N,) the file's case ids; controls_raw: (N, 14) its raw controls.
+        n_transitions: transitions per trajectory of the file's scene.
+        splits: a directory of ``<setting>.json`` manifests (from ``nemsim splits``), or None.
+    """
+    if setting not in SETTINGS:
+        raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
+    data_path = Path(data_path)
+    directory = Path(splits) if splits is not None else data_path.parent / "splits"
+    if splits is None and not (directory / f"{setting}.json").is_file():
+        manifests = make_manifests(controls_raw, case_ids, n_transitions=n_transitions)
+        return manifests[setting], f"computed from the controls of {data_path}"
+    manifest = load_manifest(directory, setting)
+    known = {int(c) for c in np.asarray(case_ids).reshape(-1)}
+    foreign = [int(c) for part in ("train", "val", "test") for c in manifest[part] if int(c) not in known]
+    if foreign:
+        default = " (the default for --splits)" if splits is None else ""
+        raise ValueError(
+            f"{directory / (setting + '.json')}{default} does not fit {data_path}: {len(foreign)} of its "
+            "train/val/test "
+            f"case ids (e.g. {foreign[:3]}) are not in the file; make manifests for this file with "
+            f"`nemsim splits --data {data_path} --out DIR` and pass --splits DIR"
+        )
+    return manifest, str(directory / f"{setting}.json")
+
+
 def split_table(manifests: dict[str, dict]) -> str:
     """The set sizes as a text table (columns of tab:supp_split_summary)."""
-    head = f"{'Setting':<11} {'Train':>5} {'Val':>5} {'Test':>5} {'Unused':>6} {'Trans/traj':>10} {'Train samples':>13}"
+    head = (f"{'Setting':<11} {'Train':>5} {'Val':>5} {'Test':>5} {'Unused':>6} {'Trans/traj':>10} "
+            f"{'Train samples':>13}")
     lines = [head, "-" * len(head)]
     for s in SETTINGS:
         if s not in manifests:
@@ -222,5 +271,6 @@ def split_table(manifests: dict[str, dict]) -> str:
                      f"{len(m['unused']):>6} {v:>10} {len(m['train']) * v:>13,}")
     j = manifests.get("ood-joint", {}).get("test_groups")
     if j:
-        lines.append("ood-joint test (Ar+, Cl+): " + ", ".join(f"({g[0]},{g[1]}) {len(v)}" for g, v in j.items()))
+        groups = ", ".join(f"({g[0]},{g[1]}) {len(v)}" for g, v in j.items())
+        lines.append(f"ood-joint test (Ar+, Cl+): {groups}")
     return "\n".join(lines)

@@ -53,6 +53,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nemsim.controls import N_CONTROLS
 from nemsim.model.decoder import DecoderConfig, ResidualDecoder
 from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredIntensity
 from nemsim.model.encoder import EncoderConfig, StateEncoder
@@ -60,8 +61,6 @@ from nemsim.model.gate import ion_flux_gate
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
-
-N_CONTROLS = 14
 
 
 @dataclass(frozen=True)

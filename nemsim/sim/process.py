@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nemsim.controls import N_CONTROLS
 from nemsim.rules.compile import RuleTensors
 from nemsim.scenes import Scene
 
@@ -36,8 +37,6 @@ from .kernels import COUNTER_NAMES, N_COUNTERS, run_particles
 from .sdf import psi
 
 log = logging.getLogger(__name__)
-
-N_CONTROLS = 14
 
 
 @dataclass

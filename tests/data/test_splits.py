@@ -107,3 +107,21 @@ def test_design_and_splits_cli(tmp_path, capsys):
     assert main(["splits", "--design", str(bad), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "missing columns ['angle_cl']" in err and "angle_xx" in err and len(err.strip().splitlines()) == 1
+
+
+def test_resolve_manifest_refuses_manifests_that_do_not_fit_the_data(tmp_path):
+    from nemsim.data.splits import resolve_manifest, write_manifests
+
+    raw = lhs_design(40)
+    data = tmp_path / "tiny.h5"  # only named in messages and for the default splits/ folder
+    # no manifests on disk: computed from the file's own cases
+    m, source = resolve_manifest("control-id", data, np.arange(10), raw[:10], 100)
+    assert sorted(m["train"] + m["val"] + m["test"]) == list(range(10)) and "computed" in source
+    # the default splits/ folder made for a bigger design does not fit a 10-case file
+    write_manifests(make_manifests(raw), tmp_path / "splits")
+    with pytest.raises(ValueError, match=r"does not fit .*nemsim splits --data"):
+        resolve_manifest("control-id", data, np.arange(10), raw[:10], 100)
+    m, source = resolve_manifest("control-id", data, np.arange(40), raw, 100)
+    assert source.endswith("control-id.json")
+    with pytest.raises(ValueError, match="n_transitions must be >= 1"):
+        make_manifests(raw, n_transitions=0)
