@@ -275,8 +275,8 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--executor", default="process", choices=("process", "ray"),
                    help="local process pool (default) or a Ray cluster ($RAY_ADDRESS, else a local Ray)")
     p.add_argument("--state-dtype", default="float32", choices=("float32", "float16"),
-                   help="storage of the states: float16 halves the file and adds at most 2.4e-4 of "
-                        "rounding to the normalized SDF (read back as float32; default float32)")
+                   help="storage of the states: float16 takes ~0.4x the space and adds at most 2.4e-4 "
+                        "of rounding to the normalized SDF (read back as float32; default float32)")
     _add_sim_overrides(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_generate)
