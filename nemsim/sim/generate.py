@@ -15,8 +15,8 @@ Stopping and failures: Ctrl-C and ``kill -TERM`` (turned into KeyboardInterrupt 
 terminate the pool's workers and close the file with every finished case kept; workers also exit on their
 own within a second once the generating process is gone (even after a SIGKILL). Any failure keeps the
 finished cases; rerunning the same command resumes. Rerunning with more cases (``--n 16`` after ``--n 12``)
-appends them to the file (``TrajectoryWriter``). Workers import the simulator only (no torch: the
-model side is never loaded for generation).
+appends them to the file (``TrajectoryWriter``). The simulator needs no torch, so neither should a worker
+(each would carry ~0.5 GB); tests/data/test_generate_robustness.py checks what a worker imports.
 
 Large scenes: the ``paper`` scene has ~7x the voxels of ``small`` and takes 20-30 s of CPU per trajectory,
 so its 500 cases run for hours even with two workers; the command is resumable (rerun it after any stop)
