@@ -75,8 +75,8 @@ DEFAULT_COMPRESSION: tuple[str, int | None, bool] = ("gzip", 4, False)  # (filte
 STATE_DTYPES = ("float32", "float16")  # storage of the states; both read back as float32
 # datasets with one row per case (resizable along axis 0); case_ids last: a grow interrupted before it
 # leaves the file's case list unchanged, and the next run redoes the grow
-_PER_CASE = ("complete", "seeds", "controls_raw", "controls_transformed", "case_meta", "controls_raw_schedule",
-             "states", "case_ids")
+_PER_CASE = ("complete", "seeds", "controls_raw", "controls_transformed", "case_meta",
+             "controls_raw_schedule", "states", "case_ids")
 
 _REQUIRED_DATASETS = ("states", "controls_raw", "controls_transformed", "times", "case_ids", "seeds", "complete")
 _REQUIRED_ATTRS = ("format_version", "scene", "control_names", "channel_names", "d_max", "rules_sha256", "generator")
@@ -282,10 +282,10 @@ class TrajectoryWriter:
                 f"{_ids_text(case_ids)}; a file resumes with its own cases and grows only by cases appended "
                 "after them (e.g. --n 16 after --n 12): rerun with its cases or more, or choose another --out"
             )
-        if not np.array_equal(f["controls_raw"][()], controls_raw[:m]):
+        if not np.array_equal(f["controls_raw"][:m], controls_raw[:m]):  # [:m]: after an interrupted grow
             raise ValueError(f"{where}: controls_raw mismatch: the file's cases were simulated with other "
                              "controls (another design or --controls file); choose another --out")  # fmt: skip
-        if has and not np.array_equal(f["controls_raw_schedule"][()], schedule[:m]):
+        if has and not np.array_equal(f["controls_raw_schedule"][:m], schedule[:m]):
             raise ValueError(f"{where}: controls_schedule mismatch: the file's cases have other recipes; "
                              "choose another --out")  # fmt: skip
         if str(f.attrs["rules_sha256"]) != str(rules_sha256):

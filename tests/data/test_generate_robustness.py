@@ -165,8 +165,16 @@ def test_growing_a_file_appends_the_new_cases(tmp_path, tiny_scene, rules, cheap
         np.testing.assert_array_equal(tf.controls_raw, cheap_controls[:3])
         np.testing.assert_array_equal(tf.states[:2], first)  # untouched
         assert tf.complete.all()
+    # a grow interrupted before the case ids were extended is redone by the next run
+    with h5py.File(out, "r+") as f:
+        for name in ("complete", "seeds", "controls_raw", "controls_transformed", "case_meta", "states"):
+            f[name].resize(4, axis=0)
+    rep = generate_dataset(out, tiny_scene, rules, cheap_controls[:4], [0, 1, 2, 3], seed=4, progress=False)
+    assert rep["written"] == 1 and rep["skipped"] == 3
+    with open_trajectories(out) as tf:
+        assert tf.complete.all() and tf.n_cases == 4
     # a smaller or different request is refused with the file's contents and what to do
-    with pytest.raises(ValueError, match=r"case_ids mismatch: the file holds 3 cases, ids 0\.\.2.*--n 16"):
+    with pytest.raises(ValueError, match=r"case_ids mismatch: the file holds 4 cases, ids 0\.\.3.*--n 16"):
         generate_dataset(out, tiny_scene, rules, cheap_controls[:2], [0, 1], seed=4, progress=False)
 
 
