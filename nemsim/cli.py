@@ -288,8 +288,12 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         description=(
             "Run the Monte Carlo simulator on cases 0..N-1 of the 500-case design (or on the rows of "
             "--controls) and write one HDF5 trajectory file. Rerunning the same command resumes: finished "
-            "cases are kept, a half-written case is redone. The file is validated on close. "
-            "Example: nemsim generate --scene small --n 20 --workers 2 --out data/small.h5"
+            "cases are kept, a half-written case is redone; a larger --n appends the new cases. Ctrl-C or "
+            "kill -TERM stops the workers and keeps every finished case. The file is validated on close. "
+            "Example: nemsim generate --scene small --n 20 --workers 2 --out data/small.h5. The paper "
+            "scene (~20 s per case on one core, hours for 500 cases): nemsim generate --scene paper "
+            "--workers 2 --state-dtype float16 --out data/paper.h5 (rerun to resume), then nemsim data "
+            "check data/paper.h5"
         ),
     )
     _add_scene_option(p)
@@ -305,6 +309,9 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=1, help="parallel simulations, one core each (default 1)")
     p.add_argument("--executor", default="process", choices=("process", "ray"),
                    help="local process pool (default) or a Ray cluster ($RAY_ADDRESS, else a local Ray)")
+    p.add_argument("--state-dtype", default="float32", choices=("float32", "float16"),
+                   help="storage of the states: float16 takes ~0.4x the space and adds at most 2.4e-4 "
+                        "of rounding to the normalized SDF (read back as float32; default float32)")
     _add_sim_overrides(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_generate)
@@ -535,6 +542,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         report = generate_dataset(
             args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,
             workers=args.workers, executor=args.executor, progress=not args.no_progress,
+            state_dtype=args.state_dtype,
         )  # fmt: skip
     except RuntimeError as exc:  # e.g. Ray missing
         raise UserError(str(exc)) from exc

@@ -10,14 +10,30 @@ Seeds: case ``c`` of a run with base seed ``S`` uses ``np.random.default_rng(cas
 seed is stored per case (``seeds``) and the base seed, simulator version and all ``SimConfig`` constants in
 the file's ``generator`` attribute. A case's trajectory does not depend on the worker count or the order
 in which cases finish.
+
+Stopping and failures: Ctrl-C and ``kill -TERM`` (turned into KeyboardInterrupt while generating) both
+terminate the pool's workers and close the file with every finished case kept; workers also exit on their
+own within a second once the generating process is gone (even after a SIGKILL). Any failure keeps the
+finished cases; rerunning the same command resumes. Rerunning with more cases (``--n 16`` after ``--n 12``)
+appends them to the file (``TrajectoryWriter``). The simulator needs no torch, so neither should a worker
+(each would carry ~0.5 GB); tests/data/test_generate_robustness.py checks what a worker imports.
+
+Large scenes: the ``paper`` scene has ~7x the voxels of ``small`` and takes 20-30 s of CPU per trajectory,
+so its 500 cases run for hours even with two workers; the command is resumable (rerun it after any stop)
+and ``state_dtype="float16"`` stores ~20 MB instead of ~48 MB per case at ~1 % of the Monte Carlo noise
+(``nemsim.data.hdf5``). Example: ``nemsim generate --scene paper --workers 2 --state-dtype float16
+--out data/paper.h5`` (rerun the same command to resume), then ``nemsim data check data/paper.h5``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
+import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -85,10 +101,38 @@ def simulate_case(scene: Scene, rules: RuleTensors, config: SimConfig, task: Cas
     return task.row, res.states, task.seed, meta
 
 
-def _worker_init() -> None:
+def _worker_init(parent_pid: int | None = None) -> None:
     # one core per worker: numba kernels are single-threaded; keep BLAS/OpenMP from oversubscribing
     for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    if parent_pid is not None:
+        threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
+
+
+def _exit_with_parent(parent_pid: int, poll_s: float = 1.0) -> None:
+    """Worker watchdog: exit as soon as the generating process is gone (even if it was SIGKILLed), instead
+    of finishing a case nobody will write (the simulation loop returns to Python every macro step)."""
+    while os.getppid() == parent_pid:
+        time.sleep(poll_s)
+    os._exit(1)
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt in the main thread while generating, so the cleanup of Ctrl-C runs
+    (workers terminated, the file closed with every finished case kept); the old handler is restored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"terminated by signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _run_serial(scene, rules, config, tasks) -> Iterator[tuple]:
@@ -102,7 +146,8 @@ def _run_process_pool(scene, rules, config, tasks, workers) -> Iterator[tuple]:
 
     ctx = mp.get_context("spawn")  # no fork of an open HDF5 file / torch state
     pending = list(tasks)[::-1]
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                               initargs=(os.getpid(),))  # fmt: skip
     finished = False
     try:
         running = set()
@@ -168,6 +213,7 @@ def generate_dataset(
     executor: Executor = "process",
     progress: bool = True,
     on_case: Callable[[int, dict], None] | None = None,
+    state_dtype: str = "float32",
 ) -> dict:
     """Simulate ``case_ids`` (rows of ``controls_raw``) into ``out``, resuming a compatible existing file.
 
@@ -178,6 +224,7 @@ def generate_dataset(
       controls_schedule: optional (N, T, 14) recipes, one control vector per transition.
       workers: parallel simulations (1 = in-process). executor: "process" or "ray".
       progress: show a tqdm bar. on_case: callback(row, meta) after each written case.
+      state_dtype: "float32" or "float16" storage of the states (``nemsim.data.hdf5``; reads are float32).
     Returns: {"written": int, "skipped": int, "wall_s": float, "path": str}.
     """
     from nemsim.data.hdf5 import TrajectoryWriter
@@ -192,54 +239,59 @@ def generate_dataset(
     if controls_raw.shape != (len(case_ids), 14):
         raise ValueError(f"controls_raw must be ({len(case_ids)}, 14) for {len(case_ids)} cases, got "
                          f"{controls_raw.shape}")  # fmt: skip
-    t0 = time.perf_counter()
-    writer = TrajectoryWriter(
-        out,
-        scene=scene,
-        case_ids=case_ids,
-        controls_raw=controls_raw,
-        generator=generator_meta(scene, config, seed),
-        rules_sha256=rules.sha256,
-        controls_schedule=controls_schedule,
-    )
-    ok = False
-    try:
-        done = writer.finished
-        sched = controls_schedule
-        tasks = [
-            CaseTask(
-                row=row, case_id=cid, seed=case_seed(seed, cid),
-                controls=controls_raw[row] if sched is None else np.asarray(sched[row]),
-            )  # fmt: skip
-            for row, cid in enumerate(case_ids)
-            if row not in done
-        ]
-        if done:
-            log.info("%s: %d of %d cases already complete; simulating the other %d", out, len(done),
-                     len(case_ids), len(tasks))  # fmt: skip
-        if executor == "ray":
-            results = _run_ray(scene, rules, config, tasks, workers)
-        elif workers == 1 or len(tasks) <= 1:
-            results = _run_serial(scene, rules, config, tasks)
-        else:
-            results = _run_process_pool(scene, rules, config, tasks, workers)
-        bar = None
-        if progress and tasks:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(tasks), unit="case", desc=f"generate {scene.name}", dynamic_ncols=True)
+    with _sigterm_as_interrupt():  # a kill -TERM cleans up like Ctrl-C
+        t0 = time.perf_counter()
+        writer = TrajectoryWriter(
+            out,
+            scene=scene,
+            case_ids=case_ids,
+            controls_raw=controls_raw,
+            generator=generator_meta(scene, config, seed),
+            rules_sha256=rules.sha256,
+            controls_schedule=controls_schedule,
+            state_dtype=state_dtype,
+        )
+        ok = False
+        results: Iterator[tuple] | None = None
         try:
-            for row, states, case_sd, meta in results:
-                writer.write(row, states, seed=case_sd, meta=meta)
-                if on_case is not None:
-                    on_case(row, meta)
+            done = writer.finished
+            sched = controls_schedule
+            tasks = [
+                CaseTask(
+                    row=row, case_id=cid, seed=case_seed(seed, cid),
+                    controls=controls_raw[row] if sched is None else np.asarray(sched[row]),
+                )  # fmt: skip
+                for row, cid in enumerate(case_ids)
+                if row not in done
+            ]
+            if done:
+                log.info("%s: %d of %d cases already complete; simulating the other %d", out, len(done),
+                         len(case_ids), len(tasks))  # fmt: skip
+            if executor == "ray":
+                results = _run_ray(scene, rules, config, tasks, workers)
+            elif workers == 1 or len(tasks) <= 1:
+                results = _run_serial(scene, rules, config, tasks)
+            else:
+                results = _run_process_pool(scene, rules, config, tasks, workers)
+            bar = None
+            if progress and tasks:
+                from tqdm import tqdm
+
+                bar = tqdm(total=len(tasks), unit="case", desc=f"generate {scene.name}", dynamic_ncols=True)
+            try:
+                for row, states, case_sd, meta in results:
+                    writer.write(row, states, seed=case_sd, meta=meta)
+                    if on_case is not None:
+                        on_case(row, meta)
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix(last_s=f"{meta['wall_s']:.1f}")
+            finally:
                 if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(last_s=f"{meta['wall_s']:.1f}")
+                    bar.close()
+            ok = True
         finally:
-            if bar is not None:
-                bar.close()
-        ok = True
-    finally:
-        writer.close(validate=ok)
+            if isinstance(results, Generator):
+                results.close()  # stop the workers now (the pool's cleanup), not when it is collected
+            writer.close(validate=ok)
     return {"written": len(tasks), "skipped": len(done), "wall_s": time.perf_counter() - t0, "path": str(out)}
