@@ -110,6 +110,14 @@ def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
     return {**manifest, "train": list(subsets[key])}
 
 
+def _steps_per_call(model_overrides: dict[str, Any]) -> int:
+    """k of the model being trained: the ``steps_per_call`` model override (NEMSim), else 1."""
+    k = model_overrides.get("steps_per_call", 1)
+    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
+        raise TrainInputError(f"model steps_per_call must be an integer >= 1, got {k!r}")
+    return k
+
+
 def _config_dict(cfg: Any) -> dict:
     return asdict(cfg) if is_dataclass(cfg) else dict(cfg)
 
@@ -175,8 +183,9 @@ def run(args: argparse.Namespace) -> int:
                 manifest = {**manifest, split: list(manifest[split])[:limit]}
         visible = manifest.get("visible_transitions")
         data = TrainData(
+            # a training item spans unroll_steps network calls of steps_per_call states each
             train=TransitionDataset(args.data, manifest, "train", visible_transitions=visible,
-                                    unroll=cfg.unroll_steps),
+                                    unroll=cfg.unroll_steps * _steps_per_call(model_overrides)),
             val=TrajectoryDataset(args.data, manifest, "val"),
         )
 
@@ -197,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
         model = build_model(args.model, scene, rules, model_overrides or None)
         mcfg = _config_dict(model_config(args.model, scene, model_overrides or None))
         meta = ModelMeta(name=args.model, config=mcfg, scene=scene, rules=rules,
-                         rules_perturbation=perturbation)
+                         rules_perturbation=perturbation, sim_config=tf.generator or None)
         log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", args.setting,
                  len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)
         summary = train(cfg, model, data, out, meta, resume=args.resume)

@@ -8,6 +8,14 @@ Fast path ("model only what a scene needs"): a model with ``precompute(u) -> cac
 ``step(x, cache) -> x_next`` (NEMSim) gets its control-only part (rule kinetics, static anchor, MRC
 signature) computed once per distinct control vector instead of once per step; the prediction is the same
 as ``model(x, u_t)`` (same operations). Other models are called as ``model(x, u_t)``.
+
+Multi-step models (``model.config.steps_per_call`` = k > 1, with ``predict(x, cache) -> (B, k, 2, D, H, W)``):
+one call yields the next k states, and every state is still returned (and passed to ``on_step``). A call
+("chunk") predicts its states under one control vector, so a chunk never spans a control change: it covers
+min(k, transitions left, transitions until the controls next change) steps and keeps that many of its k
+predictions. With constant controls that is ceil(T / k) calls; with a recipe, every state is predicted
+under the controls of its own transition (at the cost of shorter chunks where the recipe changes). The
+chunk boundaries are the same for every batch row (a change in any row splits all rows' chunks).
 """
 
 from __future__ import annotations
@@ -33,7 +41,8 @@ def rollout(
     """Roll a one-step model forward from x0.
 
     Args:
-        model: forward(x (B,2,D,H,W), u (B,14)) -> x_next (B,2,D,H,W).
+        model: forward(x (B,2,D,H,W), u (B,14)) -> x_next (B,2,D,H,W); or a NEMSim-like model with
+            precompute/step (and predict for steps_per_call > 1, see the module docstring).
         x0: (B, 2, D, H, W) initial states (ground truth at step 0).
         u: (B, T, 14) normalized controls per transition, or (B, 14) for a constant control
             (then ``steps`` is required).
@@ -62,20 +71,45 @@ def rollout(
     traj = [x0] if keep else None
     x = x0
     fast = callable(getattr(model, "precompute", None)) and callable(getattr(model, "step", None))
-    if fast:  # steps whose controls differ from the previous step's (recipes); one comparison up front
-        changed = [True] + (u[:, 1:T] != u[:, : T - 1]).flatten(2).any(dim=2).any(dim=0).tolist()
+    k = steps_per_call(model)
+    # steps whose controls differ from the previous step's (recipes); one comparison up front
+    changed = [True] + (u[:, 1:T] != u[:, : T - 1]).flatten(2).any(dim=2).any(dim=0).tolist() if fast else []
     cache = None
-    for t in range(T):
-        if fast:
+    t = 0
+    while t < T:
+        if not fast:
+            chunk = model(x, u[:, t])[:, None]  # (B, 1, 2, D, H, W)
+        else:
             if changed[t]:
                 cache = model.precompute(u[:, t])
-            x = model.step(x, cache)  # (B, 2, D, H, W)
-        else:
-            x = model(x, u[:, t])  # (B, 2, D, H, W)
-        if keep:
-            traj.append(x)
-        if on_step is not None:
-            on_step(t + 1, x)
+            if k == 1:
+                chunk = model.step(x, cache)[:, None]  # (B, 1, 2, D, H, W)
+            else:
+                n = _chunk_length(changed, t, k, T)
+                chunk = model.predict(x, cache)[:, :n]  # (B, n, 2, D, H, W)
+        for j in range(chunk.shape[1]):
+            x = chunk[:, j]  # (B, 2, D, H, W)
+            t += 1
+            if keep:
+                traj.append(x)
+            if on_step is not None:
+                on_step(t, x)
     if keep:
         return torch.stack(traj, dim=1)  # (B, T+1, 2, D, H, W)
     return x
+
+
+def steps_per_call(model: nn.Module) -> int:
+    """k, the states one call of ``model`` predicts: ``model.config.steps_per_call`` if the model has
+    ``predict``, else 1."""
+    if not callable(getattr(model, "predict", None)):
+        return 1
+    return int(getattr(getattr(model, "config", None), "steps_per_call", 1))
+
+
+def _chunk_length(changed: list[bool], t: int, k: int, T: int) -> int:
+    """Transitions covered by the call at step t: up to k, not past T, not past the next control change."""
+    n = 1
+    while n < k and t + n < T and not changed[t + n]:
+        n += 1
+    return n
