@@ -89,8 +89,8 @@ class ResidualDecoder(nn.Module):
             nn.init.zeros_(self.extra.weight)
             nn.init.zeros_(self.extra.bias)
             # (k-1, 1, 1, 1, 1) multipliers j = 2..k of the one-step residual
-            self.register_buffer("ramp", torch.arange(2, cfg.steps + 1, dtype=torch.float32).view(-1, 1, 1, 1, 1),
-                                 persistent=False)
+            ramp = torch.arange(2, cfg.steps + 1, dtype=torch.float32).view(-1, 1, 1, 1, 1)
+            self.register_buffer("ramp", ramp, persistent=False)
 
     def forward(self, z_next: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """Cumulative residuals r (B, k, 2, D, H, W) from z̃ (B, C_z, d, h, w), b (B, 12, D/2, H/2, W/2),

@@ -164,7 +164,8 @@ class NEMSim(nn.Module):
         )
         self.decoder = ResidualDecoder(
             DecoderConfig(latent_channels=cfg.latent_channels, skip_channels=cfg.widths[0],
-                          widths=cfg.decoder_widths, out_scale=cfg.decoder_out_scale, steps=cfg.steps_per_call)
+                          widths=cfg.decoder_widths, out_scale=cfg.decoder_out_scale,
+                          steps=cfg.steps_per_call)
         )
         self.multiple = self.encoder.cfg.downsample
 
@@ -236,8 +237,8 @@ class NEMSim(nn.Module):
         return x_next, aux
 
     def step(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False):
-        """``forward(x, cache["u"])`` with the control-only part taken from ``cache = precompute(u)``: the next
-        state (B, 2, D, H, W). With steps_per_call k > 1 it is the first of the k predicted states
+        """``forward(x, cache["u"])`` with the control-only part taken from ``cache = precompute(u)``: the
+        next state (B, 2, D, H, W). With steps_per_call k > 1 it is the first of the k predicted states
         (``predict(x, cache)[:, 0]``; the other k - 1 are computed and dropped: use ``predict``)."""
         out = self.predict(x, cache, return_aux)
         if not return_aux:

@@ -96,10 +96,10 @@ class TrainConfig:
             raise ValueError(f"warmup_epochs must be >= 0, got {self.warmup_epochs}")
         if self.rollout_steps is not None and self.rollout_steps < 1:
             raise ValueError(f"rollout_steps must be >= 1 or None, got {self.rollout_steps}")
-        if self.step_loss_weights is not None and (
-                len(self.step_loss_weights) == 0 or min(self.step_loss_weights) < 0 or sum(self.step_loss_weights) <= 0):
-            raise ValueError(f"step_loss_weights must be None or non-negative with a positive sum, one per predicted "
-                             f"state; got {self.step_loss_weights}")
+        w = self.step_loss_weights
+        if w is not None and (len(w) == 0 or min(w) < 0 or sum(w) <= 0):
+            raise ValueError(f"step_loss_weights must be None or non-negative with a positive sum, one per "
+                             f"predicted state; got {w}")
         if self.select_metric not in ("avg_rmse", "mse"):
             raise ValueError(f"select_metric={self.select_metric!r}; expected one of ['avg_rmse', 'mse']")
 

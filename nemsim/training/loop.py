@@ -4,9 +4,10 @@ One-step supervision (the paper): minimize the voxel-wise MSE between F_θ(x_t, 
 fields; with ``unroll_steps`` k > 1 the mean of k one-step MSEs along k consecutive transitions, each step fed
 the previous detached prediction (``pushforward_loss``; not in the paper, see ``TrainConfig``). A model with
 ``steps_per_call`` k > 1 is trained on k-step targets: the (weighted) mean MSE of its k predicted states,
-over ``unroll_steps`` calls chained by their detached last state (``multistep_loss``). Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full
-horizon on the validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and
-training stops after ``patience`` validation rounds without improvement. ``last.pt`` is written after
+over ``unroll_steps`` calls chained by their detached last state (``multistep_loss``).
+
+Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full horizon on the
+validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and training stops after ``patience`` validation rounds without improvement. ``last.pt`` is written after
 every epoch (and every ``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states,
 history and the number of batches of the unfinished epoch, so a killed run resumes where it was saved and
 reproduces the uninterrupted run (shuffling is a pure function of seed and epoch through
@@ -111,7 +112,8 @@ def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torc
 
 
 def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, k: int, autocast,
-                   memory_format=torch.contiguous_format, weights: torch.Tensor | None = None) -> torch.Tensor:
+                   memory_format=torch.contiguous_format,
+                   weights: torch.Tensor | None = None) -> torch.Tensor:
     """Loss of a model predicting k states per call, over U = u.shape[1] / k calls chained by their detached
     last state (the pushforward term over calls of k; U = 1: plain k-step supervision).
 
@@ -123,7 +125,9 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
     n = u.shape[1]
     if n % k:
         raise ValueError(f"a sample of {n} transitions is not a whole number of calls of steps_per_call={k}")
-    w = torch.full((k,), 1.0 / k, device=y.device) if weights is None else (weights / weights.sum()).to(y.device)
+    if weights is None:
+        weights = torch.ones(k)
+    w = (weights / weights.sum()).to(y.device)  # (k,)
     state, total = x, 0.0
     for c in range(n // k):
         with autocast:
@@ -237,7 +241,7 @@ def train(
     optimizer = torch.optim.AdamW(
         model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay
     )
-    step_weights = None if cfg.step_loss_weights is None else torch.tensor(cfg.step_loss_weights, device=device)
+    step_weights = None if cfg.step_loss_weights is None else torch.tensor(cfg.step_loss_weights)
 
     # ---- data: DistributedSampler also for one rank, so shuffling = f(seed, epoch) ----------------
     if cfg.batch_size % world:
@@ -308,7 +312,8 @@ def train(
         write_checkpoint_dict(last_path, ckpt)
     log.info("training %s: %d transitions, %d steps/epoch x %d epochs (budget %d steps), %d ranks, device %s, "
              "bf16=%s, channels_last=%s, steps_per_call=%d, unroll_steps=%d", meta.name, len(data.train),
-             steps_per_epoch, cfg.max_epochs, budget, world, device, cfg.bf16, cfg.channels_last, k, cfg.unroll_steps)
+             steps_per_epoch, cfg.max_epochs, budget, world, device, cfg.bf16, cfg.channels_last, k,
+             cfg.unroll_steps)
 
     epoch = start_epoch
     for epoch in range(start_epoch, cfg.max_epochs):
