@@ -28,7 +28,11 @@ moves at a roughly steady rate within 10 steps, so j·r_1 is already a good k-st
 model with a zero head extrapolates linearly); the correction's 1x1x1 head costs 16·16·(k-1) MAC per 1/2-grid
 voxel (k = 10: ~2 % of a step) where a 3x3x3 head would cost 27 times more (k = 10: more than the whole
 step). The spatial detail of E comes through g, which already mixes the latent, the skip feature b and x at
-every 2x2x2 block. E's head is zero-initialized (training starts from linear extrapolation). With k = 1
+every 2x2x2 block. E's head is zero-initialized (training starts from linear extrapolation). All k residuals
+come from one 1x1x1 convolution of [g, r_1] whose weight stacks [0, I], [W_E_2, 2I], .., [W_E_k, kI] (same
+values, one GEMM and one voxel shuffle instead of ~6 full-size passes over the k states). Measured on
+``small`` (batch 1, one thread, min CPU ms per call, interleaved, two runs): k = 1 8.6-10.3, k = 10 14.5-15.9
+fused vs 18.0-19.6 with separate head, multiply, add and concatenation. With k = 1
 there is no extra head: the parameters, state dict and outputs are those of the one-step decoder.
 """
 
@@ -88,9 +92,9 @@ class ResidualDecoder(nn.Module):
             self.extra = Conv3d(w2, 8 * C * (cfg.steps - 1), 1)  # extra-step corrections E (see docstring)
             nn.init.zeros_(self.extra.weight)
             nn.init.zeros_(self.extra.bias)
-            # (k-1, 1, 1, 1, 1) multipliers j = 2..k of the one-step residual
-            ramp = torch.arange(2, cfg.steps + 1, dtype=torch.float32).view(-1, 1, 1, 1, 1)
-            self.register_buffer("ramp", ramp, persistent=False)
+            # (16k, 16) block column [I; 2I; ..; kI]: r_j = j r_1 + E_j (not a parameter, not saved)
+            ramp = torch.arange(1, cfg.steps + 1, dtype=torch.float32)[:, None, None] * torch.eye(8 * C)
+            self.register_buffer("ramp", ramp.reshape(-1, 8 * C), persistent=False)
 
     def forward(self, z_next: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """Cumulative residuals r (B, k, 2, D, H, W) from z̃ (B, C_z, d, h, w), b (B, 12, D/2, H/2, W/2),
@@ -98,13 +102,20 @@ class ResidualDecoder(nn.Module):
         h = self.mix_latent(self.coarse(z_next))  # (B, 16, d, h, w)
         h = upsample2(h, tuple(b.shape[2:]))  # (B, 16, D/2, H/2, W/2)
         g = F.silu(h + self.mix_skip(b) + self._mix_state(x.to(b.dtype)))  # (B, 16, D/2, H/2, W/2)
-        r1 = depth_to_space(self.out(g))  # (B, 2, D, H, W)
+        r1 = self.out(g)  # (B, 16, D/2, H/2, W/2): Δx before the voxel shuffle
         if self.steps == 1:
-            return r1[:, None]  # (B, 1, 2, D, H, W)
-        B, C, D, H, W = r1.shape
-        extra = depth_to_space(self.extra(g)).view(B, self.steps - 1, C, D, H, W)  # (B, k-1, 2, D, H, W)
-        rest = self.ramp.to(r1.dtype) * r1[:, None] + extra  # (B, k-1, 2, D, H, W): r_j = j r_1 + E
-        return torch.cat([r1[:, None], rest], dim=1)  # (B, k, 2, D, H, W)
+            return depth_to_space(r1)[:, None]  # (B, 1, 2, D, H, W)
+        # all k residuals by one 1x1x1 convolution of [g, r_1] (no extra full-size passes): the fused
+        # weight's rows for step j are [W_E_j, j I] (for j = 1: [0, I]), its bias [0; b_E]
+        w = self.extra.weight.flatten(1)  # (16(k-1), 16)
+        fused = torch.cat([torch.cat([torch.zeros_like(w[: r1.shape[1]]), w]), self.ramp], dim=1)  # (16k, 32)
+        bias = torch.cat([torch.zeros_like(self.extra.bias[: r1.shape[1]]), self.extra.bias])  # (16k,)
+        # channels-first, so the GEMM's output is too and the voxel shuffle below is a single copy
+        x_in = torch.cat([g.to(r1.dtype), r1], dim=1).contiguous()  # (B, 32, D/2, H/2, W/2)
+        r = conv3d(x_in, fused.to(r1.dtype)[:, :, None, None, None], bias.to(r1.dtype))  # (B, 16k, ..)
+        B = r.shape[0]
+        out = depth_to_space(r)  # (B, 2k, D, H, W), channel = step * 2 + c
+        return out.view(B, self.steps, -1, *out.shape[2:])  # (B, k, 2, D, H, W)
 
     def _mix_state(self, x: torch.Tensor) -> torch.Tensor:
         """mix_state(space_to_depth(x)) computed as the equivalent 2x2x2 stride-2 convolution of x
