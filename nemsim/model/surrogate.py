@@ -67,6 +67,7 @@ from nemsim.model.encoder import EncoderConfig, StateEncoder
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
+from nemsim.model.window import WindowRun, splice_latent
 
 N_CONTROLS = 14
 
@@ -199,10 +200,12 @@ class NEMSim(nn.Module):
             "mrc": self.mrc.precompute(self.rules, fused=fused),
         }
 
-    def predict(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False):
+    def predict(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False,
+                window: WindowRun | None = None):
         """The next k = ``config.steps_per_call`` states from x (B, 2, D, H, W) under the controls of
         ``cache = precompute(u)``: (B, k, 2, D, H, W), x̂_{t+1..t+k} [, aux]. For k = 1 this is
-        ``step(x, cache)[:, None]``."""
+        ``step(x, cache)[:, None]``. ``window``: the run of a depth-windowed call (``DepthWindow`` calls
+        this; x is then the window's slab)."""
         u = cache["u"]
         if x.dim() != 5 or x.shape[1] != 2:
             raise ValueError(f"x must be (B, 2, D, H, W), got {tuple(x.shape)}")
@@ -220,7 +223,9 @@ class NEMSim(nn.Module):
         lam = eic["lam"]  # (B, E)
         alpha = self.mac(lam, z_bar, u, self.rules, cache["mac"])  # (B, E, M)
         T = lam[:, :, None] * alpha  # (B, E, M)  eq:supp_event_mechanism_driver
-        dz, amp = self.mrc(z, z_bar, u, T, self.rules, cache["mrc"])  # (B, C_z, d, h, w)
+        z_mrc = z if window is None else splice_latent(self.mrc, z, window)  # MRC sees the full latent grid
+        dz, amp = self.mrc(z_mrc, z_bar, u, T, self.rules, cache["mrc"])  # (B, C_z, d, h, w)
+        dz = dz[:, :, dz.shape[2] - z.shape[2]:]  # the window's part (all of it without a window)
         z_next = z + dz.to(z.dtype)  # eq:supp_mrc_latent_update
         # cumulative residuals from x_t, cropped back; k = 1: the paper's Dec(z̃, b, x)
         residual = self.decoder(z_next, b, xp)[..., :D, :H, :W].to(x.dtype)  # (B, k, 2, D, H, W)
