@@ -114,6 +114,12 @@ def from_dict(values: dict[str, Any]) -> TrainConfig:
     if unknown:
         raise ValueError(f"unknown training config keys {unknown}; expected some of {sorted(known)}")
     values = dict(values)
+    for f in fields(TrainConfig):  # YAML 1.1 reads 1e-4 (no dot) as a string
+        if f.type == "float" and isinstance(values.get(f.name), str):
+            try:
+                values[f.name] = float(values[f.name])
+            except ValueError:
+                raise ValueError(f"{f.name} must be a number, got {values[f.name]!r}") from None
     if "betas" in values:
         values["betas"] = tuple(values["betas"])
     if values.get("step_loss_weights") is not None:

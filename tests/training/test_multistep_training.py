@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from nemsim.model.registry import build_model, model_config
+from nemsim.scenes import SMALL as SMALL_SCENE
 from nemsim.training.checkpoint import (checkpoint_sim_config, load_checkpoint, read_checkpoint,
                                         save_checkpoint)
 from nemsim.training.config import TrainConfig
@@ -168,3 +169,34 @@ def test_cli_trains_k3_and_records_the_data_generator(tmp_path, tiny_data, capsy
     assert checkpoint_sim_config(raw) == {"kind": "synthetic-test"}  # the data file's `generator` attribute
     cfg.write_text("model:\n  steps_per_call: 0\n")
     assert main(args) == 2 and "steps_per_call" in capsys.readouterr().err
+
+
+def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, rules, capsys):
+    """--init-from: a k=3 run starts from a one-step checkpoint's weights (its extra-step head from zero, so
+    it starts as the one-step model's linear extrapolation); another model or scene is refused."""
+    from nemsim.cli import main
+
+    one = tmp_path / "one.pt"
+    _save_k1 = build_model("nemsim", tiny_scene, rules, dict(SMALL_NET))
+    save_checkpoint(one, _save_k1, model_name="nemsim", model_config=dataclasses.asdict(
+        model_config("nemsim", tiny_scene, dict(SMALL_NET))), scene=tiny_scene, rules=rules)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False, "lr": 1e-12,
+                               "min_lr": 0.0, "model": {"steps_per_call": 3, **SMALL_NET}}))
+    out = tmp_path / "run"
+    args = ["train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id", "--out",
+            str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1", "--rollout-steps",
+            str(STEPS), "--config", str(cfg), "--no-progress", "--no-test", "--init-from", str(one)]
+    assert main(args) == 0
+    assert "initialized from" in (out / "train.log").read_text()
+    trained = read_checkpoint(out / "last.pt")["model_state"]
+    start = read_checkpoint(one)["model_state"]
+    for name, value in start.items():  # lr 1e-12: the weights are still the one-step checkpoint's
+        torch.testing.assert_close(trained[name], value, atol=1e-6, rtol=0)
+    assert set(trained) - set(start) == {"decoder.extra.weight", "decoder.extra.bias"}
+    capsys.readouterr()
+    bad = tmp_path / "bad.pt"
+    save_checkpoint(bad, _save_k1, model_name="nemsim", model_config={}, scene=SMALL_SCENE, rules=rules)
+    args[args.index(str(one))] = str(bad)
+    assert main([*args[:args.index("--out") + 1], str(tmp_path / "run2"), *args[args.index("--out") + 2:]]) == 2
+    assert "scene" in capsys.readouterr().err
