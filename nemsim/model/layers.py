@@ -70,6 +70,13 @@ class Conv3d(nn.Conv3d):
     _packed: tuple | None = None  # (key, oneDNN-packed weight) for inference, see _prepacked
     _window = None  # a WindowRun while a depth-windowed call runs (nemsim.model.window)
 
+    def __getstate__(self) -> dict:
+        """Copies and pickles leave the packed weight behind (an opaque oneDNN tensor: deepcopy of a model
+        that has run inference failed with "Cannot access storage of OpaqueTensorImpl")."""
+        state = dict(super().__getstate__())
+        state.pop("_packed", None)
+        return state
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self._window is not None and self.kernel_size == (3, 3, 3):
             return window_conv(self, x, self._window, self._forward)

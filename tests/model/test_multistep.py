@@ -94,3 +94,15 @@ def test_gradients_reach_every_head(rules):
 def test_bad_steps_per_call(rules, bad):
     with pytest.raises(ValueError, match="steps_per_call"):
         NEMSim(rules, NEMSimConfig(steps_per_call=bad))
+
+
+def test_deepcopy_after_inference(rules):
+    """A model that has run inference (oneDNN-packed weights cached) can still be deep-copied."""
+    import copy
+
+    model = _model(rules, 1)
+    x, u = _inputs()
+    with torch.no_grad():
+        y = model(x, u)
+        twin = copy.deepcopy(model)
+        assert torch.equal(twin(x, u), y)
