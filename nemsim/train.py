@@ -130,11 +130,12 @@ def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> Non
     try:
         missing, unexpected = model.load_state_dict(ckpt["model_state"], strict=False)
     except RuntimeError as exc:  # shape mismatches
-        raise TrainInputError(f"--init-from {path}: weights do not fit the model: {str(exc).splitlines()[0]}") \
-            from None
+        first = str(exc).splitlines()[0]
+        raise TrainInputError(f"--init-from {path}: weights do not fit the model: {first}") from None
     if unexpected:
         raise TrainInputError(f"--init-from {path}: parameters the model lacks: {sorted(unexpected)[:5]}")
-    log.info("initialized from %s; kept the initialization of %d tensors: %s", path, len(missing), sorted(missing))
+    log.info("initialized from %s; kept the initialization of %d tensors: %s", path, len(missing),
+             sorted(missing))
 
 
 def _steps_per_call(model_overrides: dict[str, Any]) -> int:

@@ -87,7 +87,8 @@ def rollout(
         from nemsim.model.window import DepthWindow
 
         if not fast:
-            raise ValueError(f"window=True needs a NEMSim model (precompute/predict); got {type(model).__name__}")
+            raise ValueError(f"window=True needs a NEMSim model (precompute/predict); "
+                             f"got {type(model).__name__}")
         depth_window = DepthWindow(model)
     cache = None
     t = calls = 0
@@ -99,7 +100,8 @@ def rollout(
             if changed[t]:
                 cache = model.precompute(u[:, t])
             if depth_window is not None:
-                chunk = depth_window.predict(x, cache)[:, : _chunk_length(changed, t, k, T)]  # (B, n, 2, D, H, W)
+                n = _chunk_length(changed, t, k, T)
+                chunk = depth_window.predict(x, cache)[:, :n]  # (B, n, 2, D, H, W)
             elif k == 1:
                 chunk = model.step(x, cache)[:, None]  # (B, 1, 2, D, H, W)
             else:

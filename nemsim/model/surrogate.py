@@ -231,7 +231,7 @@ class NEMSim(nn.Module):
         residual = self.decoder(z_next, b, xp)[..., :D, :H, :W].to(x.dtype)  # (B, k, 2, D, H, W)
         x_next = x[:, None] + residual  # eq:supp_mrc_state_update (B, k, 2, D, H, W)
         if self.config.clamp_output:
-            x_next = x_next.clamp_(-1.0, 1.0)  # in place: x_next is a fresh tensor (one pass fewer over k states)
+            x_next = x_next.clamp_(-1.0, 1.0)  # in place: x_next is a fresh tensor (one pass fewer)
         if not return_aux:
             return x_next
         aux = {

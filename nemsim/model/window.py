@@ -125,17 +125,20 @@ def window_group_norm(gn: nn.GroupNorm, x: torch.Tensor, run: WindowRun) -> torc
     o = _offset(r1.shape[2], D)
     n = per_slice * (o + D)
     mu = (s1.sum(-1) + r1[:, :, :o].sum(-1)) / n  # (B, G)
-    rstd = torch.rsqrt(((s2.sum(-1) + r2[:, :, :o].sum(-1)) / n - mu.square()).clamp_min(0) + gn.eps)  # (B, G)
+    var = ((s2.sum(-1) + r2[:, :, :o].sum(-1)) / n - mu.square()).clamp_min(0)  # (B, G)
+    rstd = torch.rsqrt(var + gn.eps)  # (B, G)
     # folded into one per-channel scale and shift: y = x · scale + shift
     scale = rstd.repeat_interleave(C // G, dim=1)  # (B, C)
     shift = -mu.repeat_interleave(C // G, dim=1) * scale  # (B, C)
     if gn.affine:
         scale, shift = scale * gn.weight, shift * gn.weight + gn.bias
-    return torch.addcmul(shift[:, :, None, None, None].to(x.dtype), x, scale[:, :, None, None, None].to(x.dtype))
+    shift, scale = shift[:, :, None, None, None].to(x.dtype), scale[:, :, None, None, None].to(x.dtype)
+    return torch.addcmul(shift, x, scale)
 
 
 def window_pool(encoder: nn.Module, e3: torch.Tensor, run: WindowRun) -> torch.Tensor:
-    """[mean, max] over space of the 1/8-grid features e3 (B, C, d, h, w) as over the whole volume: (B, 2C)."""
+    """[mean, max] over space of the 1/8-grid features e3 (B, C, d, h, w) as over the whole volume:
+    (B, 2C)."""
     s = e3.sum(dim=(3, 4))  # (B, C, d)
     m = e3.amax(dim=(3, 4))  # (B, C, d)
     per_slice = e3.shape[3] * e3.shape[4]
@@ -206,7 +209,8 @@ class DepthWindow:
 
     def __init__(self, model: nn.Module, cfg: WindowConfig | None = None) -> None:
         if not callable(getattr(model, "predict", None)) or not hasattr(model, "encoder"):
-            raise ValueError(f"a depth window needs a NEMSim model (predict, encoder); got {type(model).__name__}")
+            raise ValueError(f"a depth window needs a NEMSim model (predict, encoder); "
+                             f"got {type(model).__name__}")
         self.model, self.cfg = model, cfg or WindowConfig()
         self.run: WindowRun | None = None
         self.start = 0  # a: first computed slice
@@ -231,7 +235,8 @@ class DepthWindow:
             share = 1.0
         else:
             with attached(self.model, self.run):
-                part = self.model.predict(x[:, :, self.start:], cache, window=self.run)  # (B, k, 2, D-a, H, W)
+                slab = x[:, :, self.start:]  # (B, 2, D-a, H, W)
+                part = self.model.predict(slab, cache, window=self.run)  # (B, k, 2, D-a, H, W)
             held = x[:, None, :, : self.start].expand(B, part.shape[1], C, self.start, H, W)
             out = torch.cat([held, part], dim=3)  # (B, k, 2, D, H, W)
             share = (D - self.start) / D

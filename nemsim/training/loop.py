@@ -7,8 +7,8 @@ the previous detached prediction (``pushforward_loss``; not in the paper, see ``
 over ``unroll_steps`` calls chained by their detached last state (``multistep_loss``).
 
 Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full horizon on the
-validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and training stops after ``patience`` validation rounds without improvement. ``last.pt`` is written after
-every epoch (and every ``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states,
+validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and training stops after
+``patience`` validation rounds without improvement. ``last.pt`` is written after every epoch (and every ``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states,
 history and the number of batches of the unfinished epoch, so a killed run resumes where it was saved and
 reproduces the uninterrupted run (shuffling is a pure function of seed and epoch through
 ``DistributedSampler.set_epoch``; the resumed epoch skips the batches already trained). ``max_steps`` ends a

@@ -1,5 +1,5 @@
-"""Depth-windowed rollout (nemsim.model.window): exact on the recorded state, held voxels, stats, and agreement
-with the full rollout on the shipped checkpoint within the tolerance stated in the module docstring."""
+"""Depth-windowed rollout (nemsim.model.window): exact on the recorded state, held voxels, stats, and
+agreement with the full rollout on the shipped checkpoint within the tolerance stated in the module docstring."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def test_windowed_rollout_holds_the_voxels_below_and_reports_the_fraction(rules)
     model = _model(rules, 3)
     C, D, H, W = TINY.state_shape
     x0 = torch.ones(1, C, D, H, W)
-    x0[:, 1, 20:] = 0.0  # an unsaturated band from slice 20 up: the window starts at (20 - 8 - 8) // 8 * 8 = 0
+    x0[:, 1, 20:] = 0.0  # an unsaturated band from slice 20 up
     x0[:, 1, :20] = -1.0
     cfg = WindowConfig(halo=4, margin=0)  # -> start (20 - 4) // 8 * 8 = 16
     window = DepthWindow(model, cfg)

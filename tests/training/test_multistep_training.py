@@ -181,7 +181,8 @@ def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, ru
     save_checkpoint(one, _save_k1, model_name="nemsim", model_config=dataclasses.asdict(
         model_config("nemsim", tiny_scene, dict(SMALL_NET))), scene=tiny_scene, rules=rules)
     cfg = tmp_path / "cfg.json"
-    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False, "lr": 1e-12,
+    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False,
+                               "lr": 1e-12,
                                "min_lr": 0.0, "model": {"steps_per_call": 3, **SMALL_NET}}))
     out = tmp_path / "run"
     args = ["train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id", "--out",
@@ -198,5 +199,6 @@ def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, ru
     bad = tmp_path / "bad.pt"
     save_checkpoint(bad, _save_k1, model_name="nemsim", model_config={}, scene=SMALL_SCENE, rules=rules)
     args[args.index(str(one))] = str(bad)
-    assert main([*args[:args.index("--out") + 1], str(tmp_path / "run2"), *args[args.index("--out") + 2:]]) == 2
+    args[args.index("--out") + 1] = str(tmp_path / "run2")
+    assert main(args) == 2
     assert "scene" in capsys.readouterr().err
