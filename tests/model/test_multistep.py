@@ -37,6 +37,10 @@ def test_predict_shape_and_step_is_first_state(rules, k):
     assert out.abs().max() <= 1.0  # every predicted state is projected onto [-1, 1]
     torch.testing.assert_close(fwd, out)  # forward uses the unfused MRC form: equal up to rounding
     assert model(x, u).shape == x.shape
+    with torch.no_grad():
+        states, aux = model.predict(x, cache, return_aux=True)
+        first, aux1 = model.step(x, cache, return_aux=True)
+    assert torch.equal(states, out) and torch.equal(first, out[:, 0]) and torch.equal(aux["lambda"], aux1["lambda"])
 
 
 def test_k1_is_the_one_step_model(rules):
