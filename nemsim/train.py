@@ -52,6 +52,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="train on this data-efficiency fraction of the train split: 0.1, 0.2, 0.5 or 1 "
                         "(default 1)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--init-from", type=Path,
+                   help="start from this checkpoint's weights (same model, rules and scene); parameters it "
+                        "lacks keep their initialization, e.g. the extra-step head of a steps_per_call > 1 "
+                        "model started from a one-step checkpoint (ignored when --resume finds OUT/last.pt)")
     p.add_argument("--splits", type=Path,
                    help="directory of split manifests <setting>.json (default: <data dir>/splits if present, "
                         "else computed from the data file)")
@@ -92,6 +96,38 @@ def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
             f"--fraction {fraction} is not a data-efficiency subset; choose from {sorted(subsets)}"
         )
     return {**manifest, "train": list(subsets[key])}
+
+
+def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> None:
+    """Load a checkpoint's weights into the fresh ``model`` (warm start); parameters the checkpoint lacks keep
+    their initialization. Refuses another model, rules library or scene, and parameters the model lacks."""
+    from nemsim.training.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
+
+    try:
+        ckpt = read_checkpoint(path)
+        check_compatible(ckpt, rules=rules, scene=scene)
+    except (OSError, ValueError) as exc:  # CheckpointMismatch is a ValueError
+        kind = "mismatch" if isinstance(exc, CheckpointMismatch) else "unreadable"
+        raise TrainInputError(f"--init-from {path}: {kind}: {exc}") from None
+    if ckpt["model_name"] != name:
+        raise TrainInputError(f"--init-from {path}: a {ckpt['model_name']!r} checkpoint, training {name!r}")
+    try:
+        missing, unexpected = model.load_state_dict(ckpt["model_state"], strict=False)
+    except RuntimeError as exc:  # shape mismatches
+        first = str(exc).splitlines()[0]
+        raise TrainInputError(f"--init-from {path}: weights do not fit the model: {first}") from None
+    if unexpected:
+        raise TrainInputError(f"--init-from {path}: parameters the model lacks: {sorted(unexpected)[:5]}")
+    log.info("initialized from %s; kept the initialization of %d tensors: %s", path, len(missing),
+             sorted(missing))
+
+
+def _steps_per_call(model_overrides: dict[str, Any]) -> int:
+    """k of the model being trained: the ``steps_per_call`` model override (NEMSim), else 1."""
+    k = model_overrides.get("steps_per_call", 1)
+    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
+        raise TrainInputError(f"model steps_per_call must be an integer >= 1, got {k!r}")
+    return k
 
 
 def _config_dict(cfg: Any) -> dict:
@@ -165,8 +201,9 @@ def run(args: argparse.Namespace) -> int:
                 manifest = {**manifest, split: list(manifest[split])[:limit]}
         visible = manifest.get("visible_transitions")
         data = TrainData(
+            # a training item spans unroll_steps network calls of steps_per_call states each
             train=TransitionDataset(args.data, manifest, "train", visible_transitions=visible,
-                                    unroll=cfg.unroll_steps),
+                                    unroll=cfg.unroll_steps * _steps_per_call(model_overrides)),
             val=TrajectoryDataset(args.data, manifest, "val"),
         )
 
@@ -185,9 +222,11 @@ def run(args: argparse.Namespace) -> int:
             perturbation = {"kind": args.perturb, "seed": args.perturb_seed}
         seed_everything(cfg.seed)
         model = build_model(args.model, scene, rules, model_overrides or None)
+        if args.init_from is not None and not (args.resume and (out / "last.pt").is_file()):
+            _init_from(model, Path(args.init_from), args.model, rules, scene)
         mcfg = _config_dict(model_config(args.model, scene, model_overrides or None))
         meta = ModelMeta(name=args.model, config=mcfg, scene=scene, rules=rules,
-                         rules_perturbation=perturbation)
+                         rules_perturbation=perturbation, sim_config=tf.generator or None)
         log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", args.setting,
                  len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)
         summary = train(cfg, model, data, out, meta, resume=args.resume)

@@ -106,11 +106,12 @@ class TransitionDataset(_H5Backed):
         manifest: split manifest dict (``nemsim.data.splits``) or None for every complete case.
         split: "train" | "val" | "test" | "unused".
         visible_transitions: only t = 0..V-1 of each case (Vis-p%); None = all T-1 transitions.
-        unroll: transitions per item (k). 1 = the paper's one-step samples; k > 1 gives k consecutive
-            transitions for a pushforward loss (``TrainConfig.unroll_steps``), t = 0..V-k.
+        unroll: transitions per item (n). 1 = the paper's one-step samples; n > 1 gives n consecutive
+            transitions, t = 0..V-n: the k-step targets of a model with ``steps_per_call`` k, over
+            ``TrainConfig.unroll_steps`` U calls (n = U·k; k = 1, U > 1: the pushforward loss).
     Items:
         unroll 1: (x_t (2, D, H, W) float32, u_t (14,) float32 normalized, x_{t+1} (2, D, H, W) float32);
-        unroll k: (x_t (2, D, H, W), u_{t..t+k-1} (k, 14), x_{t+1..t+k} (k, 2, D, H, W)).
+        unroll n: (x_t (2, D, H, W), u_{t..t+n-1} (n, 14), x_{t+1..t+n} (n, 2, D, H, W)).
     """
 
     def __init__(

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from nemsim.model.layers import Conv3d, ConvGNAct, ResBlock3d
+from nemsim.model.window import window_pool, window_upsample
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,8 @@ class EncoderConfig:
 
 class StateEncoder(nn.Module):
     """SE(x) -> (z (B, C_z, d, h, w), b (B, w1, D/2, H/2, W/2), z̄ (B, K))."""
+
+    _window = None  # a WindowRun while a depth-windowed call runs: pooling and up-sampling as on the volume
 
     def __init__(self, cfg: EncoderConfig) -> None:
         super().__init__()
@@ -70,8 +73,13 @@ class StateEncoder(nn.Module):
         b = self.level1(self.stem(x))  # (B, w1, D/2, H/2, W/2)
         e2 = self.level2(b)  # (B, w2, d, h, w)
         e3 = self.level3(e2)  # (B, w3, ~d/2, ~h/2, ~w/2)
-        up = F.interpolate(self.latent_coarse(e3), size=tuple(e2.shape[2:]), mode="nearest")  # (B,C_z,d,h,w)
+        coarse = self.latent_coarse(e3)  # (B, C_z, ~d/2, ~h/2, ~w/2)
+        if self._window is None:
+            up = F.interpolate(coarse, size=tuple(e2.shape[2:]), mode="nearest")  # (B, C_z, d, h, w)
+            pooled = torch.cat([e3.mean(dim=(2, 3, 4)), e3.amax(dim=(2, 3, 4))], dim=1)  # (B, 2 w3)
+        else:
+            up = window_upsample(self, coarse, tuple(e2.shape[2:]), self._window)
+            pooled = window_pool(self, e3, self._window)
         z = self.latent_fine(e2) + up  # (B, C_z, d, h, w)
-        pooled = torch.cat([e3.mean(dim=(2, 3, 4)), e3.amax(dim=(2, 3, 4))], dim=1)  # (B, 2 w3)
         z_bar = self.to_context(pooled)  # (B, K)
         return z, b, z_bar

@@ -8,6 +8,10 @@ autograd formula). PyTorch's dispatcher otherwise sends batch-1 3-D convolutions
 im2col ``slow_conv3d`` path, measured 5-9x slower on this CPU (a 12->12 3x3x3 convolution on 34x14x14:
 12-18 ms vs 2 ms). 1x1x1 stride-1 kernels run as one matrix product (measured 2-3x faster than oneDNN at
 our sizes). Other devices, dtypes, autocast and torch.compile use the standard path.
+
+Depth window (``nemsim.model.window``): while a ``WindowRun`` is attached (``_window``), 3x3x3 convolutions
+and GroupNorm compute on a suffix crop of the depth axis as if on the whole volume (the slice below the crop
+and the statistics below it come from the last full call). Unattached, nothing changes.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from nemsim.model.window import window_conv, window_group_norm
 
 _PREPACK = hasattr(torch.ops.mkldnn, "_convolution_pointwise") and hasattr(
     torch.ops.mkldnn, "_reorder_convolution_weight"
@@ -62,39 +68,66 @@ class Conv3d(nn.Conv3d):
     """nn.Conv3d (same parameters and state dict) with the fp32 CPU fast paths of ``conv3d``."""
 
     _packed: tuple | None = None  # (key, oneDNN-packed weight) for inference, see _prepacked
+    _window = None  # a WindowRun while a depth-windowed call runs (nemsim.model.window)
+
+    def __getstate__(self) -> dict:
+        """Copies and pickles leave the packed weight behind (an opaque oneDNN tensor: deepcopy of a model
+        that has run inference failed with "Cannot access storage of OpaqueTensorImpl")."""
+        state = dict(super().__getstate__())
+        state.pop("_packed", None)
+        return state
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self._window is not None and self.kernel_size == (3, 3, 3):
+            return window_conv(self, x, self._window, self._forward)
+        return self._forward(x)
+
+    def _forward(self, x: torch.Tensor, padding: tuple | None = None) -> torch.Tensor:
+        """The convolution, with ``padding`` instead of the module's (the depth window's own padding)."""
+        padding = self.padding if padding is None else tuple(padding)
         if self.padding_mode == "zeros" and isinstance(self.padding, tuple) and self.dilation == (1, 1, 1) \
                 and self.groups == 1:
             inference = _PREPACK and not torch.is_grad_enabled() and _onednn_ok(x)
             if inference and self.kernel_size != (1, 1, 1) and self.in_channels >= 8:
-                return self._prepacked(x)
-            return conv3d(x, self.weight, self.bias, self.stride, self.padding)
+                return self._prepacked(x, padding)
+            return conv3d(x, self.weight, self.bias, self.stride, padding)
+        assert padding == self.padding, f"padding {padding} on the standard path of {self}"
         return super().forward(x)
 
-    def _prepacked(self, x: torch.Tensor) -> torch.Tensor:
+    def _prepacked(self, x: torch.Tensor, padding: tuple) -> torch.Tensor:
         """Inference: the weight reordered once into oneDNN's blocked layout for this input shape (a rollout
         calls every convolution with the same shape each step; ~10 % faster per rollout, measured; not for
         the 2-channel stem, where it was slower). Its output is channels-last. The packed copy
         is keyed by input shape and the weight's storage and version, so training updates or
         ``load_state_dict`` invalidate it."""
         w = self.weight
-        key = (tuple(x.shape), w.data_ptr(), w._version)
+        key = (tuple(x.shape), padding, w.data_ptr(), w._version)
         packed = self._packed  # one read: another thread may replace it meanwhile
         if packed is None or packed[0] != key:
             packed = (key, torch.ops.mkldnn._reorder_convolution_weight(
-                w.detach(), list(self.padding), list(self.stride), [1, 1, 1], 1, list(x.shape)
+                w.detach(), list(padding), list(self.stride), [1, 1, 1], 1, list(x.shape)
             ))
             self._packed = packed
         return torch.ops.mkldnn._convolution_pointwise(
-            x, packed[1], self.bias, list(self.padding), list(self.stride), [1, 1, 1], 1, "none", [], ""
+            x, packed[1], self.bias, list(padding), list(self.stride), [1, 1, 1], 1, "none", [], ""
         )
+
+
+class GroupNorm(nn.GroupNorm):
+    """nn.GroupNorm (same parameters and state dict) that follows an attached depth window."""
+
+    _window = None  # a WindowRun while a depth-windowed call runs (nemsim.model.window)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self._window is not None:
+            return window_group_norm(self, x, self._window)
+        return super().forward(x)
 
 
 def group_norm(channels: int) -> nn.GroupNorm:
     """GroupNorm with groups of 6 channels where possible (12 -> 2, 18 -> 3, 24 -> 4 groups)."""
     groups = max(1, channels // 6) if channels % 6 == 0 else 1
-    return nn.GroupNorm(groups, channels)
+    return GroupNorm(groups, channels)
 
 
 class ConvGNAct(nn.Sequential):

@@ -41,6 +41,14 @@ the MRC head products) and ``step(x, cache)`` does the rest; ``forward(x, u)`` i
 so a constant-control rollout pays for the rule side once. Measured on ``small`` (batch 1, 1 thread,
 100 steps, untrained weights): the rule side (EIC+MAC+MRC amplitudes) was ~15 % of a step, the encoder ~37 %,
 the decoder ~33 %, MRC's mode fields ~12 %; see ``nemsim bench rollout``.
+
+Multi-step prediction (``steps_per_call`` = k; not in the paper, k = 1 is the paper's model and the default):
+one call predicts the next k states under one control vector, x̂_{t+j} = clamp(x_t + r_j, -1, 1) for
+j = 1..k, where r_j are cumulative residuals from x_t (the decoder's extra-step head, decoder.py). The
+encoder, EIC, MAC, MRC and the decoder trunk run once per k states, so a rollout costs ~1/k of the network
+calls. ``predict(x, cache)`` returns all k states (B, k, 2, D, H, W); ``step(x, cache)`` keeps its meaning
+(the next state; for k > 1 the first of the k); ``forward(x, u, all_steps=True)`` is ``predict`` for
+training. k = 1 models, their parameters and checkpoints are unchanged (no extra head is built).
 """
 
 from __future__ import annotations
@@ -61,6 +69,7 @@ from nemsim.model.gate import ion_flux_gate
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
+from nemsim.model.window import WindowRun, splice_latent
 
 
 @dataclass(frozen=True)
@@ -81,6 +90,7 @@ class NEMSimConfig:
     clamp_output: bool = True  # next state projected onto [-1, 1], the range of every valid state (see docstring)
     kinetics: Literal["paper", "physical"] = "paper"  # rule kinetics of EIC (nemsim.rules.kinetics)
     flux_gate: bool = False  # scale the update by the ion-flux gate (nemsim.model.gate): no ions, no change
+    steps_per_call: int = 1  # k states predicted per call (1 = the paper's model; see "Multi-step" below)
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -128,6 +138,8 @@ class NEMSim(nn.Module):
     def __init__(self, rules, config: NEMSimConfig | None = None) -> None:
         super().__init__()
         cfg = config or NEMSimConfig()
+        if int(cfg.steps_per_call) != cfg.steps_per_call or cfg.steps_per_call < 1:
+            raise ValueError(f"steps_per_call must be an integer >= 1, got {cfg.steps_per_call!r}")
         self.config = cfg
         self.rules = RuleBuffers(rules)  # fixed buffers, never parameters
         E = self.rules.n_events
@@ -157,7 +169,8 @@ class NEMSim(nn.Module):
         )
         self.decoder = ResidualDecoder(
             DecoderConfig(latent_channels=cfg.latent_channels, skip_channels=cfg.widths[0],
-                          widths=cfg.decoder_widths, out_scale=cfg.decoder_out_scale)
+                          widths=cfg.decoder_widths, out_scale=cfg.decoder_out_scale,
+                          steps=cfg.steps_per_call)
         )
         self.multiple = self.encoder.cfg.downsample
 
@@ -193,8 +206,12 @@ class NEMSim(nn.Module):
             "gate": ion_flux_gate(u)[:, None, None, None, None] if self.config.flux_gate else None,
         }
 
-    def step(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False):
-        """``forward(x, cache["u"])`` with the control-only part taken from ``cache = precompute(u)``."""
+    def predict(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False,
+                window: WindowRun | None = None):
+        """The next k = ``config.steps_per_call`` states from x (B, 2, D, H, W) under the controls of
+        ``cache = precompute(u)``: (B, k, 2, D, H, W), x̂_{t+1..t+k} [, aux]. For k = 1 this is
+        ``step(x, cache)[:, None]``. ``window``: the run of a depth-windowed call (``DepthWindow`` calls
+        this; x is then the window's slab)."""
         u = cache["u"]
         if x.dim() != 5 or x.shape[1] != 2:
             raise ValueError(f"x must be (B, 2, D, H, W), got {tuple(x.shape)}")
@@ -212,14 +229,17 @@ class NEMSim(nn.Module):
         lam = eic["lam"]  # (B, E)
         alpha = self.mac(lam, z_bar, u, self.rules, cache["mac"])  # (B, E, M)
         T = lam[:, :, None] * alpha  # (B, E, M)  eq:supp_event_mechanism_driver
-        dz, amp = self.mrc(z, z_bar, u, T, self.rules, cache["mrc"])  # (B, C_z, d, h, w)
+        z_mrc = z if window is None else splice_latent(self.mrc, z, window)  # MRC sees the full latent grid
+        dz, amp = self.mrc(z_mrc, z_bar, u, T, self.rules, cache["mrc"])  # (B, C_z, d, h, w)
+        dz = dz[:, :, dz.shape[2] - z.shape[2]:]  # the window's part (all of it without a window)
         z_next = z + dz.to(z.dtype)  # eq:supp_mrc_latent_update
-        dx = self.decoder(z_next, b, xp)  # (B, 2, D', H', W')
-        if cache.get("gate") is not None:
-            dx = dx * cache["gate"].to(dx.dtype)  # flux_gate: zero ion flux, zero update
-        x_next = x + dx[:, :, :D, :H, :W].to(x.dtype)  # eq:supp_mrc_state_update, cropped back
+        # cumulative residuals from x_t, cropped back; k = 1: the paper's Dec(z̃, b, x)
+        residual = self.decoder(z_next, b, xp)[..., :D, :H, :W].to(x.dtype)  # (B, k, 2, D, H, W)
+        if cache.get("gate") is not None:  # flux_gate: zero ion flux, zero update
+            residual = residual * cache["gate"].to(residual.dtype).view(-1, *([1] * (residual.dim() - 1)))
+        x_next = x[:, None] + residual  # eq:supp_mrc_state_update (B, k, 2, D, H, W)
         if self.config.clamp_output:
-            x_next = x_next.clamp(-1.0, 1.0)
+            x_next = x_next.clamp_(-1.0, 1.0)  # in place: x_next is a fresh tensor (one pass fewer)
         if not return_aux:
             return x_next
         aux = {
@@ -229,9 +249,21 @@ class NEMSim(nn.Module):
         }
         return x_next, aux
 
-    def forward(self, x: torch.Tensor, u: torch.Tensor, return_aux: bool = False):
+    def step(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False):
+        """``forward(x, cache["u"])`` with the control-only part taken from ``cache = precompute(u)``: the
+        next state (B, 2, D, H, W). With steps_per_call k > 1 it is the first of the k predicted states
+        (``predict(x, cache)[:, 0]``; the other k - 1 are computed and dropped: use ``predict``)."""
+        out = self.predict(x, cache, return_aux)
+        if not return_aux:
+            return out[:, 0]
+        return out[0][:, 0], out[1]
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor, return_aux: bool = False, all_steps: bool = False):
+        """x̂_{t+1} (B, 2, D, H, W); with ``all_steps`` the k states of ``predict`` (B, k, 2, D, H, W)
+        (what k-step training calls, also through DDP)."""
         if x.dim() != 5 or x.shape[1] != 2:
             raise ValueError(f"x must be (B, 2, D, H, W), got {tuple(x.shape)}")
         if u.shape != (x.shape[0], N_CONTROLS):
             raise ValueError(f"u must be (B, {N_CONTROLS}) normalized controls, got {tuple(u.shape)}")
-        return self.step(x, self.precompute(u, fused=False), return_aux)
+        cache = self.precompute(u, fused=False)
+        return self.predict(x, cache, return_aux) if all_steps else self.step(x, cache, return_aux)

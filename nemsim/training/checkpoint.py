@@ -13,10 +13,14 @@ A checkpoint is one ``torch.save`` dict:
     control_ranges   {name: {"kind", "low", "high", "unit"}} of nemsim.controls at training time
     summary          training summary (epochs, best epoch, best validation metric, seconds, config)
     metrics          test metrics ({} until ``nemsim evaluate`` fills them)
+    sim_config       the simulator configuration the training data was made with (the data file's
+                     ``generator`` attribute, parsed JSON), or None (unknown; checkpoints written before
+                     this field); read it with ``checkpoint_sim_config``
     train_state      (last.pt only) optimizer state, lr-schedule step, epoch, RNG states, history
 
 ``load_checkpoint`` rebuilds the model from the stored config and rules text and refuses a checkpoint
-whose rules library or scene differs from the caller's, naming which.
+whose rules library or scene differs from the caller's, naming which. The model config carries every model
+option, e.g. NEMSim's ``steps_per_call`` (absent in older checkpoints: the default, 1).
 """
 
 from __future__ import annotations
@@ -82,6 +86,7 @@ def checkpoint_dict(
     summary: dict[str, Any] | None = None,
     metrics: dict[str, Any] | None = None,
     train_state: dict[str, Any] | None = None,
+    sim_config: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     state = {k: v.detach().to("cpu", copy=True).contiguous() for k, v in unwrap(model).state_dict().items()}
     return {
@@ -97,6 +102,7 @@ def checkpoint_dict(
         "summary": dict(summary or {}),
         "metrics": dict(metrics or {}),
         "train_state": train_state,
+        "sim_config": None if sim_config is None else dict(sim_config),
     }
 
 
@@ -207,6 +213,23 @@ def load_checkpoint(
         path=Path(path),
         raw=raw,
     )
+
+
+def checkpoint_sim_config(source: LoadedModel | dict[str, Any] | str | Path) -> dict[str, Any] | None:
+    """The simulator configuration the checkpoint's training data was made with (the data file's
+    ``generator`` JSON: simulator version, constants, seeds), or None if the checkpoint does not record it.
+
+    Args:
+        source: a ``LoadedModel``, a raw checkpoint dict, or the path of a checkpoint file.
+    """
+    if isinstance(source, LoadedModel):
+        raw = source.raw
+    elif isinstance(source, dict):
+        raw = source
+    else:
+        raw = read_checkpoint(source)
+    value = raw.get("sim_config")
+    return None if value is None else dict(value)
 
 
 def update_metrics(path: str | Path, metrics: dict[str, Any]) -> None:

@@ -21,6 +21,11 @@ Choices where the paper is silent (each a field, so a config file can change it)
     Brandstetter, Worrall & Welling 2022) and the loss is the mean of the k one-step MSEs. Trained one-step
     only, NEMSim drifts past the trained horizon (``nemsim stress``); the pushforward term trains it on the
     states its own rollout visits, at ~k times the cost of a step.
+  * multi-step models (``model: {steps_per_call: k}``, not in the paper): each network call predicts k states,
+    and the loss is the mean over the k predicted states of their MSE against x_{t+1..t+k} (weighted by
+    ``step_loss_weights`` if given, normalized to sum 1). ``unroll_steps`` counts network calls: with U > 1 a
+    sample is U·k consecutive transitions and call c starts from the detached k-th state of call c-1 (the
+    pushforward term over calls of k). A k = 1 model reads both keys as before.
   * ``rollout_steps=None`` means the scene horizon (100); tests set a few steps to run in seconds.
   * ``channels_last`` / ``bf16`` are the CPU speed flags measured on the ``small`` scene; the defaults
     are the measured winners (DEFAULT_* below): bf16 autocast on, channels_last_3d off. bf16 applies to
@@ -53,7 +58,8 @@ class TrainConfig:
     min_lr: float = 1e-5  # cosine annealing floor
     grad_clip: float = 1.0  # max global gradient norm
     batch_size: int = 24  # transitions per optimizer step (global, split over DDP ranks)
-    unroll_steps: int = 1  # 1 = the paper's one-step loss; k > 1 adds k-1 pushforward steps (see docstring)
+    unroll_steps: int = 1  # network calls per sample: 1 = the paper's loss; U > 1 adds U-1 pushforward calls
+    step_loss_weights: tuple[float, ...] | None = None  # k-step models: weight of each predicted state's MSE
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
     warmup_steps: int | None = None  # warm-up length in steps; overrides warmup_epochs when set
@@ -90,6 +96,10 @@ class TrainConfig:
             raise ValueError(f"warmup_epochs must be >= 0, got {self.warmup_epochs}")
         if self.rollout_steps is not None and self.rollout_steps < 1:
             raise ValueError(f"rollout_steps must be >= 1 or None, got {self.rollout_steps}")
+        w = self.step_loss_weights
+        if w is not None and (len(w) == 0 or min(w) < 0 or sum(w) <= 0):
+            raise ValueError(f"step_loss_weights must be None or non-negative with a positive sum, one per "
+                             f"predicted state; got {w}")
         if self.select_metric not in ("avg_rmse", "mse"):
             raise ValueError(f"select_metric={self.select_metric!r}; expected one of ['avg_rmse', 'mse']")
 
@@ -104,8 +114,16 @@ def from_dict(values: dict[str, Any]) -> TrainConfig:
     if unknown:
         raise ValueError(f"unknown training config keys {unknown}; expected some of {sorted(known)}")
     values = dict(values)
+    for f in fields(TrainConfig):  # YAML 1.1 reads 1e-4 (no dot) as a string
+        if f.type == "float" and isinstance(values.get(f.name), str):
+            try:
+                values[f.name] = float(values[f.name])
+            except ValueError:
+                raise ValueError(f"{f.name} must be a number, got {values[f.name]!r}") from None
     if "betas" in values:
         values["betas"] = tuple(values["betas"])
+    if values.get("step_loss_weights") is not None:
+        values["step_loss_weights"] = tuple(float(w) for w in values["step_loss_weights"])
     return TrainConfig(**values)
 
 

@@ -2,10 +2,13 @@
 
 One-step supervision (the paper): minimize the voxel-wise MSE between F_θ(x_t, u_t) and x_{t+1} on normalized
 fields; with ``unroll_steps`` k > 1 the mean of k one-step MSEs along k consecutive transitions, each step fed
-the previous detached prediction (``pushforward_loss``; not in the paper, see ``TrainConfig``). Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full
-horizon on the validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and
-training stops after ``patience`` validation rounds without improvement. ``last.pt`` is written after
-every epoch (and every ``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states,
+the previous detached prediction (``pushforward_loss``; not in the paper, see ``TrainConfig``). A model with
+``steps_per_call`` k > 1 is trained on k-step targets: the (weighted) mean MSE of its k predicted states,
+over ``unroll_steps`` calls chained by their detached last state (``multistep_loss``).
+
+Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full horizon on the
+validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and training stops after
+``patience`` validation rounds without improvement. ``last.pt`` is written after every epoch (and every ``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states,
 history and the number of batches of the unfinished epoch, so a killed run resumes where it was saved and
 reproduces the uninterrupted run (shuffling is a pure function of seed and epoch through
 ``DistributedSampler.set_epoch``; the resumed epoch skips the batches already trained). ``max_steps`` ends a
@@ -42,6 +45,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from torch.utils.data.distributed import DistributedSampler
 
 from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
+from nemsim.evaluation.rollout import steps_per_call
 from nemsim.scenes import Scene
 from nemsim.training.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
 from nemsim.training.config import TrainConfig
@@ -69,6 +73,7 @@ class ModelMeta:
     scene: Scene
     rules: Any  # RuleTensors
     rules_perturbation: dict[str, Any] | None = None
+    sim_config: dict[str, Any] | None = None  # the data file's simulator configuration (``generator``)
 
 
 def total_steps(steps_per_epoch: int, cfg: TrainConfig) -> int:
@@ -104,6 +109,35 @@ def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torc
         total = total + torch.mean((pred - y[:, j]) ** 2)
         state = pred.detach()
     return total / k
+
+
+def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, k: int, autocast,
+                   memory_format=torch.contiguous_format,
+                   weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Loss of a model predicting k states per call, over U = u.shape[1] / k calls chained by their detached
+    last state (the pushforward term over calls of k; U = 1: plain k-step supervision).
+
+    x (B, 2, D, H, W) = x_t; u (B, U·k, 14); y (B, U·k, 2, D, H, W) = x_{t+1..t+Uk}; weights (k,) per
+    predicted state (None = uniform), normalized to sum 1. Call c predicts x_{t+ck+1..t+ck+k} under the
+    controls of its first transition u_{t+ck} (as the rollout does with constant controls). Returns the mean
+    over calls of Σ_j w_j MSE_j. With k = 1 this is ``pushforward_loss`` (model called as model(x, u)).
+    """
+    n = u.shape[1]
+    if n % k:
+        raise ValueError(f"a sample of {n} transitions is not a whole number of calls of steps_per_call={k}")
+    if weights is None:
+        weights = torch.ones(k)
+    w = (weights / weights.sum()).to(y.device)  # (k,)
+    state, total = x, 0.0
+    for c in range(n // k):
+        with autocast:
+            xin = state.contiguous(memory_format=memory_format)
+            pred = model(xin, u[:, c * k], all_steps=True) if k > 1 else model(xin, u[:, c])[:, None]
+        pred = pred.float()  # (B, k, 2, D, H, W)
+        per_state = torch.mean((pred - y[:, c * k:(c + 1) * k]) ** 2, dim=(0, 2, 3, 4, 5))  # (k,)
+        total = total + torch.sum(w * per_state)
+        state = pred[:, -1].detach()
+    return total / (n // k)
 
 
 def pick_device(name: str) -> torch.device:
@@ -183,9 +217,14 @@ def train(
         resume: continue from out_dir/last.pt if present (else start fresh).
     """
     out_dir = Path(out_dir)
-    if getattr(data.train, "unroll", 1) != cfg.unroll_steps:
-        raise ValueError(f"unroll_steps={cfg.unroll_steps} needs a train dataset of {cfg.unroll_steps}-transition "
-                         f"items; got unroll={getattr(data.train, 'unroll', 1)}")
+    k = steps_per_call(model)
+    window = cfg.unroll_steps * k  # transitions per training item
+    if getattr(data.train, "unroll", 1) != window:
+        raise ValueError(f"unroll_steps={cfg.unroll_steps} x steps_per_call={k} needs a train dataset of "
+                         f"{window}-transition items; got unroll={getattr(data.train, 'unroll', 1)}")
+    if cfg.step_loss_weights is not None and len(cfg.step_loss_weights) != k:
+        raise ValueError(f"step_loss_weights has {len(cfg.step_loss_weights)} entries; the model predicts "
+                         f"steps_per_call={k} states per call")
     distributed = dist.is_available() and dist.is_initialized()
     rank, world = (dist.get_rank(), dist.get_world_size()) if distributed else (0, 1)
     is_main = rank == 0
@@ -202,6 +241,7 @@ def train(
     optimizer = torch.optim.AdamW(
         model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay
     )
+    step_weights = None if cfg.step_loss_weights is None else torch.tensor(cfg.step_loss_weights)
 
     # ---- data: DistributedSampler also for one rank, so shuffling = f(seed, epoch) ----------------
     if cfg.batch_size % world:
@@ -271,8 +311,9 @@ def train(
         ckpt["train_state"] = train_state
         write_checkpoint_dict(last_path, ckpt)
     log.info("training %s: %d transitions, %d steps/epoch x %d epochs (budget %d steps), %d ranks, device %s, "
-             "bf16=%s, channels_last=%s", meta.name, len(data.train), steps_per_epoch, cfg.max_epochs, budget,
-             world, device, cfg.bf16, cfg.channels_last)
+             "bf16=%s, channels_last=%s, steps_per_call=%d, unroll_steps=%d", meta.name, len(data.train),
+             steps_per_epoch, cfg.max_epochs, budget, world, device, cfg.bf16, cfg.channels_last, k,
+             cfg.unroll_steps)
 
     epoch = start_epoch
     for epoch in range(start_epoch, cfg.max_epochs):
@@ -293,14 +334,17 @@ def train(
             for group in optimizer.param_groups:
                 group["lr"] = lr
             x = x.to(device, non_blocking=True).contiguous(memory_format=memory_format)  # (B, 2, D, H, W)
-            if cfg.unroll_steps == 1:
+            if window == 1:
                 y = y.to(device, non_blocking=True).contiguous(memory_format=memory_format)
                 u = u.to(device, non_blocking=True)  # (B, 14)
                 with autocast:
                     pred = train_model(x, u)
                 loss = torch.mean((pred.float() - y) ** 2)
-            else:  # u (B, k, 14), y (B, k, 2, D, H, W): pushforward over k transitions
+            elif k == 1:  # u (B, U, 14), y (B, U, 2, D, H, W): pushforward over U transitions
                 loss = pushforward_loss(train_model, x, u.to(device), y.to(device), autocast, memory_format)
+            else:  # u (B, U·k, 14), y (B, U·k, 2, D, H, W): k-step targets over U calls
+                loss = multistep_loss(train_model, x, u.to(device), y.to(device), k, autocast, memory_format,
+                                      step_weights)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -392,4 +436,5 @@ def _ckpt(model: nn.Module, meta: ModelMeta, cfg: TrainConfig, history: list, be
           epoch: int, t_start: float, stopped_early: bool) -> dict[str, Any]:
     summary = _summary(cfg, history, best, best_epoch, epoch, t_start, stopped_early)
     return checkpoint_dict(model, model_name=meta.name, model_config=meta.config, scene=meta.scene,
-                           rules=meta.rules, rules_perturbation=meta.rules_perturbation, summary=summary)
+                           rules=meta.rules, rules_perturbation=meta.rules_perturbation, summary=summary,
+                           sim_config=meta.sim_config)

@@ -55,3 +55,14 @@ def test_step_budget_schedule():
     assert lr_at(2 * 7, 7, TrainConfig(max_epochs=2, warmup_epochs=1, max_steps=10**6)) == pytest.approx(c.min_lr)
     with pytest.raises(ValueError, match="max_steps"):
         TrainConfig(max_steps=0)
+
+
+def test_yaml_exponent_floats_and_step_weights(tmp_path):
+    """YAML 1.1 reads `1e-4` (no dot) as a string: float fields accept it; k-step weights become a tuple."""
+    path = tmp_path / "c.yaml"
+    path.write_text("lr: 1e-4\nmin_lr: 1e-6\nstep_loss_weights: [1, 1, 2]\nmodel:\n  steps_per_call: 3\n")
+    cfg, model = read_config_file(path)
+    assert cfg.lr == pytest.approx(1e-4) and cfg.min_lr == pytest.approx(1e-6)
+    assert cfg.step_loss_weights == (1.0, 1.0, 2.0) and model == {"steps_per_call": 3}
+    with pytest.raises(ValueError, match="lr must be a number"):
+        from_dict({"lr": "fast"})

@@ -1,0 +1,204 @@
+"""k-step training (steps_per_call = k), its loss, and checkpoints that record k and the simulator config."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from contextlib import nullcontext
+
+import pytest
+import torch
+
+from nemsim.model.registry import build_model, model_config
+from nemsim.scenes import SMALL as SMALL_SCENE
+from nemsim.training.checkpoint import (checkpoint_sim_config, load_checkpoint, read_checkpoint,
+                                        save_checkpoint)
+from nemsim.training.config import TrainConfig
+from nemsim.training.loop import (ModelMeta, TrainData, multistep_loss, pushforward_loss, seed_everything,
+                                  train)
+
+STEPS, VISIBLE = 4, 5  # as in tests/training/conftest.py
+K = 3
+SMALL_NET = {"stem": 4, "widths": [4, 6, 6], "latent_channels": 6, "context_dim": 8, "readout_width": 6,
+             "decoder_widths": [6, 6]}  # a narrow NEMSim: trains on tiny in seconds
+
+
+class Affine(torch.nn.Module):
+    """x̂_{t+j} = a^j x for j = 1..k: a hand-checkable k-step model."""
+
+    def __init__(self, k: int):
+        super().__init__()
+        self.k = k
+        self.a = torch.nn.Parameter(torch.tensor(2.0))
+
+    def forward(self, x, u, all_steps=False):
+        out = torch.stack([self.a ** (j + 1) * x for j in range(self.k)], dim=1)  # (B, k, ...)
+        return out if all_steps else out[:, 0]
+
+
+def test_multistep_loss_by_hand():
+    x = torch.ones(1, 2, 1, 1, 1)
+    y = torch.zeros(1, 4, 2, 1, 1, 1)
+    m = Affine(2)
+    # call 1: preds 2, 4 -> MSE 4, 16; call 2 from detached 4: preds 8, 16 -> MSE 64, 256
+    loss = multistep_loss(m, x, torch.zeros(1, 4, 14), y, 2, nullcontext())
+    assert loss.item() == pytest.approx(((4 + 16) / 2 + (64 + 256) / 2) / 2)
+    weighted = multistep_loss(m, x, torch.zeros(1, 2, 14), y[:, :2], 2, nullcontext(),
+                              weights=torch.tensor([3.0, 1.0]))
+    assert weighted.item() == pytest.approx(0.75 * 4 + 0.25 * 16)
+    with pytest.raises(ValueError, match="whole number of calls"):
+        multistep_loss(m, x, torch.zeros(1, 3, 14), y[:, :3], 2, nullcontext())
+    # k = 1 is the pushforward loss
+    one = Affine(1)
+    args = (x, torch.zeros(1, 3, 14), y[:, :3])
+    assert multistep_loss(one, *args, 1, nullcontext()).item() == pytest.approx(
+        pushforward_loss(one, *args, nullcontext()).item())
+
+
+def _run(out, cfg, tiny_data, manifest, tiny_scene, rules, k=K, sim_config=None):
+    from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
+
+    seed_everything(cfg.seed)
+    overrides = {"steps_per_call": k, **SMALL_NET}
+    model = build_model("nemsim", tiny_scene, rules, overrides)
+    meta = ModelMeta("nemsim", dataclasses.asdict(model_config("nemsim", tiny_scene, overrides)), tiny_scene,
+                     rules, sim_config=sim_config)
+    data = TrainData(TransitionDataset(tiny_data, manifest, "train", visible_transitions=VISIBLE,
+                                       unroll=cfg.unroll_steps * k),
+                     TrajectoryDataset(tiny_data, manifest, "val"))
+    return model, train(cfg, model, data, out, meta)
+
+
+def _cfg(**kw) -> TrainConfig:
+    base = dict(max_epochs=1, warmup_epochs=0, val_every=1, batch_size=2, rollout_steps=STEPS,
+                val_batch_size=1,
+                progress=False, bf16=False, lr=2e-3)
+    return TrainConfig(**{**base, **kw})
+
+
+def _batch_loss(model, tiny_data, manifest, k=K):
+    from nemsim.data.dataset import TransitionDataset
+
+    ds = TransitionDataset(tiny_data, manifest, "train", visible_transitions=VISIBLE, unroll=k)
+    items = [ds[i] for i in range(len(ds))]
+    x, u, y = (torch.stack(v) for v in zip(*items))
+    with torch.no_grad():
+        return multistep_loss(model, x, u, y, k, nullcontext()).item()
+
+
+def test_one_epoch_k3_training_lowers_the_loss(tmp_path, tiny_data, tiny_manifest, tiny_scene, rules):
+    seed_everything(0)
+    fresh = build_model("nemsim", tiny_scene, rules, {"steps_per_call": K, **SMALL_NET}).eval()
+    before = _batch_loss(fresh, tiny_data, tiny_manifest)
+    gen = {"kind": "synthetic-test", "seed": 7}
+    model, summary = _run(tmp_path, _cfg(), tiny_data, tiny_manifest, tiny_scene, rules, sim_config=gen)
+    after = _batch_loss(model.eval(), tiny_data, tiny_manifest)
+    assert after < before
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert rows[0]["val_avg_rmse"]  # the validation rollout ran with k = 3
+    loaded = load_checkpoint(tmp_path / "best.pt", scene=tiny_scene, rules=rules)
+    assert loaded.model.config.steps_per_call == K and loaded.config["steps_per_call"] == K
+    assert checkpoint_sim_config(loaded) == gen == checkpoint_sim_config(tmp_path / "best.pt")
+
+
+def test_pushforward_over_two_calls_and_weights(tmp_path, tiny_data, tiny_manifest, tiny_scene, rules):
+    """unroll_steps=2 calls of k=2 (4-transition items) with per-state weights trains and validates."""
+    _, summary = _run(tmp_path, _cfg(unroll_steps=2, step_loss_weights=[1.0, 2.0]), tiny_data, tiny_manifest,
+                      tiny_scene, rules, k=2)
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert summary["epochs"] == 1 and float(rows[0]["train_loss"]) > 0 and rows[0]["val_avg_rmse"]
+
+
+def test_mismatched_window_and_weights_refused(tmp_path, tiny_data, tiny_manifest, tiny_scene, rules):
+    from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
+
+    model = build_model("nemsim", tiny_scene, rules, {"steps_per_call": K})
+    meta = ModelMeta("nemsim", {"steps_per_call": K}, tiny_scene, rules)
+    one = TrainData(TransitionDataset(tiny_data, tiny_manifest, "train", visible_transitions=VISIBLE),
+                    TrajectoryDataset(tiny_data, tiny_manifest, "val"))
+    with pytest.raises(ValueError, match="steps_per_call=3"):
+        train(_cfg(), model, one, tmp_path, meta)
+    three = TrainData(TransitionDataset(tiny_data, tiny_manifest, "train", visible_transitions=VISIBLE,
+                                        unroll=K), TrajectoryDataset(tiny_data, tiny_manifest, "val"))
+    with pytest.raises(ValueError, match="step_loss_weights"):
+        train(_cfg(step_loss_weights=[1.0, 1.0]), model, three, tmp_path, meta)
+    with pytest.raises(ValueError, match="step_loss_weights"):
+        TrainConfig(step_loss_weights=(-1.0, 2.0))
+
+
+def test_checkpoint_round_trip_k3(tmp_path, tiny_scene, rules):
+    torch.manual_seed(1)
+    overrides = {"steps_per_call": K}
+    model = build_model("nemsim", tiny_scene, rules, overrides).eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    cfg = dataclasses.asdict(model_config("nemsim", tiny_scene, overrides))
+    gen = {"simulator": "nemsim.sim", "seed": 42, "constants": {"capacity": 4}}
+    save_checkpoint(tmp_path / "k3.pt", model, model_name="nemsim", model_config=cfg, scene=tiny_scene,
+                    rules=rules, sim_config=gen)
+    loaded = load_checkpoint(tmp_path / "k3.pt", scene=tiny_scene, rules=rules)
+    assert loaded.model.config.steps_per_call == K
+    x = torch.rand(2, *tiny_scene.state_shape) * 2 - 1
+    u = torch.rand(2, 14) * 2 - 1
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.model.predict(x, loaded.model.precompute(u)),
+                                   model.predict(x, model.precompute(u)), rtol=0, atol=0)
+    assert checkpoint_sim_config(loaded) == gen
+    # older checkpoints: no sim_config key, no steps_per_call in the model config -> None and k = 1
+    raw = read_checkpoint(tmp_path / "k3.pt")
+    del raw["sim_config"]
+    assert checkpoint_sim_config(raw) is None
+
+
+def test_cli_trains_k3_and_records_the_data_generator(tmp_path, tiny_data, capsys):
+    from nemsim.cli import main
+
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False,
+                               "model": {"steps_per_call": 3, **SMALL_NET}}))
+    out = tmp_path / "run"
+    args = ["train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id", "--out",
+            str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1", "--rollout-steps",
+            str(STEPS), "--config", str(cfg), "--no-progress", "--no-test"]
+    assert main(args) == 0
+    assert "steps_per_call=3" in (out / "train.log").read_text()
+    raw = read_checkpoint(out / "best.pt")
+    assert raw["model_config"]["steps_per_call"] == 3
+    assert checkpoint_sim_config(raw) == {"kind": "synthetic-test"}  # the data file's `generator` attribute
+    cfg.write_text("model:\n  steps_per_call: 0\n")
+    assert main(args) == 2 and "steps_per_call" in capsys.readouterr().err
+
+
+def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, rules, capsys):
+    """--init-from: a k=3 run starts from a one-step checkpoint's weights (its extra-step head from zero, so
+    it starts as the one-step model's linear extrapolation); another model or scene is refused."""
+    from nemsim.cli import main
+
+    one = tmp_path / "one.pt"
+    _save_k1 = build_model("nemsim", tiny_scene, rules, dict(SMALL_NET))
+    save_checkpoint(one, _save_k1, model_name="nemsim", model_config=dataclasses.asdict(
+        model_config("nemsim", tiny_scene, dict(SMALL_NET))), scene=tiny_scene, rules=rules)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False,
+                               "lr": 1e-12,
+                               "min_lr": 0.0, "model": {"steps_per_call": 3, **SMALL_NET}}))
+    out = tmp_path / "run"
+    args = ["train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id", "--out",
+            str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1", "--rollout-steps",
+            str(STEPS), "--config", str(cfg), "--no-progress", "--no-test", "--init-from", str(one)]
+    assert main(args) == 0
+    assert "initialized from" in (out / "train.log").read_text()
+    trained = read_checkpoint(out / "last.pt")["model_state"]
+    start = read_checkpoint(one)["model_state"]
+    for name, value in start.items():  # lr 1e-12: the weights are still the one-step checkpoint's
+        torch.testing.assert_close(trained[name], value, atol=1e-6, rtol=0)
+    assert set(trained) - set(start) == {"decoder.extra.weight", "decoder.extra.bias"}
+    capsys.readouterr()
+    bad = tmp_path / "bad.pt"
+    save_checkpoint(bad, _save_k1, model_name="nemsim", model_config={}, scene=SMALL_SCENE, rules=rules)
+    args[args.index(str(one))] = str(bad)
+    args[args.index("--out") + 1] = str(tmp_path / "run2")
+    assert main(args) == 2
+    assert "scene" in capsys.readouterr().err
