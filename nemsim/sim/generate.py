@@ -117,20 +117,38 @@ def _exit_with_parent(parent_pid: int, poll_s: float = 1.0) -> None:
     os._exit(1)
 
 
+@dataclass
+class _StopRequest:
+    """Set by SIGTERM while generating. The pool loop polls ``requested`` (an exception raised from a signal
+    handler is lost if it lands in a weakref callback or ``__del__``, as it did in the pool's wait, and
+    prints a traceback); with ``raise_now`` (the serial path: the main thread is in the simulation) the
+    handler raises KeyboardInterrupt at once."""
+
+    requested: bool = False
+    raise_now: bool = False
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt("terminated by SIGTERM")
+
+
 @contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM raises KeyboardInterrupt in the main thread while generating, so the cleanup of Ctrl-C runs
-    (workers terminated, the file closed with every finished case kept); the old handler is restored."""
+def _sigterm_as_interrupt() -> Iterator[_StopRequest]:
+    """While generating, SIGTERM ends the run like Ctrl-C: workers terminated, the file closed with every
+    finished case kept (see ``_StopRequest``); the old handler is restored afterwards."""
+    stop = _StopRequest()
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield stop
         return
 
     def handler(signum, frame):
-        raise KeyboardInterrupt(f"terminated by signal {signum}")
+        stop.requested = True
+        if stop.raise_now:
+            raise KeyboardInterrupt(f"terminated by signal {signum}")
 
     previous = signal.signal(signal.SIGTERM, handler)
     try:
-        yield
+        yield stop
     finally:
         signal.signal(signal.SIGTERM, previous)
 
@@ -140,7 +158,7 @@ def _run_serial(scene, rules, config, tasks) -> Iterator[tuple]:
         yield simulate_case(scene, rules, config, task)
 
 
-def _run_process_pool(scene, rules, config, tasks, workers) -> Iterator[tuple]:
+def _run_process_pool(scene, rules, config, tasks, workers, stop: _StopRequest) -> Iterator[tuple]:
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
@@ -154,7 +172,8 @@ def _run_process_pool(scene, rules, config, tasks, workers) -> Iterator[tuple]:
         while pending or running:
             while pending and len(running) < 2 * workers:  # bound memory: states return to the parent
                 running.add(pool.submit(simulate_case, scene, rules, config, pending.pop()))
-            done, running = wait(running, return_when=FIRST_COMPLETED)
+            done, running = wait(running, timeout=0.5, return_when=FIRST_COMPLETED)
+            stop.check()
             for fut in done:
                 yield fut.result()
         finished = True
@@ -239,7 +258,7 @@ def generate_dataset(
     if controls_raw.shape != (len(case_ids), 14):
         raise ValueError(f"controls_raw must be ({len(case_ids)}, 14) for {len(case_ids)} cases, got "
                          f"{controls_raw.shape}")  # fmt: skip
-    with _sigterm_as_interrupt():  # a kill -TERM cleans up like Ctrl-C
+    with _sigterm_as_interrupt() as stop:  # a kill -TERM cleans up like Ctrl-C
         t0 = time.perf_counter()
         writer = TrajectoryWriter(
             out,
@@ -270,9 +289,11 @@ def generate_dataset(
             if executor == "ray":
                 results = _run_ray(scene, rules, config, tasks, workers)
             elif workers == 1 or len(tasks) <= 1:
+                stop.raise_now = True
+                stop.check()
                 results = _run_serial(scene, rules, config, tasks)
             else:
-                results = _run_process_pool(scene, rules, config, tasks, workers)
+                results = _run_process_pool(scene, rules, config, tasks, workers, stop)
             bar = None
             if progress and tasks:
                 from tqdm import tqdm
@@ -281,6 +302,7 @@ def generate_dataset(
             try:
                 for row, states, case_sd, meta in results:
                     writer.write(row, states, seed=case_sd, meta=meta)
+                    stop.check()  # after writing: a finished case is kept
                     if on_case is not None:
                         on_case(row, meta)
                     if bar is not None:

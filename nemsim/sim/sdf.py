@@ -322,27 +322,31 @@ def _smooth_kernel(frac: np.ndarray, pad: int, w: np.ndarray) -> np.ndarray:
         for j in range(ny):
             yl[m, j] = (j - m) % ny
             yr[m, j] = (j + m) % ny
+    # the same per-element sums as scipy, accumulated one offset at a time along contiguous z rows
     for i in range(nx):  # along x (wrap)
         for j in range(ny):
             for k in range(nz):
-                t = f[i, j, k] * w[0]
-                for m in range(r, 0, -1):
-                    t += (f[xl[m, i], j, k] + f[xr[m, i], j, k]) * w[m]
-                h[i, j, k] = t
+                h[i, j, k] = f[i, j, k] * w[0]
+            for m in range(r, 0, -1):
+                a, b, wm = xl[m, i], xr[m, i], w[m]
+                for k in range(nz):
+                    h[i, j, k] += (f[a, j, k] + f[b, j, k]) * wm
     for i in range(nx):  # along y (wrap)
         for j in range(ny):
             for k in range(nz):
-                t = h[i, j, k] * w[0]
-                for m in range(r, 0, -1):
-                    t += (h[i, yl[m, j], k] + h[i, yr[m, j], k]) * w[m]
-                f[i, j, k] = t
+                f[i, j, k] = h[i, j, k] * w[0]
+            for m in range(r, 0, -1):
+                a, b, wm = yl[m, j], yr[m, j], w[m]
+                for k in range(nz):
+                    f[i, j, k] += (h[i, a, k] + h[i, b, k]) * wm
     for i in range(nx):  # along z (nearest)
         for j in range(ny):
             for k in range(nz):
-                t = f[i, j, k] * w[0]
-                for m in range(r, 0, -1):
-                    t += (f[i, j, max(k - m, 0)] + f[i, j, min(k + m, nz - 1)]) * w[m]
-                h[i, j, k] = t
+                h[i, j, k] = f[i, j, k] * w[0]
+            for m in range(r, 0, -1):
+                wm = w[m]
+                for k in range(nz):
+                    h[i, j, k] += (f[i, j, max(k - m, 0)] + f[i, j, min(k + m, nz - 1)]) * wm
     return h
 
 

@@ -37,6 +37,7 @@ def cheap_controls():
 
 
 def _env() -> dict:
+    """Environment of the subprocesses, which run with cwd=REPO so that they import this source tree."""
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
     env.pop("HDF5_USE_FILE_LOCKING", None)
     return env
@@ -74,7 +75,8 @@ def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path,
     out = tmp_path / "g.h5"
     cmd = [sys.executable, "-m", "nemsim.cli", "generate", "--scene", "tiny", "--n", "40", "--workers", "2",
            "--no-progress", "--out", str(out)]  # fmt: skip
-    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    pipe = subprocess.PIPE
+    proc = subprocess.Popen(cmd, env=_env(), cwd=REPO, stdout=pipe, stderr=pipe, text=True)
     try:
         deadline = time.time() + 120
         workers: set[int] = set()
@@ -241,7 +243,7 @@ def test_generation_workers_do_not_import_torch():
     Until ``nemsim.rules.kinetics`` imports torch lazily (being changed separately), its module-level import
     is the one allowed route and the test is an expected failure; torch from anywhere else fails it."""
     cmd = [sys.executable, "-c", _PROBE]
-    res = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300)
+    res = subprocess.run(cmd, env=_env(), cwd=REPO, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     found = json.loads(res.stdout.strip().splitlines()[-1])
     if not found["torch"]:
