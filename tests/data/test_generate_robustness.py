@@ -238,16 +238,10 @@ print(json.dumps({"torch": "torch" in sys.modules, "importers": importers}))
 
 
 def test_generation_workers_do_not_import_torch():
-    """What a generation worker runs (unpickle the task, simulate one case) must not load torch.
-
-    Until ``nemsim.rules.kinetics`` imports torch lazily (being changed separately), its module-level import
-    is the one allowed route and the test is an expected failure; torch from anywhere else fails it."""
+    """What a generation worker runs (unpickle the task, simulate one case) must not load torch: the
+    simulator takes its kinetic laws from the torch-free ``nemsim.rules.laws``."""
     cmd = [sys.executable, "-c", _PROBE]
     res = subprocess.run(cmd, env=_env(), cwd=REPO, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     found = json.loads(res.stdout.strip().splitlines()[-1])
-    if not found["torch"]:
-        return
-    sources = {Path(f).as_posix().split("nemsim/", 1)[-1] for chain in found["importers"] for f in chain}
-    assert sources <= {"rules/kinetics.py"}, f"torch imported by {sorted(sources)}"
-    pytest.xfail("nemsim/rules/kinetics.py still imports torch at module level")
+    assert not found["torch"], f"torch imported by {found['importers']}"
