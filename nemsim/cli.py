@@ -1178,19 +1178,17 @@ def _cmd_bench_physics(args: argparse.Namespace) -> int:
         from pathlib import Path
 
         from nemsim.data.hdf5 import open_trajectories
-        from nemsim.train import TrainInputError, _load_manifest
 
         if not Path(args.data).is_file():
             raise UserError(f"{args.data} does not exist")
+        with open_trajectories(args.data) as tf:
+            if tf.scene != loaded.scene:
+                raise UserError(f"{args.data} is on scene {tf.scene.name!r}, the checkpoint on "
+                                f"{loaded.scene.name!r}")
         try:
-            with open_trajectories(args.data) as tf:
-                if tf.scene != loaded.scene:
-                    raise UserError(f"{args.data} is on scene {tf.scene.name!r}, the checkpoint on "
-                                    f"{loaded.scene.name!r}")
-                splits = Path(args.splits) if args.splits else None
-                manifest = _load_manifest(Path(args.data), args.setting, splits, tf)
+            manifest = _load_setting_manifest(args.data, args.setting, args.splits)
             names, raw, sim_meta = physics.heldout_from_data(args.data, manifest, args.split, args.max_cases)
-        except (TrainInputError, ValueError, KeyError) as exc:
+        except KeyError as exc:
             raise UserError(str(exc)) from None
         heldout = (names, raw)
         if sim_meta and "sim_config" not in loaded.raw:
