@@ -27,6 +27,18 @@ SurrogateDep = Annotated[Surrogate, Depends(get_surrogate)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
+LIST_QUERY_PARAMS = frozenset({"factors"})  # the only query parameters that may repeat
+
+
+def single_valued_query(request: Request) -> None:
+    """422 naming a query parameter given more than once (frameworks silently keep the last one)."""
+    seen: set[str] = set()
+    for key, _ in request.query_params.multi_items():
+        if key in seen and key not in LIST_QUERY_PARAMS:
+            reject(("query", key), f"{key} is given more than once; give it once")
+        seen.add(key)
+
+
 def reject(loc: tuple[str | int, ...], msg: str) -> NoReturn:
     """422 in the same shape as request validation errors (one handler formats both)."""
     raise RequestValidationError([{"loc": loc, "msg": msg, "type": "value_error"}])

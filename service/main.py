@@ -14,13 +14,12 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
 import torch
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
 from nemsim import __version__
 from service.config import Settings, get_settings
 from service.middleware import BodySizeLimitMiddleware
+from service import errors
 from service.routes import health, mechanisms, rollouts
 from service.surrogate import Surrogate
 
@@ -80,25 +79,6 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     yield
 
 
-def _readable(errors: list[dict]) -> list[dict]:
-    """Validation errors without the offending input (it may hold NaN, which JSON cannot carry)."""
-    out = []
-    for e in errors:
-        loc = [str(p) for p in e.get("loc", ())]
-        msg = str(e.get("msg", "invalid value")).removeprefix("Value error, ")
-        out.append({"loc": loc, "msg": msg, "type": str(e.get("type", "value_error"))})
-    return out
-
-
-async def validation_error_handler(request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, RequestValidationError)
-    detail = _readable(list(exc.errors()))
-    message = "; ".join(
-        f"{'.'.join(d['loc'][1:] if len(d['loc']) > 1 else d['loc']) or 'body'}: {d['msg']}" for d in detail
-    )
-    return JSONResponse(status_code=422, content={"detail": detail, "message": message})
-
-
 def create_app(settings: Settings | None = None, surrogate: Surrogate | None = None) -> FastAPI:
     """Build the app. `settings` replaces `get_settings()` (routes too); a given `surrogate` skips loading."""
     settings = settings or get_settings()
@@ -115,7 +95,7 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
         app.state.service.surrogate, app.state.service.status = surrogate, "ready"
     app.dependency_overrides[get_settings] = lambda: settings
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
-    app.add_exception_handler(RequestValidationError, validation_error_handler)
+    errors.install(app)
     app.include_router(health.router)
     app.include_router(rollouts.router)
     app.include_router(mechanisms.router)

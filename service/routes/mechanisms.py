@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.concurrency import run_in_threadpool
 
-from service.deps import SurrogateDep, busy, reject
+from service.deps import SurrogateDep, busy, reject, single_valued_query
 from service.schemas import (
     MechanismsQuery,
     MechanismsResponse,
@@ -24,6 +24,7 @@ router = APIRouter(tags=["mechanisms"])
     "/mechanisms",
     response_model=MechanismsResponse,
     responses={501: {"description": "model without mechanisms"}, 503: {"description": "busy"}},
+    dependencies=[Depends(single_valued_query)],
 )
 async def get_mechanisms(
     query: Annotated[MechanismsQuery, Query()],  # type: ignore[valid-type]

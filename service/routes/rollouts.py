@@ -6,12 +6,12 @@ import base64
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Path, Query
+from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from nemsim.geometry.mesh import MEDIA_TYPES
-from service.deps import SettingsDep, SurrogateDep, busy, reject
+from service.deps import SettingsDep, SurrogateDep, busy, reject, single_valued_query
 from service.schemas import (
     Channel,
     FieldsPayload,
@@ -129,6 +129,7 @@ async def post_rollout(
         200: {"content": {t: {} for t in sorted(set(MEDIA_TYPES.values()))}, "description": "the mesh file"},
         404: {"description": "unknown or expired rollout id"},
     },
+    dependencies=[Depends(single_valued_query)],
 )
 async def get_mesh(
     rollout_id: Annotated[str, Path(max_length=64)],
