@@ -796,13 +796,18 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     # every worker process builds its app from the environment, so the choice travels there
     os.environ["NEMSIM_CHECKPOINT"] = _resolve_checkpoint(args.checkpoint)
+    os.environ.setdefault("NEMSIM_EXIT_ON_LOAD_FAILURE", "1")  # a checkpoint that can never load: exit 3
     from service.config import get_settings
+    from service.main import LOAD_FAILURE_EXIT
 
     get_settings.cache_clear()
     uvicorn.run(
         "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
         log_level="info",
     )
+    if LOAD_FAILURE_EXIT["failed"]:
+        print("nemsim serve: the checkpoint can never load (reason above); stopped", file=sys.stderr)  # noqa: T201
+        return 3
     return 0
 
 

@@ -56,6 +56,17 @@ class Settings(BaseSettings):
         default=None, ge=1, description="torch intra-op threads (None: torch default)"
     )
 
+    exit_on_load_failure: bool = Field(
+        default=False,
+        description="stop the process (non-zero exit) when the checkpoint can never load; `nemsim serve` "
+        "turns this on",
+    )
+
+    @field_validator("checkpoint", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: object) -> object:
+        return None if isinstance(value, str) and not value.strip() else value
+
     @field_validator("checkpoint")
     @classmethod
     def _expand(cls, value: Path | None) -> Path | None:

@@ -1,15 +1,19 @@
 """The FastAPI app: `create_app(settings=None)` builds it; `lifespan` loads the checkpoint and warms up.
 
 Loading runs in a background thread so `/health` answers at once while `/ready` stays 503 until the
-weights are loaded and a warm-up rollout ran (what an orchestrator's readiness probe wants). A missing or
-broken checkpoint never crashes the process: `/ready` reports it and model routes answer 503.
+weights are loaded and a warm-up rollout ran (what an orchestrator's readiness probe wants). A checkpoint
+that cannot load (missing, empty, truncated, unsafe, incompatible) is permanent: `/ready` reports why
+(without paths) and, with `exit_on_load_failure` (what `nemsim serve` sets), the process then stops with
+a non-zero status so a supervisor restarts or reports it instead of keeping a server that can never serve.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
@@ -21,6 +25,7 @@ from service.config import Settings, get_settings
 from service.middleware import BodySizeLimitMiddleware
 from service import errors
 from service.routes import health, mechanisms, rollouts
+from service.loading import CheckpointError
 from service.surrogate import Surrogate
 
 log = logging.getLogger(__name__)
@@ -37,8 +42,21 @@ class ServiceState:
         return self.status == "ready"
 
 
-def load_surrogate(state: ServiceState, settings: Settings) -> None:
-    """Load the checkpoint and run the warm-up rollout, recording progress in `state` (never raises)."""
+LOAD_FAILURE_EXIT = {"failed": False}  # set when a load failure stopped the process (`nemsim serve` reads it)
+
+
+def stop_process() -> None:
+    """Ask the server to shut down (uvicorn turns SIGTERM into a graceful exit)."""
+    LOAD_FAILURE_EXIT["failed"] = True
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
+def load_surrogate(
+    state: ServiceState, settings: Settings, on_failure: Callable[[], None] | None = None
+) -> None:
+    """Load the checkpoint and run the warm-up rollout, recording progress in `state` (never raises).
+
+    On failure `state.error` gets a message safe for clients and `on_failure` (if any) is called."""
     path = settings.resolved_checkpoint()
     if path is None:
         state.status, state.error = (
@@ -46,6 +64,8 @@ def load_surrogate(state: ServiceState, settings: Settings) -> None:
             "no checkpoint: put a *.pt under checkpoints/ or set NEMSIM_CHECKPOINT",
         )
         log.error(state.error)
+        if on_failure is not None:
+            on_failure()
         return
     try:
         if settings.torch_threads:
@@ -64,9 +84,15 @@ def load_surrogate(state: ServiceState, settings: Settings) -> None:
         state.surrogate = surrogate
         state.status = "ready"
         log.info("model %s ready", surrogate.model_id)
-    except Exception as exc:  # noqa: BLE001 -- reported on /ready instead of killing the server
-        state.status, state.error = "failed", f"{type(exc).__name__}: {exc}"
+    except CheckpointError as exc:
+        state.status, state.error = "failed", str(exc)
+        log.error("could not load checkpoint %s: %s", path, exc)
+    except Exception:  # noqa: BLE001 -- reported on /ready (without internals) and in the log
+        state.status, state.error = "failed", "the model could not be loaded (the server log has details)"
         log.exception("could not load checkpoint %s", path)
+    if state.status == "failed" and on_failure is not None:
+        log.error("the checkpoint can never load: stopping the server")
+        on_failure()
 
 
 @asynccontextmanager
@@ -74,7 +100,10 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
     if state.surrogate is None:
         threading.Thread(
-            target=load_surrogate, args=(state, app.state.settings), name="nemsim-load", daemon=True
+            target=load_surrogate,
+            args=(state, app.state.settings, app.state.on_load_failure),
+            name="nemsim-load",
+            daemon=True,
         ).start()
     yield
 
@@ -91,6 +120,7 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     )
     app.state.settings = settings
     app.state.service = ServiceState()
+    app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
     if surrogate is not None:
         app.state.service.surrogate, app.state.service.status = surrogate, "ready"
     app.dependency_overrides[get_settings] = lambda: settings

@@ -198,10 +198,10 @@ class Surrogate:
     # --- construction ---------------------------------------------------------------------------
     @classmethod
     def from_checkpoint(cls, path: str | Path, **kwargs: Any) -> Surrogate:
-        from nemsim.training.checkpoint import load_checkpoint
+        from service.loading import load_checkpoint_safely  # weights-only: no code from the file runs
 
         path = Path(path)
-        loaded = load_checkpoint(path)
+        loaded = load_checkpoint_safely(path)
         model_id = f"{path.stem}@{file_sha256(path)[:12]}"
         return cls(loaded, model_id=model_id, **kwargs)
 
