@@ -44,8 +44,19 @@ class Settings(BaseSettings):
     )
     max_steps: int = Field(default=100, ge=1, le=10_000, description="ceiling on `steps` per rollout")
     max_body_bytes: int = Field(default=1_000_000, ge=1_024, description="request bodies above this get 413")
-    max_concurrency: int = Field(default=1, ge=1, description="rollouts computed at the same time")
-    max_queue: int = Field(default=16, ge=0, description="requests allowed to wait for a slot; more get 503")
+    max_concurrency: int = Field(default=1, ge=1, description="uncached rollouts computed at the same time")
+    max_queue: int = Field(
+        default=16, ge=0, description="requests allowed to wait for a slot (per kind of work); more get 503"
+    )
+    max_queue_per_client: int = Field(
+        default=8, ge=1, description="of those, how many one client (API key, else address) may have waiting"
+    )
+    mesh_concurrency: int = Field(
+        default=1, ge=1, description="meshes extracted at the same time (never behind rollouts)"
+    )
+    mechanisms_concurrency: int = Field(
+        default=1, ge=1, description="uncached /mechanisms analyses at the same time (never behind rollouts)"
+    )
     queue_timeout_s: float = Field(default=60.0, gt=0, description="longest wait for a slot before 503")
     cache_size: int = Field(default=32, ge=0, description="rollouts kept (LRU) for repeats and mesh requests")
     max_meshes: int = Field(default=8, ge=0, description="meshes one POST /rollout may ask for inline")
@@ -53,7 +64,10 @@ class Settings(BaseSettings):
         default=2, ge=0, description="steps of the warm-up rollout before /ready (0: none)"
     )
     torch_threads: int | None = Field(
-        default=None, ge=1, description="torch intra-op threads (None: torch default)"
+        default=None,
+        ge=1,
+        description="torch intra-op threads (None: torch's default, e.g. OMP_NUM_THREADS, capped at the CPU "
+        "count divided by max_concurrency, so concurrent rollouts do not oversubscribe the cores)",
     )
 
     exit_on_load_failure: bool = Field(

@@ -26,6 +26,7 @@ from service.middleware import BodySizeLimitMiddleware
 from service import errors
 from service.routes import health, mechanisms, rollouts
 from service.loading import CheckpointError
+from service.scheduler import Gates
 from service.surrogate import Surrogate
 
 log = logging.getLogger(__name__)
@@ -68,17 +69,11 @@ def load_surrogate(
             on_failure()
         return
     try:
-        if settings.torch_threads:
-            torch.set_num_threads(settings.torch_threads)
+        share = max(1, (os.cpu_count() or 1) // settings.max_concurrency)  # concurrent rollouts share the cores
+        torch.set_num_threads(settings.torch_threads or min(torch.get_num_threads(), share))
         state.status = "loading"
         log.info("loading checkpoint %s", path)
-        surrogate = Surrogate.from_checkpoint(
-            path,
-            cache_size=settings.cache_size,
-            max_concurrency=settings.max_concurrency,
-            max_queue=settings.max_queue,
-            queue_timeout_s=settings.queue_timeout_s,
-        )
+        surrogate = Surrogate.from_checkpoint(path, cache_size=settings.cache_size)
         state.status = "warming-up"
         surrogate.warm_up(settings.warmup_steps)
         state.surrogate = surrogate
@@ -120,6 +115,7 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     )
     app.state.settings = settings
     app.state.service = ServiceState()
+    app.state.gates = Gates.from_settings(settings)
     app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
     if surrogate is not None:
         app.state.service.surrogate, app.state.service.status = surrogate, "ready"

@@ -10,8 +10,9 @@ adds what a server needs:
   key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
   controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway) and the
   cache is bounded in entries;
-* bounded concurrency: at most `max_concurrency` computations at once and at most `max_queue` waiting;
-  more get `ServiceBusy` (the route answers 503). Cache hits never wait.
+* cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
+  `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
+  computations through its own gates (`service.scheduler`). This class does no admission control.
 """
 
 from __future__ import annotations
@@ -22,9 +23,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -84,38 +83,6 @@ def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str
     return out
 
 
-@dataclass
-class _Gate:
-    """Admission control: `limit` concurrent holders, `queue` more may wait (threads, loop-agnostic)."""
-
-    limit: int
-    queue: int
-    timeout_s: float
-    _sem: threading.Semaphore = field(init=False)
-    _lock: threading.Lock = field(default_factory=threading.Lock, init=False)
-    _inside: int = field(default=0, init=False)  # holding or waiting
-
-    def __post_init__(self) -> None:
-        self._sem = threading.Semaphore(self.limit)
-
-    @contextmanager
-    def slot(self) -> Iterator[None]:
-        with self._lock:
-            if self._inside >= self.limit + self.queue:
-                raise ServiceBusy(f"{self._inside} requests are already computing or queued; retry shortly")
-            self._inside += 1
-        try:
-            if not self._sem.acquire(timeout=self.timeout_s):
-                raise ServiceBusy(f"no compute slot became free within {self.timeout_s:g} s; retry shortly")
-            try:
-                yield
-            finally:
-                self._sem.release()
-        finally:
-            with self._lock:
-                self._inside -= 1
-
-
 class _LRU:
     def __init__(self, size: int) -> None:
         self.size = size
@@ -167,9 +134,6 @@ class Surrogate:
         model_id: str,
         x0: np.ndarray | None = None,
         cache_size: int = 32,
-        max_concurrency: int = 1,
-        max_queue: int = 16,
-        queue_timeout_s: float = 60.0,
     ) -> None:
         self.loaded = loaded
         self.model_id = model_id
@@ -183,7 +147,6 @@ class Surrogate:
         self._rollouts = _LRU(cache_size)
         self._meshes = _LRU(4 * cache_size)
         self._mechanisms = _LRU(cache_size)
-        self._gate = _Gate(max_concurrency, max_queue, queue_timeout_s)
         ranges = (loaded.raw or {}).get("control_ranges") or {}
         specs = {s.name: s for s in CONTROL_SPECS}
         # train range: what the checkpoint recorded at training time, else the current design range
@@ -244,22 +207,30 @@ class Surrogate:
             raise UnknownRollout(rollout_id)
         return result
 
-    def rollout(self, controls_raw: np.ndarray) -> tuple[RolloutResult, bool]:
-        """Roll out (T,14) physical controls, one row per transition. Returns (result, served_from_cache)."""
+    def lookup_rollout(self, controls_raw: np.ndarray) -> tuple[str, RolloutResult | None]:
+        """(rollout id, the cached result or None) of (T, 14) physical controls, one row per transition."""
         controls_raw = np.asarray(controls_raw, dtype=np.float64)
-        steps = int(controls_raw.shape[0])
         u_norm = np.asarray(to_normalized(controls_raw), dtype=np.float32)  # (T, 14)
-        rid = self.rollout_id(self.model_id, u_norm, steps)
+        rid = self.rollout_id(self.model_id, u_norm, int(controls_raw.shape[0]))
+        return rid, self._rollouts.get(rid)
+
+    def compute_rollout(self, controls_raw: np.ndarray) -> tuple[RolloutResult, bool]:
+        """Roll out and cache (T, 14) physical controls (blocking). Returns (result, served_from_cache):
+        an identical request may have finished while this one waited for a slot."""
+        controls_raw = np.asarray(controls_raw, dtype=np.float64)
+        u_norm = np.asarray(to_normalized(controls_raw), dtype=np.float32)  # (T, 14)
+        rid = self.rollout_id(self.model_id, u_norm, int(controls_raw.shape[0]))
         cached = self._rollouts.get(rid)
         if cached is not None:
             return cached, True
-        with self._gate.slot():
-            cached = self._rollouts.get(rid)  # an identical request may have finished while we waited
-            if cached is not None:
-                return cached, True
-            result = self._compute(rid, controls_raw, u_norm)
+        result = self._compute(rid, controls_raw, u_norm)
         self._rollouts.put(rid, result)
         return result, False
+
+    def rollout(self, controls_raw: np.ndarray) -> tuple[RolloutResult, bool]:
+        """Cached or computed rollout of (T, 14) physical controls (blocking; no admission control)."""
+        _, cached = self.lookup_rollout(controls_raw)
+        return (cached, True) if cached is not None else self.compute_rollout(controls_raw)
 
     def _compute(self, rid: str, controls_raw: np.ndarray, u_norm: np.ndarray) -> RolloutResult:
         from nemsim.evaluation.rollout import rollout
@@ -302,30 +273,32 @@ class Surrogate:
             rollout(self.loaded.model, torch.from_numpy(self.x0)[None], u, steps, keep=False)
 
     # --- meshes -------------------------------------------------------------------------------------
+    def cached_mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes | None:
+        return self._meshes.get((result.id, step, channel, fmt))
+
     def mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes:
-        """File bytes of the zero-level surface of one channel at one step (cached)."""
+        """File bytes of the zero-level surface of one channel at one step (cached; blocking)."""
         key = (result.id, step, channel, fmt)
         data = self._meshes.get(key)
         if data is not None:
             return data
         from nemsim.geometry.mesh import export_mesh, surface_mesh
 
-        with self._gate.slot():
-            ch = 0 if channel == "mask" else 1
-            field_ = result.states[step, ch].astype(np.float32)  # (D, H, W)
-            metadata = {
-                "model_id": self.model_id,
-                "rollout_id": result.id,
-                "step": step,
-                "time_s": result.times_s[step],
-                "channel": channel,
-                "scene": self.scene.name,
-                "controls": {
-                    n: float(v)
-                    for n, v in zip(CONTROL_NAMES, result.controls_raw[max(step - 1, 0)], strict=True)
-                },
-            }
-            data = export_mesh(surface_mesh(field_, self.scene, metadata), fmt)
+        ch = 0 if channel == "mask" else 1
+        field_ = result.states[step, ch].astype(np.float32)  # (D, H, W)
+        metadata = {
+            "model_id": self.model_id,
+            "rollout_id": result.id,
+            "step": step,
+            "time_s": result.times_s[step],
+            "channel": channel,
+            "scene": self.scene.name,
+            "controls": {
+                n: float(v)
+                for n, v in zip(CONTROL_NAMES, result.controls_raw[max(step - 1, 0)], strict=True)
+            },
+        }
+        data = export_mesh(surface_mesh(field_, self.scene, metadata), fmt)
         self._meshes.put(key, data)
         return data
 
@@ -335,6 +308,17 @@ class Surrogate:
         """Only NEMSim models expose event intensities and attributions (forward(..., return_aux=True))."""
         return "return_aux" in inspect.signature(self.loaded.model.forward).parameters
 
+    @staticmethod
+    def _mechanisms_key(controls_raw: np.ndarray, factors: list[float] | None) -> tuple[bytes, Any]:
+        if not factors:
+            return np.asarray(controls_raw, dtype="<f8").tobytes(), None
+        levels = sorted({1.0, *map(float, factors)})
+        pairs = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
+        return np.asarray(controls_raw, dtype="<f8").tobytes(), pairs
+
+    def cached_mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any] | None:
+        return self._mechanisms.get(self._mechanisms_key(controls_raw, factors))
+
     def mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any]:
         """`mechanism_response` for one base control vector (cached).
 
@@ -343,17 +327,12 @@ class Surrogate:
         """
         from nemsim.analysis.counterfactual import mechanism_response
 
-        kwargs: dict[str, Any] = {}
-        if factors:
-            levels = sorted({1.0, *map(float, factors)})
-            kwargs["factors"] = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
-        key = (np.asarray(controls_raw, dtype="<f8").tobytes(), kwargs.get("factors"))
+        key = self._mechanisms_key(controls_raw, factors)
         cached = self._mechanisms.get(key)
         if cached is not None:
             return cached
-        with self._gate.slot():  # no inference_mode: the library owns its autograd settings
-            result = mechanism_response(
-                self.loaded, np.asarray(controls_raw, dtype=np.float64), x0=self.x0, **kwargs
-            )
+        kwargs: dict[str, Any] = {} if key[1] is None else {"factors": key[1]}
+        # no inference_mode: the library owns its autograd settings
+        result = mechanism_response(self.loaded, np.asarray(controls_raw, dtype=np.float64), x0=self.x0, **kwargs)
         self._mechanisms.put(key, result)
         return result

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
 
-from service.deps import SurrogateDep, busy, reject, single_valued_query
+from service.deps import GatesDep, SurrogateDep, gated, reject, single_valued_query
 from service.schemas import (
     MechanismsQuery,
     MechanismsResponse,
@@ -15,7 +14,6 @@ from service.schemas import (
     controls_to_array,
     jsonable,
 )
-from service.surrogate import ServiceBusy
 
 router = APIRouter(tags=["mechanisms"])
 
@@ -27,8 +25,10 @@ router = APIRouter(tags=["mechanisms"])
     dependencies=[Depends(single_valued_query)],
 )
 async def get_mechanisms(
+    request: Request,
     query: Annotated[MechanismsQuery, Query()],  # type: ignore[valid-type]
     surrogate: SurrogateDep,
+    gates: GatesDep,
 ) -> MechanismsResponse:
     """Cl+ / neutral-Cl interventions around one base control: Delta M per family, Delta R, lambda, alpha."""
     if not surrogate.supports_mechanisms:
@@ -37,10 +37,10 @@ async def get_mechanisms(
             detail=f"model {surrogate.loaded.name!r} has no event mechanisms (not a NEMSim model)",
         )
     raw = controls_to_array(query)
+    result = surrogate.cached_mechanisms(raw, query.factors)
     try:
-        result = await run_in_threadpool(surrogate.mechanisms, raw, query.factors)
-    except ServiceBusy as exc:
-        busy(exc)
+        if result is None:
+            result = await gated(request, gates.mechanisms, surrogate.mechanisms, raw, query.factors)
     except ValueError as exc:  # the library rejects an input it cannot analyse, naming it
         reject(("query",), str(exc))
     return MechanismsResponse(

@@ -6,12 +6,11 @@ import base64
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Path, Query
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response
 
 from nemsim.geometry.mesh import MEDIA_TYPES
-from service.deps import SettingsDep, SurrogateDep, busy, reject, single_valued_query
+from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
 from service.schemas import (
     Channel,
     FieldsPayload,
@@ -22,7 +21,8 @@ from service.schemas import (
     Timings,
     array_to_controls,
 )
-from service.surrogate import RolloutResult, ServiceBusy, Surrogate, UnknownRollout
+from service.scheduler import Gates
+from service.surrogate import RolloutResult, Surrogate, UnknownRollout
 
 router = APIRouter(tags=["rollouts"])
 
@@ -31,19 +31,20 @@ def _mesh_url(rollout_id: str, step: int, channel: str, fmt: str) -> str:
 
 
 async def _mesh_bytes(
-    surrogate: Surrogate, result: RolloutResult, step: int, channel: str, fmt: str
+    request: Request, surrogate: Surrogate, gates: Gates, result: RolloutResult, step: int, channel: str, fmt: str
 ) -> bytes:
+    cached = surrogate.cached_mesh(result, step, channel, fmt)
+    if cached is not None:
+        return cached
     try:
-        return await run_in_threadpool(surrogate.mesh, result, step, channel, fmt)
-    except ServiceBusy as exc:
-        busy(exc)
+        return await gated(request, gates.mesh, surrogate.mesh, result, step, channel, fmt)
     except ValueError as exc:  # e.g. no zero-level surface in this channel at this step
         reject(("query", "step"), f"no {channel} mesh at step {step}: {exc}")
 
 
 @router.post("/rollout", response_model=RolloutResponse, responses={503: {"description": "busy or loading"}})
 async def post_rollout(
-    body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep
+    request: Request, body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep, gates: GatesDep
 ) -> RolloutResponse:
     """Predict the etch over `steps` transitions of 0.1 s; metrics always, fields and meshes on demand."""
     t_start = time.perf_counter()
@@ -64,10 +65,11 @@ async def post_rollout(
             f"steps = {body.steps} goes beyond the {surrogate.horizon_steps}-step horizon the model was "
             "trained on"
         )
-    try:
-        result, cached = await run_in_threadpool(surrogate.rollout, schedule)
-    except ServiceBusy as exc:
-        busy(exc)
+    _, hit = surrogate.lookup_rollout(schedule)
+    if hit is not None:
+        result, cached = hit, True
+    else:
+        result, cached = await gated(request, gates.rollout, surrogate.compute_rollout, schedule)
     warnings.extend(result.warnings)
 
     t0 = time.perf_counter()
@@ -84,7 +86,7 @@ async def post_rollout(
     t1 = time.perf_counter()
     meshes = []
     for spec in body.meshes:
-        raw = await _mesh_bytes(surrogate, result, spec.step, spec.channel, spec.format)
+        raw = await _mesh_bytes(request, surrogate, gates, result, spec.step, spec.channel, spec.format)
         meshes.append(
             MeshPayload(
                 step=spec.step,
@@ -132,8 +134,10 @@ async def post_rollout(
     dependencies=[Depends(single_valued_query)],
 )
 async def get_mesh(
+    request: Request,
     rollout_id: Annotated[str, Path(max_length=64)],
     surrogate: SurrogateDep,
+    gates: GatesDep,
     step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
     channel: Annotated[Channel, Query(description="mask or si")] = "si",
     format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
@@ -150,7 +154,7 @@ async def get_mesh(
     step = result.steps if step is None else step
     if step > result.steps:
         reject(("query", "step"), f"step = {step} is beyond this rollout's last state ({result.steps})")
-    data = await _mesh_bytes(surrogate, result, step, channel, format)
+    data = await _mesh_bytes(request, surrogate, gates, result, step, channel, format)
     filename = f"nemsim_{rollout_id}_step{step}_{channel}.{format}"
     return Response(
         content=data,
