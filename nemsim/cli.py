@@ -799,11 +799,16 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     os.environ.setdefault("NEMSIM_EXIT_ON_LOAD_FAILURE", "1")  # a checkpoint that can never load: exit 3
     from service.config import get_settings
     from service.main import LOAD_FAILURE_EXIT
+    from service.protocol import uvicorn_options
 
     get_settings.cache_clear()
+    try:
+        settings = get_settings()
+    except ValueError as exc:  # a bad NEMSIM_* value
+        raise UserError(f"invalid NEMSIM_* setting: {' '.join(str(exc).split())}") from None
     uvicorn.run(
         "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
-        log_level="info",
+        log_level="info", **uvicorn_options(settings, bind_settings=args.workers == 1),
     )
     if LOAD_FAILURE_EXIT["failed"]:
         print("nemsim serve: the checkpoint can never load (reason above); stopped", file=sys.stderr)  # noqa: T201

@@ -70,6 +70,24 @@ class Settings(BaseSettings):
         "count divided by max_concurrency, so concurrent rollouts do not oversubscribe the cores)",
     )
 
+    # --- connection limits (service.protocol; `nemsim serve` hands the uvicorn ones to uvicorn) ---
+    max_request_line_bytes: int = Field(default=8_192, ge=256, description="longer request lines (URLs) get 414")
+    max_header_bytes: int = Field(default=32_768, ge=1_024, description="larger request heads get 431")
+    head_timeout_s: float = Field(
+        default=10.0, gt=0, description="a request head must arrive within this (else 408 / close)"
+    )
+    body_timeout_s: float = Field(
+        default=30.0, gt=0, description="a request body must arrive within this of its head (else 408)"
+    )
+    handler_timeout_s: float = Field(
+        default=300.0, gt=0, description="a request not answered within this gets 504"
+    )
+    max_connections: int = Field(default=512, ge=1, description="open connections; more are dropped at once")
+    limit_concurrency: int = Field(
+        default=256, ge=1, description="uvicorn: connections + tasks beyond this get 503 at once"
+    )
+    keep_alive_s: int = Field(default=5, ge=1, description="uvicorn: idle keep-alive connections close after this")
+
     exit_on_load_failure: bool = Field(
         default=False,
         description="stop the process (non-zero exit) when the checkpoint can never load; `nemsim serve` "

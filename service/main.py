@@ -22,7 +22,7 @@ from fastapi import FastAPI
 
 from nemsim import __version__
 from service.config import Settings, get_settings
-from service.middleware import BodySizeLimitMiddleware
+from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
 from service import errors
 from service.routes import health, mechanisms, rollouts
 from service.loading import CheckpointError
@@ -121,6 +121,7 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
         app.state.service.surrogate, app.state.service.status = surrogate, "ready"
     app.dependency_overrides[get_settings] = lambda: settings
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(HandlerTimeoutMiddleware, timeout_s=settings.handler_timeout_s)
     errors.install(app)
     app.include_router(health.router)
     app.include_router(rollouts.router)

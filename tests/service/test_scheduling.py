@@ -14,7 +14,8 @@ from service.surrogate import ServiceBusy
 
 @pytest.fixture
 def blocked_rollouts(surrogate, monkeypatch):
-    """Uncached rollouts block until `release` is set; `started` is set when one is computing."""
+    """block(): from then on uncached rollouts wait until `release` is set; `started` is set when one is
+    computing."""
     started, release = threading.Event(), threading.Event()
     compute = type(surrogate)._compute
 
@@ -23,16 +24,19 @@ def blocked_rollouts(surrogate, monkeypatch):
         release.wait(20)
         return compute(self, *args)
 
-    monkeypatch.setattr(type(surrogate), "_compute", slow)
-    yield started, release
+    def block():
+        monkeypatch.setattr(type(surrogate), "_compute", slow)
+        return started, release
+
+    yield block
     release.set()
 
 
 def test_cheap_requests_do_not_wait_behind_rollouts(make_client, default_controls, surrogate, blocked_rollouts):
-    started, release = blocked_rollouts
     c = make_client(max_queue=0)
     done = c.post("/rollout", json={"controls": default_controls, "steps": 2}).json()  # cached before blocking
     _ = c.get("/mechanisms")  # cached analysis
+    started, release = blocked_rollouts()
     busy = threading.Thread(
         target=c.post,
         args=("/rollout",),
