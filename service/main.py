@@ -23,7 +23,7 @@ from fastapi import FastAPI
 from nemsim import __version__
 from service.config import Settings, get_settings
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
-from service import errors
+from service import errors, openapi
 from service.routes import health, mechanisms, rollouts
 from service.loading import CheckpointError
 from service.scheduler import Gates
@@ -112,6 +112,7 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
         description="Plasma-etch profile evolution from 14 process controls: rollouts, profile metrics, "
         "surface meshes and event-mechanism counterfactuals from a NEMSim checkpoint.",
         lifespan=lifespan,
+        responses=openapi.error_responses(*openapi.COMMON_ERRORS),
     )
     app.state.settings = settings
     app.state.service = ServiceState()
@@ -123,6 +124,7 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(HandlerTimeoutMiddleware, timeout_s=settings.handler_timeout_s)
     errors.install(app)
+    openapi.install(app, settings)
     app.include_router(health.router)
     app.include_router(rollouts.router)
     app.include_router(mechanisms.router)

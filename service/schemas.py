@@ -23,7 +23,7 @@ from pydantic import (
     model_validator,
 )
 
-from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized
+from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
 
 DEFAULT_STEPS = 100  # the paper horizon: 100 transitions of 0.1 s
 MAX_STEPS_HARD = 10_000  # no configuration may allow more (Settings.max_steps has the same bound)
@@ -213,10 +213,40 @@ class MeshSpec(BaseModel):
     format: MeshFormat = Field("glb", description="file format of the mesh")
 
 
+def _normalized_bounds() -> tuple[np.ndarray, np.ndarray]:
+    """(14,) lowest and highest accepted normalized value per control: the images of the physical
+    minimum (0) and of the scale guard (`guard_max`). Normalized input is checked against these
+    directly, so the schema and the server agree to the last bit."""
+    with np.errstate(divide="ignore"):
+        lo = np.asarray(to_normalized(np.array([s.phys_min for s in CONTROL_SPECS], dtype=np.float64)))
+    hi = np.asarray(to_normalized(_GUARD_MAX.copy()))
+    return lo, hi
+
+
+NORM_MIN, NORM_MAX = _normalized_bounds()
+
 NormalizedVector = Annotated[
     list[Annotated[float, Field(strict=True)]],
-    Field(min_length=len(CONTROL_NAMES), max_length=len(CONTROL_NAMES)),
+    Field(
+        min_length=len(CONTROL_NAMES),
+        max_length=len(CONTROL_NAMES),
+        json_schema_extra={
+            "prefixItems": [
+                {"type": "number", "minimum": float(lo), "maximum": float(hi), "title": n}
+                for n, lo, hi in zip(CONTROL_NAMES, NORM_MIN, NORM_MAX, strict=True)
+            ]
+        },
+    ),
 ]
+
+
+def _request_schema_extra(schema: dict[str, Any]) -> None:
+    """An example, and "exactly one of controls, controls_normalized, recipe" (null counts as absent)."""
+    schema["examples"] = [{"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}]
+    schema["oneOf"] = [
+        {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
+        for name in ("controls", "controls_normalized", "recipe")
+    ]
 
 
 class RolloutRequest(BaseModel):
@@ -225,11 +255,7 @@ class RolloutRequest(BaseModel):
     model_config = ConfigDict(
         extra="forbid",
         allow_inf_nan=False,
-        json_schema_extra={
-            "examples": [
-                {"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}
-            ]
-        },
+        json_schema_extra=_request_schema_extra,
     )
 
     controls: Controls | None = Field(None, description="constant controls by name, physical units")  # type: ignore[valid-type]
@@ -279,17 +305,17 @@ class RolloutRequest(BaseModel):
         if self.steps is None:
             self.steps = DEFAULT_STEPS
         if self.controls_normalized is not None:
-            with np.errstate(all="ignore"):  # huge inputs overflow to inf, rejected below
-                raw = np.asarray(from_normalized(np.asarray(self.controls_normalized, dtype=np.float64)))
             for i, spec in enumerate(CONTROL_SPECS):
-                v = float(raw[i])
-                if not math.isfinite(v) or v < spec.phys_min or v > spec.phys_max:
+                v = self.controls_normalized[i]
+                if not NORM_MIN[i] <= v <= NORM_MAX[i]:
+                    what = "physically impossible" if v < NORM_MIN[i] else "far outside any meaningful range"
                     raise ValueError(
-                        f"controls_normalized[{i}] ({spec.name}) = {self.controls_normalized[i]:g} maps to "
-                        f"{v:g} {spec.unit}, which is physically impossible (admissible "
-                        f"{spec.phys_min:g}..{spec.phys_max:g})"
+                        f"controls_normalized[{i}] ({spec.name}) = {v:g} is {what}: accepted "
+                        f"{NORM_MIN[i]:.6g}..{NORM_MAX[i]:.6g} ({spec.phys_min:g}..{guard_max(spec.name):g} "
+                        f"{spec.unit})"
                     )
-        check_scale(self._rows_raw(), "")
+        else:
+            check_scale(self._rows_raw(), "")
         for k, mesh in enumerate(self.meshes):
             if mesh.step > self.steps:
                 raise ValueError(

@@ -7,6 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 
 from service.deps import GatesDep, SurrogateDep, gated, reject, single_valued_query
+from service.openapi import ErrorBody
 from service.schemas import (
     MechanismsQuery,
     MechanismsResponse,
@@ -21,7 +22,7 @@ router = APIRouter(tags=["mechanisms"])
 @router.get(
     "/mechanisms",
     response_model=MechanismsResponse,
-    responses={501: {"description": "model without mechanisms"}, 503: {"description": "busy"}},
+    responses={501: {"model": ErrorBody, "description": "model without mechanisms"}},
     dependencies=[Depends(single_valued_query)],
 )
 async def get_mechanisms(

@@ -11,6 +11,7 @@ from fastapi.responses import Response
 
 from nemsim.geometry.mesh import MEDIA_TYPES
 from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
+from service.openapi import ErrorBody
 from service.schemas import (
     Channel,
     FieldsPayload,
@@ -42,7 +43,7 @@ async def _mesh_bytes(
         reject(("query", "step"), f"no {channel} mesh at step {step}: {exc}")
 
 
-@router.post("/rollout", response_model=RolloutResponse, responses={503: {"description": "busy or loading"}})
+@router.post("/rollout", response_model=RolloutResponse)
 async def post_rollout(
     request: Request, body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep, gates: GatesDep
 ) -> RolloutResponse:
@@ -129,7 +130,7 @@ async def post_rollout(
     response_class=Response,
     responses={
         200: {"content": {t: {} for t in sorted(set(MEDIA_TYPES.values()))}, "description": "the mesh file"},
-        404: {"description": "unknown or expired rollout id"},
+        404: {"model": ErrorBody, "description": "unknown or expired rollout id"},
     },
     dependencies=[Depends(single_valued_query)],
 )

@@ -139,3 +139,40 @@ def test_unhandled_error_500_is_generic(surrogate, monkeypatch, default_controls
         controls = _controls(default_controls, flux_cl=0.0123)
         body = _uniform(c.post("/rollout", json={"controls": controls, "steps": 1}), 500)
     assert "secret" not in str(body) and "/home" not in str(body)
+
+
+# --- defect 7: the schema states what the server enforces --------------------------------------------
+
+
+def test_schema_states_the_rules(make_client):
+    doc = make_client(max_steps=7, max_meshes=3).get("/openapi.json").json()
+    req = doc["components"]["schemas"]["RolloutRequest"]
+    assert {tuple(b["required"]) for b in req["oneOf"]} == {("controls",), ("controls_normalized",), ("recipe",)}
+    steps = next(b for b in req["properties"]["steps"]["anyOf"] if b.get("type") == "integer")
+    assert steps["maximum"] == 7 and req["properties"]["meshes"]["maxItems"] == 3
+    rollout = doc["paths"]["/rollout"]["post"]["responses"]
+    for code in ("400", "413", "422", "503"):
+        assert rollout[code]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody"), code
+
+
+def test_normalized_bounds_in_schema_match_the_server(client):
+    from service.schemas import NORM_MAX, NORM_MIN
+
+    doc = client.get("/openapi.json").json()
+    arr = next(
+        b for b in doc["components"]["schemas"]["RolloutRequest"]["properties"]["controls_normalized"]["anyOf"]
+        if b.get("type") == "array"
+    )
+    assert [p["maximum"] for p in arr["prefixItems"]] == list(NORM_MAX)
+    edge = [float(v) for v in NORM_MAX]
+    assert client.post("/rollout", json={"controls_normalized": edge, "steps": 1}).status_code == 200
+    beyond = [*edge[:3], edge[3] * (1 + 1e-9), *edge[4:]]
+    r = client.post("/rollout", json={"controls_normalized": beyond, "steps": 1})
+    assert r.status_code == 422 and "flux_cl" in r.json()["message"]
+    low = [float(v) for v in NORM_MIN]  # every control at its physical minimum (0)
+    assert client.post("/rollout", json={"controls_normalized": low, "steps": 1}).status_code == 200
+
+
+@pytest.mark.parametrize("body", [{"controls": None, "controls_normalized": [0.0] * 14, "steps": 1}])
+def test_null_source_counts_as_absent(client, body):
+    assert client.post("/rollout", json=body).status_code == 200
