@@ -804,8 +804,19 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     get_settings.cache_clear()
     try:
         settings = get_settings()
+        keys = settings.api_key_set()
     except ValueError as exc:  # a bad NEMSIM_* value
         raise UserError(f"invalid NEMSIM_* setting: {' '.join(str(exc).split())}") from None
+    from service.access import is_loopback
+
+    if not keys and not is_loopback(args.host):
+        logging.getLogger("nemsim.serve").warning(
+            "binding %s without API keys: %s; set NEMSIM_API_KEYS (or NEMSIM_API_KEYS_FILE) to serve other "
+            "machines",
+            args.host,
+            "every client on another machine gets 403" if not settings.allow_remote_without_key
+            else "NEMSIM_ALLOW_REMOTE_WITHOUT_KEY is set, so anyone who can reach the port can use it",
+        )
     uvicorn.run(
         "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
         log_level="info", **uvicorn_options(settings, bind_settings=args.workers == 1),

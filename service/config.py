@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -32,6 +33,9 @@ def default_checkpoint() -> Path | None:
         if found:
             return found[0]
     return None
+
+
+MIN_KEY_CHARS = 16  # shorter API keys are guessable
 
 
 class Settings(BaseSettings):
@@ -88,6 +92,27 @@ class Settings(BaseSettings):
     )
     keep_alive_s: int = Field(default=5, ge=1, description="uvicorn: idle keep-alive connections close after this")
 
+    # --- access control and operations (service.access, service.metrics) ---
+    api_keys: SecretStr = Field(
+        default=SecretStr(""), description="comma-separated API keys (header X-API-Key); none: loopback only"
+    )
+    api_keys_file: Path | None = Field(default=None, description="file with one API key per line (# comments)")
+    allow_remote_without_key: bool = Field(
+        default=False, description="without API keys, also answer clients on other machines (not advised)"
+    )
+    rate_limit_per_minute: int = Field(
+        default=1200, ge=0, description="requests per minute per client (API key, else address); 0: no limit"
+    )
+    rate_limit_burst: int = Field(default=100, ge=1, description="requests a client may send at once")
+    docs: bool = Field(default=True, description="serve /docs, /redoc and /openapi.json")
+    access_log: bool = Field(default=True, description="one JSON line per request on the service.access logger")
+
+    extrapolation: Literal["allow", "clip", "refuse"] = Field(
+        default="allow",
+        description="controls outside the training box: allow (answer with a quantitative warning), clip "
+        "(to the box, saying which) or refuse (422)",
+    )
+
     exit_on_load_failure: bool = Field(
         default=False,
         description="stop the process (non-zero exit) when the checkpoint can never load; `nemsim serve` "
@@ -103,6 +128,24 @@ class Settings(BaseSettings):
     @classmethod
     def _expand(cls, value: Path | None) -> Path | None:
         return value.expanduser() if value is not None else None
+
+    def api_key_set(self) -> frozenset[str]:
+        """The configured API keys (env and file); ValueError naming the source of a key too short."""
+        keys = [(k.strip(), "NEMSIM_API_KEYS") for k in self.api_keys.get_secret_value().split(",")]
+        if self.api_keys_file is not None:
+            try:
+                lines = self.api_keys_file.read_text().splitlines()
+            except OSError as exc:
+                raise ValueError(f"NEMSIM_API_KEYS_FILE cannot be read ({exc.strerror})") from None
+            keys += [(line.split("#", 1)[0].strip(), "NEMSIM_API_KEYS_FILE") for line in lines]
+        out = set()
+        for key, source in keys:
+            if not key:
+                continue
+            if len(key) < MIN_KEY_CHARS:
+                raise ValueError(f"{source} holds a key of {len(key)} characters; use at least {MIN_KEY_CHARS}")
+            out.add(key)
+        return frozenset(out)
 
     def resolved_checkpoint(self) -> Path | None:
         """The checkpoint to load: the explicit one, else the default one (None if there is none)."""

@@ -24,7 +24,9 @@ from nemsim import __version__
 from service.config import Settings, get_settings
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
 from service import errors, openapi
-from service.routes import health, mechanisms, rollouts
+from service.access import AccessMiddleware
+from service.metrics import Metrics
+from service.routes import health, mechanisms, operations, rollouts
 from service.loading import CheckpointError
 from service.scheduler import Gates
 from service.surrogate import Surrogate
@@ -78,6 +80,7 @@ def load_surrogate(
         surrogate.warm_up(settings.warmup_steps)
         state.surrogate = surrogate
         state.status = "ready"
+        log.info("initial state: %s", surrogate.initial_state_source)
         log.info("model %s ready", surrogate.model_id)
     except CheckpointError as exc:
         state.status, state.error = "failed", str(exc)
@@ -113,6 +116,9 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
         "surface meshes and event-mechanism counterfactuals from a NEMSim checkpoint.",
         lifespan=lifespan,
         responses=openapi.error_responses(*openapi.COMMON_ERRORS),
+        docs_url="/docs" if settings.docs else None,
+        redoc_url="/redoc" if settings.docs else None,
+        openapi_url="/openapi.json" if settings.docs else None,
     )
     app.state.settings = settings
     app.state.service = ServiceState()
@@ -123,9 +129,12 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     app.dependency_overrides[get_settings] = lambda: settings
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(HandlerTimeoutMiddleware, timeout_s=settings.handler_timeout_s)
+    app.state.metrics = Metrics()
+    app.add_middleware(AccessMiddleware, settings=settings, metrics=app.state.metrics)  # outermost
     errors.install(app)
     openapi.install(app, settings)
     app.include_router(health.router)
     app.include_router(rollouts.router)
     app.include_router(mechanisms.router)
+    app.include_router(operations.router)
     return app

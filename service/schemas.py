@@ -371,6 +371,21 @@ class Timings(BaseModel):
     meshes_ms: float
 
 
+class ExtrapolationInfo(BaseModel):
+    """One control outside the training box (worst value over the transitions)."""
+
+    control: str
+    value: float = Field(description="the value given, physical units")
+    unit: str
+    train_min: float
+    train_max: float
+    side: Literal["below", "above"]
+    half_widths_outside: float = Field(
+        description="distance past the nearest edge of the box, in box half-widths, in the coordinate the "
+        "model sees (log10 for fluxes)"
+    )
+
+
 class RolloutResponse(BaseModel):
     id: str = Field(description="rollout id, for GET /rollouts/{id}/mesh")
     model_id: str
@@ -384,6 +399,10 @@ class RolloutResponse(BaseModel):
     controls: dict[str, float] = Field(description="controls of the first transition, physical units")
     recipe: list[dict[str, float]] | None = Field(None, description="per-transition controls, when varying")
     warnings: list[str]
+    extrapolation: list[ExtrapolationInfo] = Field(
+        [], description="controls outside the training box, as given (see the server's extrapolation policy)"
+    )
+    clipped: bool = Field(False, description="controls were clipped to the training box (policy 'clip')")
     fields: FieldsPayload | None = None
     meshes: list[MeshPayload] = []
     timings: Timings
@@ -411,6 +430,8 @@ class ModelInfo(BaseModel):
     summary: dict[str, Any]
     metrics: dict[str, Any]
     controls: list[ControlInfo]
+    initial_state: str = Field(description="how the rollouts' initial state was built (simulator configuration)")
+    extrapolation: str = Field(description="policy for controls outside the training box: allow, clip or refuse")
 
 
 class MechanismsResponse(BaseModel):
@@ -422,6 +443,8 @@ class MechanismsResponse(BaseModel):
         "attributions alpha"
     )
     warnings: list[str]
+    extrapolation: list[ExtrapolationInfo] = []
+    clipped: bool = False
 
 
 class Health(BaseModel):

@@ -117,11 +117,31 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def checkpoint_sim_config(raw: dict[str, Any]) -> tuple[Any, str]:
+    """(SimConfig or None, how the initial state is built) from a checkpoint's `sim_config`: the
+    simulator configuration of its training data (the data file's `generator` attribute, whose
+    `config` entry is `SimConfig.to_meta`; a bare `to_meta` dict is accepted too). Read defensively:
+    older checkpoints have none, and an unreadable one falls back to the simulator's defaults."""
+    from nemsim.sim.config import SimConfig
+
+    recorded = raw.get("sim_config")
+    if not isinstance(recorded, dict) or not recorded:
+        return None, "simulator defaults (the checkpoint records no simulator configuration)"
+    meta = recorded.get("config") if isinstance(recorded.get("config"), dict) else recorded
+    try:
+        return SimConfig.from_meta(meta), "the checkpoint's simulator configuration (sim_config)"
+    except (TypeError, ValueError) as exc:
+        log.warning("checkpoint sim_config unreadable (%s): initial state from the simulator defaults", exc)
+        return None, "simulator defaults (the checkpoint's simulator configuration could not be read)"
+
+
 def initial_state(loaded: Any) -> np.ndarray:
-    """(2, D, H, W) float32 normalized SDF of the scene's initial geometry (the library builds it)."""
+    """(2, D, H, W) float32 normalized SDF of the scene's initial geometry, built by the simulator with
+    the configuration of the checkpoint's data when it records one (`checkpoint_sim_config`)."""
     from nemsim.sim import initial_state as build  # the simulator's SDF of the scene's initial geometry
 
-    return np.asarray(build(loaded.scene), dtype=np.float32)
+    config, _ = checkpoint_sim_config(loaded.raw or {})
+    return np.asarray(build(loaded.scene, config), dtype=np.float32)
 
 
 class Surrogate:
@@ -139,6 +159,9 @@ class Surrogate:
         self.model_id = model_id
         self.scene = loaded.scene
         self.x0 = initial_state(loaded) if x0 is None else np.asarray(x0, dtype=np.float32)
+        self.initial_state_source = (
+            checkpoint_sim_config(loaded.raw or {})[1] if x0 is None else "given by the caller"
+        )
         expected = tuple(self.scene.state_shape)
         if self.x0.shape != expected:
             raise ValueError(
@@ -179,19 +202,9 @@ class Surrogate:
 
     def warnings_for(self, controls_raw: np.ndarray) -> list[str]:
         """Readable warnings for controls outside the training range. controls_raw: (T, 14) or (14,)."""
-        out: list[str] = []
-        rows = np.atleast_2d(controls_raw)
-        for i, spec in enumerate(CONTROL_SPECS):
-            lo, hi = self.train_range[spec.name]
-            col = rows[:, i]
-            vmin, vmax = float(col.min()), float(col.max())
-            if vmin < lo or vmax > hi:
-                bad = vmin if vmin < lo else vmax
-                out.append(
-                    f"{spec.name} = {bad:g} {spec.unit} is outside the training range {lo:g}..{hi:g}: "
-                    "the prediction is an extrapolation"
-                )
-        return out
+        from service.extrapolation import excursions
+
+        return [e.describe() for e in excursions(controls_raw, self.train_range)]
 
     @staticmethod
     def rollout_id(model_id: str, u_norm: np.ndarray, steps: int) -> str:

@@ -86,4 +86,6 @@ async def get_model(surrogate: SurrogateDep, settings: SettingsDep) -> ModelInfo
         summary=public_record(jsonable(loaded.summary)),
         metrics=public_record(jsonable(loaded.metrics)),
         controls=controls,
+        initial_state=surrogate.initial_state_source,
+        extrapolation=settings.extrapolation,
     )

@@ -6,7 +6,8 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 
-from service.deps import GatesDep, SurrogateDep, gated, reject, single_valued_query
+from service import extrapolation
+from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
 from service.openapi import ErrorBody
 from service.schemas import (
     MechanismsQuery,
@@ -29,6 +30,7 @@ async def get_mechanisms(
     request: Request,
     query: Annotated[MechanismsQuery, Query()],  # type: ignore[valid-type]
     surrogate: SurrogateDep,
+    settings: SettingsDep,
     gates: GatesDep,
 ) -> MechanismsResponse:
     """Cl+ / neutral-Cl interventions around one base control: Delta M per family, Delta R, lambda, alpha."""
@@ -37,8 +39,14 @@ async def get_mechanisms(
             status_code=501,
             detail=f"model {surrogate.loaded.name!r} has no event mechanisms (not a NEMSim model)",
         )
-    raw = controls_to_array(query)
+    try:
+        raw, warnings, found, clipped = extrapolation.apply(
+            controls_to_array(query), surrogate.train_range, settings.extrapolation
+        )  # raw: (14,) physical units
+    except extrapolation.Refused as exc:
+        reject(("query",), str(exc))
     result = surrogate.cached_mechanisms(raw, query.factors)
+    request.app.state.metrics.cache_lookup("mechanisms", result is not None)
     try:
         if result is None:
             result = await gated(request, gates.mechanisms, surrogate.mechanisms, raw, query.factors)
@@ -48,5 +56,7 @@ async def get_mechanisms(
         model_id=surrogate.model_id,
         controls=array_to_controls(raw),
         result=jsonable(result),
-        warnings=surrogate.warnings_for(raw[None]),
+        warnings=warnings,
+        extrapolation=[e.as_dict() for e in found],
+        clipped=clipped,
     )

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response
 
 from nemsim.geometry.mesh import MEDIA_TYPES
+from service import extrapolation
 from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
 from service.openapi import ErrorBody
 from service.schemas import (
@@ -35,6 +36,7 @@ async def _mesh_bytes(
     request: Request, surrogate: Surrogate, gates: Gates, result: RolloutResult, step: int, channel: str, fmt: str
 ) -> bytes:
     cached = surrogate.cached_mesh(result, step, channel, fmt)
+    request.app.state.metrics.cache_lookup("mesh", cached is not None)
     if cached is not None:
         return cached
     try:
@@ -59,18 +61,27 @@ async def post_rollout(
             ("body", "meshes"),
             f"{len(body.meshes)} meshes requested; at most {settings.max_meshes} per rollout",
         )
-    schedule = body.schedule_raw()  # (T, 14) physical units
-    warnings = surrogate.warnings_for(schedule)
+    source = next(n for n in ("controls", "controls_normalized", "recipe") if getattr(body, n) is not None)
+    try:
+        schedule, warnings, found, clipped = extrapolation.apply(
+            body.schedule_raw(), surrogate.train_range, settings.extrapolation
+        )  # schedule: (T, 14) physical units
+    except extrapolation.Refused as exc:
+        reject(("body", source), str(exc))
     if body.steps > surrogate.horizon_steps:
         warnings.append(
             f"steps = {body.steps} goes beyond the {surrogate.horizon_steps}-step horizon the model was "
             "trained on"
         )
     _, hit = surrogate.lookup_rollout(schedule)
+    metrics = request.app.state.metrics
+    metrics.cache_lookup("rollout", hit is not None)
     if hit is not None:
         result, cached = hit, True
     else:
         result, cached = await gated(request, gates.rollout, surrogate.compute_rollout, schedule)
+        if not cached:
+            metrics.rollout_computed(result.rollout_ms / 1e3)
     warnings.extend(result.warnings)
 
     t0 = time.perf_counter()
@@ -113,6 +124,8 @@ async def post_rollout(
         controls=array_to_controls(result.controls_raw[0]),
         recipe=[array_to_controls(row) for row in result.controls_raw] if varying else None,
         warnings=warnings,
+        extrapolation=[e.as_dict() for e in found],
+        clipped=clipped,
         fields=fields,
         meshes=meshes,
         timings=Timings(
