@@ -1,7 +1,10 @@
 # NEMSim inference service, CPU-only image.
 #   docker build -t nemsim .
-#   docker run -p 8000:8000 nemsim            # serves checkpoints/*.pt; docs at http://localhost:8000/docs
-#   docker run -p 8000:8000 -v $PWD/ckpt:/ckpt -e NEMSIM_CHECKPOINT=/ckpt/model.pt nemsim
+#   docker run -p 8000:8000 -e NEMSIM_API_KEYS=<a key of >= 16 characters> nemsim
+#       serves checkpoints/*.pt; docs at http://localhost:8000/docs; clients send the header X-API-Key.
+#       Without keys the server answers only clients inside the container (it warns at start-up).
+#   docker run -p 8000:8000 -e NEMSIM_API_KEYS=... -v $PWD/ckpt:/ckpt -e NEMSIM_CHECKPOINT=/ckpt/model.pt nemsim
+# A checkpoint that cannot load stops the container (exit 3); the HEALTHCHECK polls /ready.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \

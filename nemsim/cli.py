@@ -358,6 +358,14 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     config = _sim_config(args.overrides)
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
+    args.host = args.host or os.environ.get("NEMSIM_HOST") or "127.0.0.1"
+    port = args.port if args.port is not None else os.environ.get("NEMSIM_PORT", "8000")
+    try:
+        args.port = int(port)
+        if not 0 < args.port < 65536:
+            raise ValueError
+    except ValueError:
+        raise UserError(f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}") from None
     if args.controls:
         if not os.path.isfile(args.controls):
             raise UserError(f"no such file: {args.controls}")
@@ -720,9 +728,10 @@ def _add_service(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--checkpoint", default=None, help="checkpoint .pt (default: $NEMSIM_CHECKPOINT or checkpoints/*.pt)"
     )
-    p.add_argument("--host", default="127.0.0.1",
-                   help="bind address (default 127.0.0.1; containers: 0.0.0.0)")
-    p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    p.add_argument("--host", default=None,
+                   help="bind address (default $NEMSIM_HOST or 127.0.0.1; containers: 0.0.0.0)")
+    p.add_argument("--port", type=int, default=None,
+                   help="TCP port (default $NEMSIM_PORT or 8000; e.g. NEMSIM_PORT=8080 make serve)")
     p.add_argument("--workers", type=int, default=1,
                    help="worker processes, each with its own model copy (default 1)")
     p.set_defaults(handler=_cmd_serve)
@@ -794,6 +803,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
+    args.host = args.host or os.environ.get("NEMSIM_HOST") or "127.0.0.1"
+    port = args.port if args.port is not None else os.environ.get("NEMSIM_PORT", "8000")
+    try:
+        args.port = int(port)
+        if not 0 < args.port < 65536:
+            raise ValueError
+    except ValueError:
+        raise UserError(f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}") from None
     # every worker process builds its app from the environment, so the choice travels there
     os.environ["NEMSIM_CHECKPOINT"] = _resolve_checkpoint(args.checkpoint)
     os.environ.setdefault("NEMSIM_EXIT_ON_LOAD_FAILURE", "1")  # a checkpoint that can never load: exit 3
