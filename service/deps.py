@@ -70,7 +70,7 @@ def single_valued_query(request: Request) -> None:
     seen: set[str] = set()
     for key, _ in request.query_params.multi_items():
         if key in seen and key not in LIST_QUERY_PARAMS:
-            reject(("query", key), f"{key} is given more than once; give it once")
+            reject(("query", key), "given more than once; give it once")
         seen.add(key)
 
 

@@ -5,7 +5,7 @@ exponents as `multipleOf`, "exactly one of" as `oneOf`, normalized bounds as `pr
 depends on this server's settings (the `steps` ceiling, inline meshes per rollout) is written into
 the document when it is first generated. Error responses share one schema (`ErrorBody`).
 The one rule JSON Schema cannot state: a mesh's `step` must not exceed the rollout's `steps`
-(its description says so; 422 otherwise).
+(the schema bounds it by the server's ceiling, its description says the rest; 422 otherwise).
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 from pydantic import BaseModel, Field
+
+from service.schemas import DEFAULT_STEPS
 
 
 class ErrorBody(BaseModel):
@@ -55,11 +57,26 @@ def install(app: FastAPI, settings: Any) -> None:
         doc = get_openapi(
             title=app.title, version=app.version, description=app.description, routes=app.routes
         )
-        props = doc["components"]["schemas"]["RolloutRequest"]["properties"]
-        for branch in props["steps"]["anyOf"]:
+        schemas = doc["components"]["schemas"]
+        request = schemas["RolloutRequest"]
+        props = request["properties"]
+        for branch in props["steps"]["anyOf"] + props["recipe"]["anyOf"]:
             if branch.get("type") == "integer":
                 branch["maximum"] = settings.max_steps
+            elif branch.get("type") == "array":
+                branch["maxItems"] = settings.max_steps
         props["meshes"]["maxItems"] = settings.max_meshes
+        schemas["MeshSpec"]["properties"]["step"]["maximum"] = settings.max_steps
+        if settings.max_steps < DEFAULT_STEPS:  # the default (100) would pass the ceiling: steps required
+            request["anyOf"] = [  # ... unless a recipe sets it
+                {"required": [name], "properties": {name: {"not": {"type": "null"}}}} for name in ("recipe", "steps")
+            ]
+        mesh = doc["paths"]["/rollouts/{rollout_id}/mesh"]["get"]
+        for param in mesh["parameters"]:
+            if param["name"] == "step":
+                for branch in param["schema"].get("anyOf", [param["schema"]]):
+                    if branch.get("type") == "integer":
+                        branch["maximum"] = settings.max_steps
         app.openapi_schema = doc
         return doc
 

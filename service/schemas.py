@@ -18,7 +18,6 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
-    StrictInt,
     create_model,
     model_validator,
 )
@@ -33,6 +32,15 @@ MeshFormat = Literal["glb", "ply", "obj", "stl"]
 FieldsMode = Literal["none", "final", "all"]
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _json_integer(value: Any) -> Any:
+    """JSON Schema's integer: a number with no fractional part (3 and 3.0), never a string or boolean."""
+    if isinstance(value, bool | str):
+        raise ValueError("must be a JSON integer (a number, not a string or boolean)")
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -206,8 +214,8 @@ class MeshSpec(BaseModel):
     """One surface mesh to return inline with a rollout."""
 
     model_config = _STRICT
-    step: StrictInt = Field(
-        ge=0, le=MAX_STEPS_HARD, description="state index, 0 = initial geometry, `steps` = final (at most `steps`)"
+    step: Annotated[int, Field(ge=0, le=MAX_STEPS_HARD), BeforeValidator(_json_integer)] = Field(
+        description="state index, 0 = initial geometry, `steps` = final (at most `steps`)"
     )
     channel: Channel = Field("si", description="mask (resist) or si (silicon)")
     format: MeshFormat = Field("glb", description="file format of the mesh")
@@ -270,10 +278,8 @@ class RolloutRequest(BaseModel):
         max_length=MAX_STEPS_HARD,
         description="one control set per transition (time-varying process)",
     )
-    steps: StrictInt | None = Field(
+    steps: Annotated[int, Field(ge=1, le=MAX_STEPS_HARD), BeforeValidator(_json_integer)] | None = Field(
         None,
-        ge=1,
-        le=MAX_STEPS_HARD,
         description=f"transitions of 0.1 s to predict; 1..{DEFAULT_STEPS} by default (server ceiling "
         f"NEMSIM_MAX_STEPS); default {DEFAULT_STEPS}, or the recipe length",
     )

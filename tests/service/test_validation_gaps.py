@@ -55,11 +55,17 @@ def test_integer_controls_in_the_schema(client):
 # --- defect 3: steps was loosely typed ---------------------------------------------------------------
 
 
-@pytest.mark.parametrize("steps", ["1", "100", True, False, 1.0])
+@pytest.mark.parametrize("steps", ["1", "100", True, False, 1.5])
 def test_steps_must_be_a_json_integer(client, default_controls, steps):
     r = client.post("/rollout", json={"controls": default_controls, "steps": steps})
     assert r.status_code == 422, (steps, r.text)
     assert "steps" in r.json()["message"]
+
+
+def test_integral_number_is_a_json_integer(client, default_controls):
+    """JSON Schema counts 1.0 as an integer, so the server does too."""
+    r = client.post("/rollout", json={"controls": default_controls, "steps": 1.0, "meshes": [{"step": 1.0}]})
+    assert r.status_code == 200 and r.json()["steps"] == 1
 
 
 @pytest.mark.parametrize("step", ["1", True])
@@ -145,11 +151,16 @@ def test_unhandled_error_500_is_generic(surrogate, monkeypatch, default_controls
 
 
 def test_schema_states_the_rules(make_client):
+    default = make_client().get("/openapi.json").json()["components"]["schemas"]["RolloutRequest"]
+    assert {tuple(b["required"]) for b in default["oneOf"]} == {("controls",), ("controls_normalized",), ("recipe",)}
     doc = make_client(max_steps=7, max_meshes=3).get("/openapi.json").json()
     req = doc["components"]["schemas"]["RolloutRequest"]
+    # below the default of 100 steps, `steps` must be given unless a recipe sets it
     assert {tuple(b["required"]) for b in req["oneOf"]} == {("controls",), ("controls_normalized",), ("recipe",)}
+    assert {tuple(b["required"]) for b in req["anyOf"]} == {("recipe",), ("steps",)}
+    assert "anyOf" not in default
     steps = next(b for b in req["properties"]["steps"]["anyOf"] if b.get("type") == "integer")
-    assert steps["maximum"] == 7 and req["properties"]["meshes"]["maxItems"] == 3
+    assert steps["maximum"] == 7 and steps["minimum"] == 1 and req["properties"]["meshes"]["maxItems"] == 3
     rollout = doc["paths"]["/rollout"]["post"]["responses"]
     for code in ("400", "413", "422", "503"):
         assert rollout[code]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody"), code
