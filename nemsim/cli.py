@@ -779,6 +779,10 @@ def _add_bench_service(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cached-requests", type=int, default=200,
                    help="repeats of one cached request (default 200)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random controls (default 0)")
+    p.add_argument("--clients", type=int, default=None,
+                   help="load mode: start `nemsim serve` on a loopback port and drive it with this many "
+                        "concurrent HTTP clients (mixed routes); reports p50/p95/p99 per route, errors, RSS")
+    p.add_argument("--seconds", type=float, default=60.0, help="load mode: duration (default 60)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_service)
 
@@ -844,12 +848,46 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_service_load(args: argparse.Namespace) -> int:
+    from service.bench import bench_load
+
+    if args.clients < 1 or not args.seconds > 0:
+        raise UserError(f"--clients must be >= 1 and --seconds > 0, got {args.clients} and {args.seconds}")
+    report = bench_load(
+        _resolve_checkpoint(args.checkpoint), clients=args.clients, seconds=args.seconds, steps=args.steps,
+        seed=args.seed,
+    )
+    lines = [
+        f"{report['clients']} clients x {report['wall_s']:.0f} s against nemsim serve ({report['checkpoint']}, "
+        f"{report['steps']} steps):",
+        f"  {'route':<26}{'n':>6}{'p50 ms':>10}{'p95 ms':>10}{'p99 ms':>10}  status counts",
+    ]
+    for name, r in report["routes"].items():
+        if r["n"]:
+            lines.append(
+                f"  {name:<26}{r['n']:>6}{r['p50_ms']:>10.1f}{r['p95_ms']:>10.1f}{r['p99_ms']:>10.1f}  {r['status']}"
+            )
+        else:
+            lines.append(f"  {name:<26}{0:>6}{'-':>10}{'-':>10}{'-':>10}  {r['status']}")
+    srv = report["server"]
+    lines.append(
+        f"  errors {report['errors']}; uncached rollouts {report['uncached_rollouts_per_s']:.2f}/s; server RSS "
+        f"{srv['rss_mb']:.0f} MB (peak {srv['peak_rss_mb']:.0f} MB), CPU {srv['cpu_s_during_run']:.1f} s"
+    )
+    print("\n".join(lines))  # noqa: T201
+    if args.json_out:
+        _write_json(args.json_out, report)
+    return 0
+
+
 def _cmd_bench_service(args: argparse.Namespace) -> int:
     from service.bench import bench_service
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would drown the report
     if args.steps < 1 or args.requests < 1 or args.cached_requests < 1:
         raise UserError("--steps, --requests and --cached-requests must be >= 1")
+    if args.clients is not None:
+        return _bench_service_load(args)
     report = bench_service(
         _resolve_checkpoint(args.checkpoint),
         n=args.requests,
