@@ -75,9 +75,13 @@ def load_surrogate(
         torch.set_num_threads(settings.torch_threads or min(torch.get_num_threads(), share))
         state.status = "loading"
         log.info("loading checkpoint %s", path)
-        surrogate = Surrogate.from_checkpoint(path, cache_size=settings.cache_size)
+        surrogate = Surrogate.from_checkpoint(
+            path, cache_size=settings.cache_size, cache_bytes=settings.cache_max_mb << 20
+        )
         state.status = "warming-up"
         surrogate.warm_up(settings.warmup_steps)
+        if settings.warmup_steps > 0:
+            surrogate.warm_up_meshes()
         state.surrogate = surrogate
         state.status = "ready"
         log.info("initial state: %s", surrogate.initial_state_source)

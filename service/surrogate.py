@@ -23,6 +23,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,8 +85,16 @@ def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str
 
 
 class _LRU:
-    def __init__(self, size: int) -> None:
+    """Least-recently-used cache bounded in entries and, with `weigh`, in bytes (an entry larger than
+    the whole budget is not kept)."""
+
+    def __init__(
+        self, size: int, max_bytes: int | None = None, weigh: Callable[[Any], int] | None = None
+    ) -> None:
         self.size = size
+        self.max_bytes = max_bytes
+        self.weigh = weigh or (lambda value: 0)
+        self.bytes = 0
         self._items: OrderedDict[Any, Any] = OrderedDict()
         self._lock = threading.Lock()
 
@@ -97,13 +106,16 @@ class _LRU:
             return self._items[key]
 
     def put(self, key: Any, value: Any) -> None:
-        if self.size <= 0:
+        weight = self.weigh(value)
+        if self.size <= 0 or (self.max_bytes is not None and weight > self.max_bytes):
             return
         with self._lock:
+            if key in self._items:
+                self.bytes -= self.weigh(self._items.pop(key))
             self._items[key] = value
-            self._items.move_to_end(key)
-            while len(self._items) > self.size:
-                self._items.popitem(last=False)
+            self.bytes += weight
+            while len(self._items) > self.size or (self.max_bytes is not None and self.bytes > self.max_bytes):
+                self.bytes -= self.weigh(self._items.popitem(last=False)[1])
 
     def __len__(self) -> int:
         return len(self._items)
@@ -154,6 +166,7 @@ class Surrogate:
         model_id: str,
         x0: np.ndarray | None = None,
         cache_size: int = 32,
+        cache_bytes: int | None = None,
     ) -> None:
         self.loaded = loaded
         self.model_id = model_id
@@ -167,8 +180,10 @@ class Surrogate:
             raise ValueError(
                 f"initial state has shape {self.x0.shape}, scene {self.scene.name!r} needs {expected}"
             )
-        self._rollouts = _LRU(cache_size)
-        self._meshes = _LRU(4 * cache_size)
+        # cache_bytes: the budget of the rollout cache (states dominate: ~17 MB per 100-step `small`
+        # rollout); meshes get a quarter of it on top
+        self._rollouts = _LRU(cache_size, cache_bytes, lambda r: int(r.states.nbytes))
+        self._meshes = _LRU(4 * cache_size, None if cache_bytes is None else cache_bytes // 4, len)
         self._mechanisms = _LRU(cache_size)
         ranges = (loaded.raw or {}).get("control_ranges") or {}
         specs = {s.name: s for s in CONTROL_SPECS}
@@ -286,6 +301,15 @@ class Surrogate:
             rollout(self.loaded.model, torch.from_numpy(self.x0)[None], u, steps, keep=False)
 
     # --- meshes -------------------------------------------------------------------------------------
+    def warm_up_meshes(self, formats: tuple[str, ...] = ("glb", "ply", "obj", "stl")) -> None:
+        """Extract and export the initial Si surface once per format, so the first mesh request does not
+        pay for imports and first-call compilation (about 1.5 s on `small`)."""
+        from nemsim.geometry.mesh import export_mesh, surface_mesh
+
+        mesh = surface_mesh(self.x0[1], self.scene, {"warm_up": True})
+        for fmt in formats:
+            export_mesh(mesh, fmt)
+
     def cached_mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes | None:
         return self._meshes.get((result.id, step, channel, fmt))
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import threading
 
+import numpy as np
 import pytest
 
 from service.scheduler import ClientGone, FairGate, run_gated
@@ -163,3 +164,31 @@ def test_disconnected_client_leaves_the_queue_and_its_work_never_runs():
 
     asyncio.run(scenario())
     assert ran == []
+
+
+def test_rollout_cache_is_bounded_in_bytes(surrogate, default_controls):
+    """The cache keeps at most `cache_bytes` of states, evicting the least recently used."""
+    from service.surrogate import Surrogate
+
+    s = Surrogate(surrogate.loaded, model_id="bytes", x0=surrogate.x0, cache_size=100, cache_bytes=1)
+    raw = np.array([list(default_controls.values())] * 2)
+    result, cached = s.rollout(raw)
+    assert not cached and result.states.nbytes > 1
+    assert s.rollout(raw)[1] is False  # larger than the whole budget: never kept
+    one = result.states.nbytes
+    s = Surrogate(surrogate.loaded, model_id="bytes2", x0=surrogate.x0, cache_size=100, cache_bytes=2 * one)
+    rows = [raw * f for f in (1.0, 1.01, 1.02)]
+    for r in rows:
+        s.rollout(r)
+    assert s._rollouts.bytes <= 2 * one and len(s._rollouts) == 2
+    assert s.rollout(rows[0])[1] is False and s.rollout(rows[2])[1] is True
+
+
+def test_mesh_warm_up_exports_every_format(surrogate, monkeypatch):
+    import nemsim.geometry.mesh as mesh_lib
+
+    seen: list[str] = []
+    export = mesh_lib.export_mesh
+    monkeypatch.setattr(mesh_lib, "export_mesh", lambda mesh, fmt: seen.append(fmt) or export(mesh, fmt))
+    surrogate.warm_up_meshes()
+    assert sorted(seen) == ["glb", "obj", "ply", "stl"]
