@@ -457,6 +457,7 @@ class Health(BaseModel):
     status: str
     detail: str | None = None
     model_id: str | None = None
+    message: str | None = Field(None, description="one readable line when not ready (the error shape)")
 
 
 def jsonable(value: Any) -> Any:

@@ -73,7 +73,7 @@ def test_broken_checkpoint_fails_without_leaking_paths(tmp_path, tiny_checkpoint
         ready = _wait_failed(c)
         assert ready.status_code == 503
         text = ready.text + c.post("/rollout", json={"controls_normalized": [0.0] * 14, "steps": 1}).text
-        assert "broken.pt" in ready.json()["detail"]
+        assert "broken.pt" in ready.json()["detail"] and "broken.pt" in ready.json()["message"]
         assert "secret_dir" not in text and str(tmp_path) not in text
         assert "Error" not in ready.json()["detail"]  # no exception class names
     assert stopped == [True]
