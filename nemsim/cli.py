@@ -365,7 +365,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         if not 0 < args.port < 65536:
             raise ValueError
     except ValueError:
-        raise UserError(f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}") from None
+        raise UserError(
+            f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}"
+        ) from None
     if args.controls:
         if not os.path.isfile(args.controls):
             raise UserError(f"no such file: {args.controls}")
@@ -814,7 +816,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         if not 0 < args.port < 65536:
             raise ValueError
     except ValueError:
-        raise UserError(f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}") from None
+        raise UserError(
+            f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}"
+        ) from None
     # every worker process builds its app from the environment, so the choice travels there
     os.environ["NEMSIM_CHECKPOINT"] = _resolve_checkpoint(args.checkpoint)
     os.environ.setdefault("NEMSIM_EXIT_ON_LOAD_FAILURE", "1")  # a checkpoint that can never load: exit 3
@@ -858,20 +862,23 @@ def _bench_service_load(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     lines = [
-        f"{report['clients']} clients x {report['wall_s']:.0f} s against nemsim serve ({report['checkpoint']}, "
+        f"{report['clients']} clients x {report['wall_s']:.0f} s against nemsim serve "
+        f"({report['checkpoint']}, "
         f"{report['steps']} steps):",
         f"  {'route':<26}{'n':>6}{'p50 ms':>10}{'p95 ms':>10}{'p99 ms':>10}  status counts",
     ]
     for name, r in report["routes"].items():
         if r["n"]:
             lines.append(
-                f"  {name:<26}{r['n']:>6}{r['p50_ms']:>10.1f}{r['p95_ms']:>10.1f}{r['p99_ms']:>10.1f}  {r['status']}"
+                f"  {name:<26}{r['n']:>6}{r['p50_ms']:>10.1f}{r['p95_ms']:>10.1f}{r['p99_ms']:>10.1f}"
+                f"  {r['status']}"
             )
         else:
             lines.append(f"  {name:<26}{0:>6}{'-':>10}{'-':>10}{'-':>10}  {r['status']}")
     srv = report["server"]
     lines.append(
-        f"  errors {report['errors']}; uncached rollouts {report['uncached_rollouts_per_s']:.2f}/s; server RSS "
+        f"  errors {report['errors']}; uncached rollouts {report['uncached_rollouts_per_s']:.2f}/s; "
+        "server RSS "
         f"{srv['rss_mb']:.0f} MB (peak {srv['peak_rss_mb']:.0f} MB), CPU {srv['cpu_s_during_run']:.1f} s"
     )
     print("\n".join(lines))  # noqa: T201

@@ -102,11 +102,19 @@ class AccessMiddleware:
         if not self.keys:
             if self.allow_remote or is_loopback(host):
                 return host or "-", 0, ""
-            return None, 403, "this server has no API keys configured and answers only clients on its own machine"
+            return (
+                None,
+                403,
+                "this server has no API keys configured and answers only clients on its own machine",
+            )
         given = headers.get(b"x-api-key", b"").decode("latin-1")
         if given and any(hmac.compare_digest(given.encode(), k.encode()) for k in self.keys):
             return key_id(given), 0, ""
-        return None, 401, "a valid X-API-Key header is required" if not given else "the X-API-Key is not valid"
+        return (
+            None,
+            401,
+            "a valid X-API-Key header is required" if not given else "the X-API-Key is not valid",
+        )
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

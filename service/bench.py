@@ -121,8 +121,14 @@ def _pctl(samples: list[float]) -> dict[str, float]:
 
 
 def bench_load(
-    checkpoint: str | Path, *, clients: int = 8, seconds: float = 60.0, steps: int = 100, seed: int = 0,
-    port: int | None = None, env: dict[str, str] | None = None,
+    checkpoint: str | Path,
+    *,
+    clients: int = 8,
+    seconds: float = 60.0,
+    steps: int = 100,
+    seed: int = 0,
+    port: int | None = None,
+    env: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """Start `nemsim serve` on a loopback port, drive it with `clients` concurrent HTTP clients for
     `seconds` (request mix `ROUTE_MIX`), and report per route p50/p95/p99, status counts and errors
@@ -149,7 +155,9 @@ def bench_load(
     }
     proc = subprocess.Popen(
         [sys.executable, "-m", "nemsim.cli", "serve", "--checkpoint", str(checkpoint), "--port", str(port)],
-        env=server_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        env=server_env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
     base = f"http://127.0.0.1:{port}"
     rng = np.random.default_rng(seed)
@@ -198,7 +206,10 @@ def bench_load(
                         elif route == "POST /rollout cached":
                             r = http.post("/rollout", json=pick.choice(warm))
                         elif route == "GET /rollouts/{id}/mesh":
-                            params = {"step": pick.randrange(steps + 1), "format": pick.choice(["glb", "stl"])}
+                            params = {
+                                "step": pick.randrange(steps + 1),
+                                "format": pick.choice(["glb", "stl"]),
+                            }
                             r = http.get(f"/rollouts/{pick.choice(finished)}/mesh", params=params)
                         elif route == "GET /mechanisms cached":
                             r = http.get("/mechanisms")

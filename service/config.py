@@ -78,7 +78,9 @@ class Settings(BaseSettings):
     )
 
     # --- connection limits (service.protocol; `nemsim serve` hands the uvicorn ones to uvicorn) ---
-    max_request_line_bytes: int = Field(default=8_192, ge=256, description="longer request lines (URLs) get 414")
+    max_request_line_bytes: int = Field(
+        default=8_192, ge=256, description="longer request lines (URLs) get 414"
+    )
     max_header_bytes: int = Field(default=32_768, ge=1_024, description="larger request heads get 431")
     head_timeout_s: float = Field(
         default=10.0, gt=0, description="a request head must arrive within this (else 408 / close)"
@@ -93,13 +95,17 @@ class Settings(BaseSettings):
     limit_concurrency: int = Field(
         default=256, ge=1, description="uvicorn: connections + tasks beyond this get 503 at once"
     )
-    keep_alive_s: int = Field(default=5, ge=1, description="uvicorn: idle keep-alive connections close after this")
+    keep_alive_s: int = Field(
+        default=5, ge=1, description="uvicorn: idle keep-alive connections close after this"
+    )
 
     # --- access control and operations (service.access, service.metrics) ---
     api_keys: SecretStr = Field(
         default=SecretStr(""), description="comma-separated API keys (header X-API-Key); none: loopback only"
     )
-    api_keys_file: Path | None = Field(default=None, description="file with one API key per line (# comments)")
+    api_keys_file: Path | None = Field(
+        default=None, description="file with one API key per line (# comments)"
+    )
     allow_remote_without_key: bool = Field(
         default=False, description="without API keys, also answer clients on other machines (not advised)"
     )
@@ -108,7 +114,9 @@ class Settings(BaseSettings):
     )
     rate_limit_burst: int = Field(default=100, ge=1, description="requests a client may send at once")
     docs: bool = Field(default=True, description="serve /docs, /redoc and /openapi.json")
-    access_log: bool = Field(default=True, description="one JSON line per request on the service.access logger")
+    access_log: bool = Field(
+        default=True, description="one JSON line per request on the service.access logger"
+    )
 
     extrapolation: Literal["allow", "clip", "refuse"] = Field(
         default="allow",
@@ -146,7 +154,9 @@ class Settings(BaseSettings):
             if not key:
                 continue
             if len(key) < MIN_KEY_CHARS:
-                raise ValueError(f"{source} holds a key of {len(key)} characters; use at least {MIN_KEY_CHARS}")
+                raise ValueError(
+                    f"{source} holds a key of {len(key)} characters; use at least {MIN_KEY_CHARS}"
+                )
             out.add(key)
         return frozenset(out)
 

@@ -67,7 +67,9 @@ async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
     elif exc.status_code == 405:
         message = f"{request.method} is not allowed on {request.url.path!r}"
     return JSONResponse(
-        status_code=exc.status_code, content=error_body(detail, message), headers=getattr(exc, "headers", None)
+        status_code=exc.status_code,
+        content=error_body(detail, message),
+        headers=getattr(exc, "headers", None),
     )
 
 
@@ -76,7 +78,9 @@ async def unhandled_error_handler(request: Request, exc: Exception) -> JSONRespo
     log.error("unhandled error in %s %s (request %s)", request.method, request.url.path, rid, exc_info=exc)
     return JSONResponse(
         status_code=500,
-        content=error_body("internal error", f"internal error (request id {rid}); the server log has details"),
+        content=error_body(
+            "internal error", f"internal error (request id {rid}); the server log has details"
+        ),
     )
 
 

@@ -44,8 +44,9 @@ class Excursion:
     def describe(self) -> str:
         scale = ", on the log scale the model uses" if _is_log(self.name) else ""
         return (
-            f"{self.name} = {self.value:g} {self.unit} is outside the training range {self.low:g}..{self.high:g} "
-            f"by {self.half_widths:.3g} box half-widths ({self.side}{scale}): the prediction is an extrapolation"
+            f"{self.name} = {self.value:g} {self.unit} is outside the training range "
+            f"{self.low:g}..{self.high:g} by {self.half_widths:.3g} box half-widths ({self.side}{scale}): "
+            "the prediction is an extrapolation"
         )
 
     def as_dict(self) -> dict[str, float | str]:
@@ -69,7 +70,8 @@ def _t(x: np.ndarray | float, log: bool) -> np.ndarray:
 
 
 def excursions(raw: np.ndarray, box: dict[str, tuple[float, float]]) -> list[Excursion]:
-    """Controls of `raw` (T, 14) or (14,) physical units outside `box` {name: (low, high)}, worst value each."""
+    """Controls of `raw` (T, 14) or (14,) physical units outside `box` {name: (low, high)}, the worst
+    value of each."""
     rows = np.atleast_2d(np.asarray(raw, dtype=np.float64))  # (T, 14)
     out: list[Excursion] = []
     for i, spec in enumerate(CONTROL_SPECS):
@@ -81,7 +83,9 @@ def excursions(raw: np.ndarray, box: dict[str, tuple[float, float]]) -> list[Exc
         k_lo, k_hi = int(np.argmax(below)), int(np.argmax(above))
         if below[k_lo] <= 0 and above[k_hi] <= 0:
             continue
-        side, k, d = ("below", k_lo, below[k_lo]) if below[k_lo] >= above[k_hi] else ("above", k_hi, above[k_hi])
+        side, k, d = (
+            ("below", k_lo, below[k_lo]) if below[k_lo] >= above[k_hi] else ("above", k_hi, above[k_hi])
+        )
         dist = float(d / half) if half > 0 else math.inf
         out.append(Excursion(spec.name, spec.unit, float(rows[k, i]), lo, hi, side, dist))
     return out
@@ -103,9 +107,13 @@ def clip_notes(found: list[Excursion]) -> list[str]:
 
 
 def refusal(found: list[Excursion]) -> str:
-    return "controls outside the training box are refused by this server (extrapolation policy 'refuse'): " + "; ".join(
-        f"{e.name} = {e.value:g} {e.unit} ({e.half_widths:.3g} box half-widths {e.side} {e.low:g}..{e.high:g})"
-        for e in found
+    return (
+        "controls outside the training box are refused by this server (extrapolation policy 'refuse'): "
+        + "; ".join(
+            f"{e.name} = {e.value:g} {e.unit} "
+            f"({e.half_widths:.3g} box half-widths {e.side} {e.low:g}..{e.high:g})"
+            for e in found
+        )
     )
 
 

@@ -59,14 +59,17 @@ def read_checkpoint_safely(path: str | Path) -> dict[str, Any]:
         ) from None
     except Exception as exc:  # noqa: BLE001 -- random bytes raise anything (IndexError, EOFError, ...)
         log.error("unreadable checkpoint %s: %s: %s", path, type(exc).__name__, exc)
-        raise CheckpointError(f"checkpoint {name!r} is empty, truncated or not a PyTorch checkpoint") from None
+        raise CheckpointError(
+            f"checkpoint {name!r} is empty, truncated or not a PyTorch checkpoint"
+        ) from None
     if not isinstance(ckpt, dict) or "format_version" not in ckpt:
         raise CheckpointError(f"checkpoint {name!r} is not a NEMSim checkpoint (no format_version)")
     from nemsim.training.checkpoint import CHECKPOINT_FORMAT
 
     if not isinstance(ckpt["format_version"], int) or ckpt["format_version"] > CHECKPOINT_FORMAT:
         raise CheckpointError(
-            f"checkpoint {name!r} has format {ckpt['format_version']!r}; this server reads <= {CHECKPOINT_FORMAT}"
+            f"checkpoint {name!r} has format {ckpt['format_version']!r}; "
+            f"this server reads <= {CHECKPOINT_FORMAT}"
         )
     return ckpt
 

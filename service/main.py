@@ -21,13 +21,13 @@ import torch
 from fastapi import FastAPI
 
 from nemsim import __version__
-from service.config import Settings, get_settings
-from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
 from service import errors, openapi
 from service.access import AccessMiddleware
-from service.metrics import Metrics
-from service.routes import health, mechanisms, operations, rollouts
+from service.config import Settings, get_settings
 from service.loading import CheckpointError
+from service.metrics import Metrics
+from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
+from service.routes import health, mechanisms, operations, rollouts
 from service.scheduler import Gates
 from service.surrogate import Surrogate
 
@@ -71,7 +71,9 @@ def load_surrogate(
             on_failure()
         return
     try:
-        share = max(1, (os.cpu_count() or 1) // settings.max_concurrency)  # concurrent rollouts share the cores
+        share = max(
+            1, (os.cpu_count() or 1) // settings.max_concurrency
+        )  # concurrent rollouts share the cores
         torch.set_num_threads(settings.torch_threads or min(torch.get_num_threads(), share))
         state.status = "loading"
         log.info("loading checkpoint %s", path)

@@ -16,7 +16,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+)
 
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120)
 
@@ -31,7 +38,10 @@ class Metrics:
             "nemsim_http_requests", "HTTP requests answered", ["method", "route", "status"], registry=r
         )
         self.latency = Histogram(
-            "nemsim_http_request_duration_seconds", "HTTP request latency", ["route"], buckets=LATENCY_BUCKETS,
+            "nemsim_http_request_duration_seconds",
+            "HTTP request latency",
+            ["route"],
+            buckets=LATENCY_BUCKETS,
             registry=r,
         )
         self.queue = Gauge("nemsim_queue_depth", "requests waiting for a slot", ["work"], registry=r)
@@ -39,7 +49,9 @@ class Metrics:
         self.cache = Counter("nemsim_cache_requests", "cache look-ups", ["kind", "result"], registry=r)
         self.rollouts = Counter("nemsim_rollouts", "rollouts computed (not from the cache)", registry=r)
         self.rollout_seconds = Histogram(
-            "nemsim_rollout_compute_seconds", "model time per computed rollout", buckets=LATENCY_BUCKETS,
+            "nemsim_rollout_compute_seconds",
+            "model time per computed rollout",
+            buckets=LATENCY_BUCKETS,
             registry=r,
         )
         self.ready = Gauge("nemsim_model_ready", "1 once the model is loaded and warmed up", registry=r)

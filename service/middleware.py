@@ -124,8 +124,12 @@ class HandlerTimeoutMiddleware:
             task.result()  # re-raise what the app raised
             return
         timed_out = True
-        log.warning("%s %s not answered within %g s: 504", scope.get("method"), scope.get("path"), self.timeout_s)
+        log.warning(
+            "%s %s not answered within %g s: 504", scope.get("method"), scope.get("path"), self.timeout_s
+        )
         task.cancel()
         task.add_done_callback(lambda t: t.cancelled() or t.exception())  # retrieve, never re-raise
         if not started:
-            await send_error(send, 504, f"no answer within {self.timeout_s:g} s (the server's handler timeout)")
+            await send_error(
+                send, 504, f"no answer within {self.timeout_s:g} s (the server's handler timeout)"
+            )

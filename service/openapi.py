@@ -69,7 +69,8 @@ def install(app: FastAPI, settings: Any) -> None:
         schemas["MeshSpec"]["properties"]["step"]["maximum"] = settings.max_steps
         if settings.max_steps < DEFAULT_STEPS:  # the default (100) would pass the ceiling: steps required
             request["anyOf"] = [  # ... unless a recipe sets it
-                {"required": [name], "properties": {name: {"not": {"type": "null"}}}} for name in ("recipe", "steps")
+                {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
+                for name in ("recipe", "steps")
             ]
         mesh = doc["paths"]["/rollouts/{rollout_id}/mesh"]["get"]
         for param in mesh["parameters"]:

@@ -60,7 +60,9 @@ class GuardedH11Protocol(H11Protocol):
     # --- connection lifetime -----------------------------------------------------------------------
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         if len(self.connections) >= self.max_connections:
-            self.logger.warning("connection cap (%d) reached: dropping a new connection", self.max_connections)
+            self.logger.warning(
+                "connection cap (%d) reached: dropping a new connection", self.max_connections
+            )
             transport.abort()
             return
         super().connection_made(transport)
@@ -169,7 +171,8 @@ def uvicorn_options(settings: Any, *, bind_settings: bool = True) -> dict[str, A
     bind_settings=False (several worker processes) leaves the protocol to read the environment."""
     return {
         "http": GuardedH11Protocol.with_settings(settings) if bind_settings else GuardedH11Protocol,
-        "h11_max_incomplete_event_size": max(settings.max_header_bytes, settings.max_request_line_bytes) + 4096,
+        "h11_max_incomplete_event_size": max(settings.max_header_bytes, settings.max_request_line_bytes)
+        + 4096,
         "limit_concurrency": settings.limit_concurrency,
         "timeout_keep_alive": settings.keep_alive_s,
     }

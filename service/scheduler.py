@@ -45,7 +45,11 @@ class FairGate:
                 f"{limit}, {queue}, {per_client}, {timeout_s}"
             )
         self.name, self.limit, self.queue, self.per_client, self.timeout_s = (
-            name, limit, queue, per_client, timeout_s,
+            name,
+            limit,
+            queue,
+            per_client,
+            timeout_s,
         )
         self.active = 0
         self._waiting: dict[str, deque[asyncio.Future[None]]] = {}

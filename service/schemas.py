@@ -250,7 +250,9 @@ NormalizedVector = Annotated[
 
 def _request_schema_extra(schema: dict[str, Any]) -> None:
     """An example, and "exactly one of controls, controls_normalized, recipe" (null counts as absent)."""
-    schema["examples"] = [{"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}]
+    schema["examples"] = [
+        {"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}
+    ]
     schema["oneOf"] = [
         {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
         for name in ("controls", "controls_normalized", "recipe")
@@ -436,8 +438,12 @@ class ModelInfo(BaseModel):
     summary: dict[str, Any]
     metrics: dict[str, Any]
     controls: list[ControlInfo]
-    initial_state: str = Field(description="how the rollouts' initial state was built (simulator configuration)")
-    extrapolation: str = Field(description="policy for controls outside the training box: allow, clip or refuse")
+    initial_state: str = Field(
+        description="how the rollouts' initial state was built (simulator configuration)"
+    )
+    extrapolation: str = Field(
+        description="policy for controls outside the training box: allow, clip or refuse"
+    )
 
 
 class MechanismsResponse(BaseModel):

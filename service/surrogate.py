@@ -114,8 +114,11 @@ class _LRU:
                 self.bytes -= self.weigh(self._items.pop(key))
             self._items[key] = value
             self.bytes += weight
-            while len(self._items) > self.size or (self.max_bytes is not None and self.bytes > self.max_bytes):
+            while len(self._items) > self.size or self._over_budget():
                 self.bytes -= self.weigh(self._items.popitem(last=False)[1])
+
+    def _over_budget(self) -> bool:
+        return self.max_bytes is not None and self.bytes > self.max_bytes
 
     def __len__(self) -> int:
         return len(self._items)
@@ -353,7 +356,9 @@ class Surrogate:
         pairs = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
         return np.asarray(controls_raw, dtype="<f8").tobytes(), pairs
 
-    def cached_mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any] | None:
+    def cached_mechanisms(
+        self, controls_raw: np.ndarray, factors: list[float] | None
+    ) -> dict[str, Any] | None:
         return self._mechanisms.get(self._mechanisms_key(controls_raw, factors))
 
     def mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any]:
@@ -370,6 +375,7 @@ class Surrogate:
             return cached
         kwargs: dict[str, Any] = {} if key[1] is None else {"factors": key[1]}
         # no inference_mode: the library owns its autograd settings
-        result = mechanism_response(self.loaded, np.asarray(controls_raw, dtype=np.float64), x0=self.x0, **kwargs)
+        raw = np.asarray(controls_raw, dtype=np.float64)
+        result = mechanism_response(self.loaded, raw, x0=self.x0, **kwargs)
         self._mechanisms.put(key, result)
         return result

@@ -34,7 +34,9 @@ async def get_ready(request: Request) -> Health | JSONResponse:
     if state.ready:
         return Health(status="ready", model_id=state.surrogate.model_id)
     reason = state.error or "the checkpoint is still loading"
-    body = Health(status=state.status, detail=state.error, message=f"model not ready ({state.status}): {reason}")
+    body = Health(
+        status=state.status, detail=state.error, message=f"model not ready ({state.status}): {reason}"
+    )
     return JSONResponse(status_code=503, content=body.model_dump(), headers={"Retry-After": "2"})
 
 

@@ -12,4 +12,6 @@ router = APIRouter(tags=["operations"])
 async def get_metrics(request: Request) -> Response:
     """Prometheus text format: requests and latency per route, queue depth, cache hits, rollouts."""
     state = request.app.state
-    return Response(state.metrics.render(state.gates, state.service.ready), media_type=state.metrics.content_type)
+    return Response(
+        state.metrics.render(state.gates, state.service.ready), media_type=state.metrics.content_type
+    )

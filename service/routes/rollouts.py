@@ -13,6 +13,7 @@ from nemsim.geometry.mesh import MEDIA_TYPES
 from service import extrapolation
 from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
 from service.openapi import ErrorBody
+from service.scheduler import Gates
 from service.schemas import (
     Channel,
     FieldsPayload,
@@ -23,17 +24,23 @@ from service.schemas import (
     Timings,
     array_to_controls,
 )
-from service.scheduler import Gates
 from service.surrogate import RolloutResult, Surrogate, UnknownRollout
 
 router = APIRouter(tags=["rollouts"])
+
 
 def _mesh_url(rollout_id: str, step: int, channel: str, fmt: str) -> str:
     return f"/rollouts/{rollout_id}/mesh?step={step}&channel={channel}&format={fmt}"
 
 
 async def _mesh_bytes(
-    request: Request, surrogate: Surrogate, gates: Gates, result: RolloutResult, step: int, channel: str, fmt: str
+    request: Request,
+    surrogate: Surrogate,
+    gates: Gates,
+    result: RolloutResult,
+    step: int,
+    channel: str,
+    fmt: str,
 ) -> bytes:
     cached = surrogate.cached_mesh(result, step, channel, fmt)
     request.app.state.metrics.cache_lookup("mesh", cached is not None)

@@ -43,12 +43,16 @@ def test_clip(make_client, default_controls):
     assert r.json()["controls"]["flux_cl"] == pytest.approx(2e-2)
     assert r.json()["controls"]["energy_mean_ar_plus"] == 500.0
     notes = " ".join(r.json()["warnings"])
-    assert "flux_cl clipped from 0.2 to 0.02" in notes and "energy_mean_ar_plus clipped from 600 to 500" in notes
+    assert (
+        "flux_cl clipped from 0.2 to 0.02" in notes and "energy_mean_ar_plus clipped from 600 to 500" in notes
+    )
     # the same as asking for the clipped controls directly (same rollout id)
     inside = {**default_controls, "flux_cl": 2e-2, "energy_mean_ar_plus": 500.0}
     assert c.post("/rollout", json={"controls": inside, "steps": 1}).json()["id"] == r.json()["id"]
     m = c.get("/mechanisms", params={"energy_mean_ar_plus": 600.0})
-    assert m.status_code == 200 and m.json()["clipped"] and m.json()["controls"]["energy_mean_ar_plus"] == 500.0
+    assert (
+        m.status_code == 200 and m.json()["clipped"] and m.json()["controls"]["energy_mean_ar_plus"] == 500.0
+    )
 
 
 def test_refuse(make_client, default_controls):
@@ -106,7 +110,9 @@ def test_unreadable_sim_config_falls_back(surrogate):
 
     from service.surrogate import Surrogate
 
-    loaded = dataclasses.replace(surrogate.loaded, raw={**surrogate.loaded.raw, "sim_config": {"capacity": -5}})
+    loaded = dataclasses.replace(
+        surrogate.loaded, raw={**surrogate.loaded.raw, "sim_config": {"capacity": -5}}
+    )
     s = Surrogate(loaded, model_id="x")
     assert "could not be read" in s.initial_state_source
     np.testing.assert_array_equal(s.x0, surrogate.x0)

@@ -100,7 +100,9 @@ def test_slow_head_408(server):
 
 
 def test_stalled_body_408(server):
-    head = b"POST /rollout HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\ncontent-length: 500\r\n\r\n"
+    head = (
+        b"POST /rollout HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\ncontent-length: 500\r\n\r\n"
+    )
     status, body = _status_and_body(_exchange(server, head + b'{"steps": 1, '))
     assert status == 408 and "body" in body["message"]
 

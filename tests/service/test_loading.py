@@ -104,8 +104,15 @@ def test_model_info_hides_paths_and_case_lists(surrogate, make_client, monkeypat
     monkeypatch.setattr(
         surrogate.loaded,
         "metrics",
-        {"control-id": {"avg_rmse": 0.1, "case_ids": list(range(100)), "cd_per_case": [0.5] * 100,
-                        "checkpoint": "/home/dev/runs/x/best.pt", "rmse_per_step": [0.1, 0.2]}},
+        {
+            "control-id": {
+                "avg_rmse": 0.1,
+                "case_ids": list(range(100)),
+                "cd_per_case": [0.5] * 100,
+                "checkpoint": "/home/dev/runs/x/best.pt",
+                "rmse_per_step": [0.1, 0.2],
+            }
+        },
     )
     info = make_client().get("/model").json()
     split = info["metrics"]["control-id"]
@@ -128,7 +135,10 @@ def test_serve_exits_non_zero_on_a_broken_checkpoint(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(
         [sys.executable, "-m", "nemsim.cli", "serve", "--checkpoint", str(bad), "--port", str(port)],
-        env=env, capture_output=True, text=True, timeout=120,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode != 0, proc.stderr[-2000:]
     assert "can never load" in proc.stderr

@@ -95,7 +95,9 @@ def test_access_log_is_json(client, caplog):
 
     with caplog.at_level(logging.INFO, logger="service.access"):
         client.get("/model", headers={"X-Request-ID": "log-me"})
-    line = next(json.loads(r.message) for r in caplog.records if r.name == "service.access" and "log-me" in r.message)
+    line = next(
+        json.loads(r.message) for r in caplog.records if r.name == "service.access" and "log-me" in r.message
+    )
     assert line["route"] == "/model" and line["status"] == 200 and line["ms"] >= 0
 
 

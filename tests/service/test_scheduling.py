@@ -33,9 +33,13 @@ def blocked_rollouts(surrogate, monkeypatch):
     release.set()
 
 
-def test_cheap_requests_do_not_wait_behind_rollouts(make_client, default_controls, surrogate, blocked_rollouts):
+def test_cheap_requests_do_not_wait_behind_rollouts(
+    make_client, default_controls, surrogate, blocked_rollouts
+):
     c = make_client(max_queue=0)
-    done = c.post("/rollout", json={"controls": default_controls, "steps": 2}).json()  # cached before blocking
+    done = c.post(
+        "/rollout", json={"controls": default_controls, "steps": 2}
+    ).json()  # cached before blocking
     _ = c.get("/mechanisms")  # cached analysis
     started, release = blocked_rollouts()
     busy = threading.Thread(
@@ -150,7 +154,8 @@ def test_disconnected_client_leaves_the_queue_and_its_work_never_runs():
         running = asyncio.create_task(occupant())
         await asyncio.sleep(0)
         waiters = [
-            asyncio.create_task(run_gated(_Gone(0.05), gate, f"c{i}", ran.append, f"job{i}")) for i in range(17)
+            asyncio.create_task(run_gated(_Gone(0.05), gate, f"c{i}", ran.append, f"job{i}"))
+            for i in range(17)
         ]
         await asyncio.sleep(0.01)
         assert gate.waiting == 17

@@ -110,7 +110,9 @@ def _uniform(r, status):
 
 def test_truncated_json_message(client):
     body = _uniform(
-        client.post("/rollout", content=b'{"steps": 1, "controls": {', headers={"content-type": "application/json"}),
+        client.post(
+            "/rollout", content=b'{"steps": 1, "controls": {', headers={"content-type": "application/json"}
+        ),
         422,
     )
     assert "JSON" in body["message"] and not body["message"][0].isdigit()
@@ -118,7 +120,9 @@ def test_truncated_json_message(client):
 
 def test_invalid_utf8_400(client):
     body = _uniform(
-        client.post("/rollout", content=b'{"steps": "\xff\xfe"}', headers={"content-type": "application/json"}),
+        client.post(
+            "/rollout", content=b'{"steps": "\xff\xfe"}', headers={"content-type": "application/json"}
+        ),
         400,
     )
     assert "UTF-8" in body["message"] or "JSON" in body["message"]
@@ -152,11 +156,19 @@ def test_unhandled_error_500_is_generic(surrogate, monkeypatch, default_controls
 
 def test_schema_states_the_rules(make_client):
     default = make_client().get("/openapi.json").json()["components"]["schemas"]["RolloutRequest"]
-    assert {tuple(b["required"]) for b in default["oneOf"]} == {("controls",), ("controls_normalized",), ("recipe",)}
+    assert {tuple(b["required"]) for b in default["oneOf"]} == {
+        ("controls",),
+        ("controls_normalized",),
+        ("recipe",),
+    }
     doc = make_client(max_steps=7, max_meshes=3).get("/openapi.json").json()
     req = doc["components"]["schemas"]["RolloutRequest"]
     # below the default of 100 steps, `steps` must be given unless a recipe sets it
-    assert {tuple(b["required"]) for b in req["oneOf"]} == {("controls",), ("controls_normalized",), ("recipe",)}
+    assert {tuple(b["required"]) for b in req["oneOf"]} == {
+        ("controls",),
+        ("controls_normalized",),
+        ("recipe",),
+    }
     assert {tuple(b["required"]) for b in req["anyOf"]} == {("recipe",), ("steps",)}
     assert "anyOf" not in default
     steps = next(b for b in req["properties"]["steps"]["anyOf"] if b.get("type") == "integer")
@@ -171,7 +183,8 @@ def test_normalized_bounds_in_schema_match_the_server(client):
 
     doc = client.get("/openapi.json").json()
     arr = next(
-        b for b in doc["components"]["schemas"]["RolloutRequest"]["properties"]["controls_normalized"]["anyOf"]
+        b
+        for b in doc["components"]["schemas"]["RolloutRequest"]["properties"]["controls_normalized"]["anyOf"]
         if b.get("type") == "array"
     )
     assert [p["maximum"] for p in arr["prefixItems"]] == list(NORM_MAX)
