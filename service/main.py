@@ -71,9 +71,8 @@ def load_surrogate(
             on_failure()
         return
     try:
-        share = max(
-            1, (os.cpu_count() or 1) // settings.max_concurrency
-        )  # concurrent rollouts share the cores
+        # concurrent rollouts share the cores
+        share = max(1, (os.cpu_count() or 1) // settings.max_concurrency)
         torch.set_num_threads(settings.torch_threads or min(torch.get_num_threads(), share))
         state.status = "loading"
         log.info("loading checkpoint %s", path)
