@@ -832,6 +832,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         keys = settings.api_key_set()
     except ValueError as exc:  # a bad NEMSIM_* value
         raise UserError(f"invalid NEMSIM_* setting: {' '.join(str(exc).split())}") from None
+    from service.loading import CheckpointError, read_checkpoint_safely
+
+    try:  # fail before binding (every worker would fail the same way): exit 3 like a failed load
+        read_checkpoint_safely(os.environ["NEMSIM_CHECKPOINT"])
+    except CheckpointError as exc:
+        print(f"nemsim serve: {exc}", file=sys.stderr)  # noqa: T201
+        return 3
     from service.access import is_loopback
 
     if not keys and not is_loopback(args.host):

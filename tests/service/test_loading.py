@@ -119,26 +119,40 @@ def test_model_info_hides_paths_and_case_lists(surrogate, make_client, monkeypat
     assert split == {"avg_rmse": 0.1, "checkpoint": "best.pt", "rmse_per_step": [0.1, 0.2]}
 
 
-def test_serve_exits_non_zero_on_a_broken_checkpoint(tmp_path):
-    """`nemsim serve` on a file that can never load stops by itself with a non-zero status."""
+def _serve(checkpoint: Path):
     import socket
     import subprocess
     import sys
 
     from service.config import REPO_ROOT
 
-    bad = tmp_path / "random.pt"
-    bad.write_bytes(os.urandom(2048))
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run(
-        [sys.executable, "-m", "nemsim.cli", "serve", "--checkpoint", str(bad), "--port", str(port)],
+    return subprocess.run(
+        [sys.executable, "-m", "nemsim.cli", "serve", "--checkpoint", str(checkpoint), "--port", str(port)],
         env=env,
         capture_output=True,
         text=True,
         timeout=120,
     )
+
+
+def test_serve_refuses_an_unreadable_checkpoint_before_binding(tmp_path):
+    bad = tmp_path / "random.pt"
+    bad.write_bytes(os.urandom(2048))
+    proc = _serve(bad)
+    assert proc.returncode == 3, proc.stderr[-2000:]
+    assert "random.pt" in proc.stderr and "Uvicorn running" not in proc.stderr
+
+
+def test_serve_exits_non_zero_when_the_model_cannot_be_rebuilt(tmp_path, tiny_checkpoint):
+    """Readable but incompatible (unknown model): the server starts, fails to load, and stops itself."""
+    ckpt = torch.load(tiny_checkpoint, map_location="cpu", weights_only=True)
+    ckpt["model_name"] = "no-such-model"
+    bad = tmp_path / "incompatible.pt"
+    torch.save(ckpt, bad)
+    proc = _serve(bad)
     assert proc.returncode != 0, proc.stderr[-2000:]
     assert "can never load" in proc.stderr
