@@ -12,6 +12,7 @@ and request metrics, for every request (pure ASGI, nothing buffered).
   elsewhere without keys.
 * Rate limit per client (API key, else address): a token bucket of `rate_limit_per_minute` with bursts
   of `rate_limit_burst`; beyond it 429 with Retry-After. Probes and /metrics are exempt.
+* At most `limit_concurrency` requests in flight (probes exempt); beyond it 503 with Retry-After at once.
 * Security headers on every response (nosniff, no framing, no referrer, no caching of API answers, a
   strict Content-Security-Policy except on the interactive docs, which load their UI script).
 * One JSON access-log line per request on the `service.access` logger (id, client, key id, method,
@@ -95,6 +96,8 @@ class AccessMiddleware:
         )
         self.metrics = metrics
         self.access_log = settings.access_log
+        self.max_in_flight = settings.limit_concurrency
+        self.in_flight = 0
 
     def _client_key(self, scope: Scope, headers: dict[bytes, bytes]) -> tuple[str | None, int, str]:
         """(client key, refusal status or 0, refusal message)."""
@@ -161,7 +164,19 @@ class AccessMiddleware:
                         [(b"retry-after", retry.encode())],
                     )
                     return
-            await self.app(scope, receive, send_with_headers)
+            if path not in OPEN_PATHS and self.in_flight >= self.max_in_flight:
+                await send_error(
+                    send_with_headers,
+                    503,
+                    f"{self.in_flight} requests are in flight (the server's limit); retry shortly",
+                    [(b"retry-after", b"1")],
+                )
+                return
+            self.in_flight += 1
+            try:
+                await self.app(scope, receive, send_with_headers)
+            finally:
+                self.in_flight -= 1
         finally:
             seconds = time.perf_counter() - t0
             route = getattr(scope.get("route"), "path", None) or "unmatched"

@@ -93,7 +93,7 @@ class Settings(BaseSettings):
     )
     max_connections: int = Field(default=512, ge=1, description="open connections; more are dropped at once")
     limit_concurrency: int = Field(
-        default=256, ge=1, description="uvicorn: connections + tasks beyond this get 503 at once"
+        default=256, ge=1, description="requests in flight; more get 503 at once (probes exempt)"
     )
     keep_alive_s: int = Field(
         default=5, ge=1, description="uvicorn: idle keep-alive connections close after this"

@@ -13,9 +13,10 @@ file limit. `GuardedH11Protocol` adds, per connection:
   just closed);
 * at most `max_connections` open connections: more are dropped at once, before any byte is read.
 
-uvicorn's own settings do the rest (`nemsim serve` passes them): `limit_concurrency` (503 beyond that
-many connections + tasks), `timeout_keep_alive` (idle keep-alive connections) and
-`h11_max_incomplete_event_size` (set just above the head limit so our check answers first). The limits
+A request h11 cannot parse gets 400 in the same JSON shape (uvicorn's own answer is plain text).
+uvicorn's own settings do the rest (`nemsim serve` passes them): `timeout_keep_alive` (idle keep-alive
+connections) and `h11_max_incomplete_event_size` (set just above the head limit so our check answers
+first). The cap on requests in flight is the app's (`service.access`), so its 503 is JSON too. The limits
 come from `service.config.get_settings()`, so every worker process reads the same environment.
 """
 
@@ -148,6 +149,9 @@ class GuardedH11Protocol(H11Protocol):
                 cycle.message_event.set()
             self._refuse(408, f"the request body was not received within {self.body_timeout_s:g} s")
 
+    def send_400_response(self, msg: str) -> None:  # h11 could not parse the request
+        self._refuse(400, "the request is not valid HTTP/1.1")
+
     # --- answering early --------------------------------------------------------------------------
     def _refuse(self, status: int, message: str) -> None:
         self._cancel_timer()
@@ -173,6 +177,5 @@ def uvicorn_options(settings: Any, *, bind_settings: bool = True) -> dict[str, A
         "http": GuardedH11Protocol.with_settings(settings) if bind_settings else GuardedH11Protocol,
         "h11_max_incomplete_event_size": max(settings.max_header_bytes, settings.max_request_line_bytes)
         + 4096,
-        "limit_concurrency": settings.limit_concurrency,
         "timeout_keep_alive": settings.keep_alive_s,
     }

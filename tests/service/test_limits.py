@@ -138,3 +138,35 @@ def test_handler_timeout_504(make_client, surrogate, default_controls, monkeypat
     assert r.status_code == 504 and "0.2 s" in r.json()["message"]
     assert c.get("/health").status_code == 200
     time.sleep(1.2)  # let the abandoned computation finish before the test ends
+
+
+def test_garbage_request_400_json(server):
+    status, body = _status_and_body(_exchange(server, b"NOT HTTP AT ALL\r\n\r\n"))
+    assert status == 400 and body["message"]
+
+
+def test_requests_in_flight_capped(make_client, surrogate, default_controls, monkeypatch):
+    started, release = threading.Event(), threading.Event()
+    compute = type(surrogate)._compute
+
+    def slow(self, *args):
+        started.set()
+        release.wait(20)
+        return compute(self, *args)
+
+    monkeypatch.setattr(type(surrogate), "_compute", slow)
+    c = make_client(limit_concurrency=1)
+    first = threading.Thread(
+        target=c.post,
+        args=("/rollout",),
+        kwargs={"json": {"controls": {**default_controls, "flux_cl": 0.0081}, "steps": 1}},
+    )
+    first.start()
+    try:
+        assert started.wait(10)
+        r = c.get("/model")
+        assert r.status_code == 503 and r.headers["retry-after"] == "1" and "in flight" in r.json()["message"]
+        assert c.get("/health").status_code == 200  # probes exempt
+    finally:
+        release.set()
+        first.join()
