@@ -29,8 +29,8 @@ def server(surrogate):
         warmup_steps=0,
         max_request_line_bytes=2048,
         max_header_bytes=4096,
-        head_timeout_s=0.5,
-        body_timeout_s=0.5,
+        head_timeout_s=1.0,
+        body_timeout_s=1.0,
         max_connections=8,
     )
     app = create_app(settings, surrogate=surrogate)
@@ -89,9 +89,8 @@ def test_normal_request_still_served(server):
 
 
 def test_silent_connection_closed(server):
-    t0 = time.monotonic()
-    assert _exchange(server, b"") == b""
-    assert time.monotonic() - t0 < 4
+    """The server closes a connection that sends nothing (else the client's 5-s read would time out)."""
+    assert _exchange(server, b"", wait_s=5.0) == b""
 
 
 def test_slow_head_408(server):
@@ -112,10 +111,12 @@ def test_connection_cap(server):
     try:
         time.sleep(0.1)
         with socket.create_connection(server, timeout=5) as extra:
-            try:
-                assert extra.recv(10) == b""  # dropped at once, before anything was read
-            except ConnectionResetError:
-                pass
+            try:  # a complete request: a served connection would answer it
+                extra.sendall(b"GET /health HTTP/1.1\r\nhost: x\r\n\r\n")
+                answer = extra.recv(10)
+            except (ConnectionResetError, BrokenPipeError):
+                answer = b""
+            assert answer == b""  # dropped at once, nothing answered
     finally:
         for s in held:
             s.close()
