@@ -154,7 +154,7 @@ def test_disconnected_client_leaves_the_queue_and_its_work_never_runs():
         running = asyncio.create_task(occupant())
         await asyncio.sleep(0)
         waiters = [
-            asyncio.create_task(run_gated(_Gone(0.05), gate, f"c{i}", ran.append, f"job{i}"))
+            asyncio.create_task(run_gated(_Gone(0.3), gate, f"c{i}", ran.append, f"job{i}"))
             for i in range(17)
         ]
         await asyncio.sleep(0.01)
