@@ -171,3 +171,54 @@ def test_requests_in_flight_capped(make_client, surrogate, default_controls, mon
     finally:
         release.set()
         first.join()
+
+
+def test_queued_work_dropped_when_clients_leave(server, surrogate, default_controls, monkeypatch):
+    """Through a real server: clients that give up while queued leave the queue at once and their
+    rollouts are never computed (defect 9: they used to hold the queue and run anyway)."""
+    import httpx
+
+    release = threading.Event()
+    calls: list[int] = []
+    compute = type(surrogate)._compute
+
+    def slow(self, *args):
+        calls.append(1)
+        release.wait(20)
+        return compute(self, *args)
+
+    monkeypatch.setattr(type(surrogate), "_compute", slow)
+    base = f"http://{server[0]}:{server[1]}"
+
+    def post(flux: float, timeout: float) -> None:
+        body = {"controls": {**default_controls, "flux_cl": flux}, "steps": 1}
+        try:
+            httpx.post(f"{base}/rollout", json=body, timeout=timeout)
+        except httpx.TimeoutException:
+            pass
+
+    holder = threading.Thread(target=post, args=(0.00601, 30.0))
+    holder.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not calls:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        impatient = [threading.Thread(target=post, args=(0.00602 + 1e-5 * i, 0.3)) for i in range(5)]
+        for t in impatient:
+            t.start()
+        for t in impatient:
+            t.join()
+        depth = 'nemsim_queue_depth{work="rollouts"}'
+        deadline = time.monotonic() + 10
+        while True:  # the queue empties although the slot is still held
+            metrics = httpx.get(f"{base}/metrics").text
+            if f"{depth} 0.0" in metrics:
+                break
+            assert time.monotonic() < deadline, [line for line in metrics.splitlines() if depth in line]
+            time.sleep(0.05)
+    finally:
+        release.set()
+        holder.join()
+    time.sleep(0.3)
+    assert len(calls) == 1  # only the holder's rollout ran
