@@ -839,16 +839,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     except CheckpointError as exc:
         print(f"nemsim serve: {exc}", file=sys.stderr)  # noqa: T201
         return 3
-    from service.access import is_loopback
+    from service.access import bind_warning
 
-    if not keys and not is_loopback(args.host):
-        logging.getLogger("nemsim.serve").warning(
-            "binding %s without API keys: %s; set NEMSIM_API_KEYS (or NEMSIM_API_KEYS_FILE) to serve other "
-            "machines",
-            args.host,
-            "every client on another machine gets 403" if not settings.allow_remote_without_key
-            else "NEMSIM_ALLOW_REMOTE_WITHOUT_KEY is set, so anyone who can reach the port can use it",
-        )
+    warning = bind_warning(args.host, keys, settings.allow_remote_without_key)
+    if warning:
+        logging.getLogger("nemsim.serve").warning(warning)
     uvicorn.run(
         "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
         log_level="info", **uvicorn_options(settings, bind_settings=args.workers == 1),

@@ -64,6 +64,22 @@ def is_loopback(host: str | None) -> bool:
         return False
 
 
+def bind_warning(host: str, keys: frozenset[str], allow_remote: bool) -> str | None:
+    """The start-up warning for binding beyond loopback without API keys (None when there is nothing to
+    say)."""
+    if keys or is_loopback(host):
+        return None
+    consequence = (
+        "NEMSIM_ALLOW_REMOTE_WITHOUT_KEY is set, so anyone who can reach the port can use it"
+        if allow_remote
+        else "every client on another machine gets 403"
+    )
+    return (
+        f"binding {host} without API keys: {consequence}; set NEMSIM_API_KEYS (or NEMSIM_API_KEYS_FILE) "
+        "to serve other machines"
+    )
+
+
 class TokenBuckets:
     """Per-client token buckets (at most `max_clients` remembered, least recently seen forgotten)."""
 

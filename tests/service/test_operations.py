@@ -120,3 +120,12 @@ def test_metrics(app_with, default_controls):
     assert 'nemsim_cache_requests_total{kind="rollout",result="miss"} 1.0' in text
     assert "nemsim_rollouts_total 1.0" in text
     assert 'nemsim_queue_depth{work="rollouts"} 0.0' in text and "nemsim_model_ready 1.0" in text
+
+
+def test_bind_warning():
+    from service.access import bind_warning
+
+    assert bind_warning("127.0.0.1", frozenset(), False) is None
+    assert bind_warning("0.0.0.0", frozenset({KEY}), False) is None
+    assert "403" in bind_warning("0.0.0.0", frozenset(), False)
+    assert "anyone" in bind_warning("0.0.0.0", frozenset(), True)
