@@ -41,7 +41,12 @@ def bench_service(
     from service.config import Settings
     from service.main import create_app
 
-    settings = Settings(checkpoint=Path(checkpoint), max_steps=max(steps, 100), cache_size=max(n + 2, 8))
+    settings = Settings(
+        checkpoint=Path(checkpoint),
+        max_steps=max(steps, 100),
+        cache_size=max(n + 2, 8),
+        rate_limit_per_minute=0,  # the benchmark is one client sending as fast as it can
+    )
     app = create_app(settings)
     rng = np.random.default_rng(seed)
 
