@@ -178,4 +178,5 @@ def uvicorn_options(settings: Any, *, bind_settings: bool = True) -> dict[str, A
         "h11_max_incomplete_event_size": max(settings.max_header_bytes, settings.max_request_line_bytes)
         + 4096,
         "timeout_keep_alive": settings.keep_alive_s,
+        "access_log": False,  # service.access writes one JSON line per request instead
     }
