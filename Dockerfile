@@ -1,7 +1,10 @@
 # NEMSim inference service, CPU-only image.
 #   docker build -t nemsim .
-#   docker run -p 8000:8000 nemsim            # serves checkpoints/*.pt; docs at http://localhost:8000/docs
-#   docker run -p 8000:8000 -v $PWD/ckpt:/ckpt -e NEMSIM_CHECKPOINT=/ckpt/model.pt nemsim
+#   docker run -p 8000:8000 -e NEMSIM_API_KEYS=<a key of >= 16 characters> nemsim
+#       serves checkpoints/*.pt; docs at http://localhost:8000/docs; clients send the header X-API-Key.
+#       Without keys the server answers only clients inside the container (it warns at start-up).
+#   docker run -p 8000:8000 -e NEMSIM_API_KEYS=... -v $PWD/ckpt:/ckpt -e NEMSIM_CHECKPOINT=/ckpt/model.pt nemsim
+# A checkpoint that cannot load stops the container (exit 3); the HEALTHCHECK polls /ready.
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -30,6 +33,6 @@ USER nemsim
 
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
-    CMD python -c "import urllib.request, sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8000/health', timeout=4).status == 200 else 1)"
+    CMD python -c "import urllib.request, sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8000/ready', timeout=4).status == 200 else 1)"
 
 CMD ["nemsim", "serve", "--host", "0.0.0.0", "--port", "8000"]

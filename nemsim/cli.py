@@ -515,6 +515,16 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     config = _sim_config(args.overrides)
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
+    args.host = args.host or os.environ.get("NEMSIM_HOST") or "127.0.0.1"
+    port = args.port if args.port is not None else os.environ.get("NEMSIM_PORT", "8000")
+    try:
+        args.port = int(port)
+        if not 0 < args.port < 65536:
+            raise ValueError
+    except ValueError:
+        raise UserError(
+            f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}"
+        ) from None
     if args.controls:
         if not os.path.isfile(args.controls):
             raise UserError(f"no such file: {args.controls}")
@@ -880,9 +890,10 @@ def _add_service(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--checkpoint", default=None, help="checkpoint .pt (default: $NEMSIM_CHECKPOINT or checkpoints/*.pt)"
     )
-    p.add_argument("--host", default="127.0.0.1",
-                   help="bind address (default 127.0.0.1; containers: 0.0.0.0)")
-    p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    p.add_argument("--host", default=None,
+                   help="bind address (default $NEMSIM_HOST or 127.0.0.1; containers: 0.0.0.0)")
+    p.add_argument("--port", type=int, default=None,
+                   help="TCP port (default $NEMSIM_PORT or 8000; e.g. NEMSIM_PORT=8080 make serve)")
     p.add_argument("--workers", type=int, default=1,
                    help="worker processes, each with its own model copy (default 1)")
     p.set_defaults(handler=_cmd_serve)
@@ -930,6 +941,10 @@ def _add_bench_service(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cached-requests", type=int, default=200,
                    help="repeats of one cached request (default 200)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random controls (default 0)")
+    p.add_argument("--clients", type=int, default=None,
+                   help="load mode: start `nemsim serve` on a loopback port and drive it with this many "
+                        "concurrent HTTP clients (mixed routes); reports p50/p95/p99 per route, errors, RSS")
+    p.add_argument("--seconds", type=float, default=60.0, help="load mode: duration (default 60)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_service)
 
@@ -954,15 +969,83 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
+    args.host = args.host or os.environ.get("NEMSIM_HOST") or "127.0.0.1"
+    port = args.port if args.port is not None else os.environ.get("NEMSIM_PORT", "8000")
+    try:
+        args.port = int(port)
+        if not 0 < args.port < 65536:
+            raise ValueError
+    except ValueError:
+        raise UserError(
+            f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}"
+        ) from None
     # every worker process builds its app from the environment, so the choice travels there
     os.environ["NEMSIM_CHECKPOINT"] = _resolve_checkpoint(args.checkpoint)
+    os.environ.setdefault("NEMSIM_EXIT_ON_LOAD_FAILURE", "1")  # a checkpoint that can never load: exit 3
     from service.config import get_settings
+    from service.main import LOAD_FAILURE_EXIT
+    from service.protocol import uvicorn_options
 
     get_settings.cache_clear()
+    try:
+        settings = get_settings()
+        keys = settings.api_key_set()
+    except ValueError as exc:  # a bad NEMSIM_* value
+        raise UserError(f"invalid NEMSIM_* setting: {' '.join(str(exc).split())}") from None
+    from service.loading import CheckpointError, read_checkpoint_safely
+
+    try:  # fail before binding (every worker would fail the same way): exit 3 like a failed load
+        read_checkpoint_safely(os.environ["NEMSIM_CHECKPOINT"])
+    except CheckpointError as exc:
+        print(f"nemsim serve: {exc}", file=sys.stderr)  # noqa: T201
+        return 3
+    from service.access import bind_warning
+
+    warning = bind_warning(args.host, keys, settings.allow_remote_without_key)
+    if warning:
+        logging.getLogger("nemsim.serve").warning(warning)
     uvicorn.run(
         "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
-        log_level="info",
+        log_level="info", **uvicorn_options(settings, bind_settings=args.workers == 1),
     )
+    if LOAD_FAILURE_EXIT["failed"]:
+        print("nemsim serve: the checkpoint can never load (reason above); stopped", file=sys.stderr)  # noqa: T201
+        return 3
+    return 0
+
+
+def _bench_service_load(args: argparse.Namespace) -> int:
+    from service.bench import bench_load
+
+    if args.clients < 1 or not args.seconds > 0:
+        raise UserError(f"--clients must be >= 1 and --seconds > 0, got {args.clients} and {args.seconds}")
+    report = bench_load(
+        _resolve_checkpoint(args.checkpoint), clients=args.clients, seconds=args.seconds, steps=args.steps,
+        seed=args.seed,
+    )
+    lines = [
+        f"{report['clients']} clients x {report['wall_s']:.0f} s against nemsim serve "
+        f"({report['checkpoint']}, "
+        f"{report['steps']} steps):",
+        f"  {'route':<26}{'n':>6}{'p50 ms':>10}{'p95 ms':>10}{'p99 ms':>10}  status counts",
+    ]
+    for name, r in report["routes"].items():
+        if r["n"]:
+            lines.append(
+                f"  {name:<26}{r['n']:>6}{r['p50_ms']:>10.1f}{r['p95_ms']:>10.1f}{r['p99_ms']:>10.1f}"
+                f"  {r['status']}"
+            )
+        else:
+            lines.append(f"  {name:<26}{0:>6}{'-':>10}{'-':>10}{'-':>10}  {r['status']}")
+    srv = report["server"]
+    lines.append(
+        f"  errors {report['errors']}; uncached rollouts {report['uncached_rollouts_per_s']:.2f}/s; "
+        "server RSS "
+        f"{srv['rss_mb']:.0f} MB (peak {srv['peak_rss_mb']:.0f} MB), CPU {srv['cpu_s_during_run']:.1f} s"
+    )
+    print("\n".join(lines))  # noqa: T201
+    if args.json_out:
+        _write_json(args.json_out, report)
     return 0
 
 
@@ -972,6 +1055,8 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would drown the report
     if args.steps < 1 or args.requests < 1 or args.cached_requests < 1:
         raise UserError("--steps, --requests and --cached-requests must be >= 1")
+    if args.clients is not None:
+        return _bench_service_load(args)
     report = bench_service(
         _resolve_checkpoint(args.checkpoint),
         n=args.requests,

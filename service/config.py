@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -34,6 +35,9 @@ def default_checkpoint() -> Path | None:
     return None
 
 
+MIN_KEY_CHARS = 16  # shorter API keys are guessable
+
+
 class Settings(BaseSettings):
     """Everything the service can be told; each field is the env var `NEMSIM_<FIELD>`."""
 
@@ -44,22 +48,117 @@ class Settings(BaseSettings):
     )
     max_steps: int = Field(default=100, ge=1, le=10_000, description="ceiling on `steps` per rollout")
     max_body_bytes: int = Field(default=1_000_000, ge=1_024, description="request bodies above this get 413")
-    max_concurrency: int = Field(default=1, ge=1, description="rollouts computed at the same time")
-    max_queue: int = Field(default=16, ge=0, description="requests allowed to wait for a slot; more get 503")
+    max_concurrency: int = Field(default=1, ge=1, description="uncached rollouts computed at the same time")
+    max_queue: int = Field(
+        default=16, ge=0, description="requests allowed to wait for a slot (per kind of work); more get 503"
+    )
+    max_queue_per_client: int = Field(
+        default=8, ge=1, description="of those, how many one client (API key, else address) may have waiting"
+    )
+    mesh_concurrency: int = Field(
+        default=1, ge=1, description="meshes extracted at the same time (never behind rollouts)"
+    )
+    mechanisms_concurrency: int = Field(
+        default=1, ge=1, description="uncached /mechanisms analyses at the same time (never behind rollouts)"
+    )
     queue_timeout_s: float = Field(default=60.0, gt=0, description="longest wait for a slot before 503")
     cache_size: int = Field(default=32, ge=0, description="rollouts kept (LRU) for repeats and mesh requests")
+    cache_max_mb: int = Field(
+        default=256, ge=1, description="memory budget of the rollout cache in MB (meshes: a quarter more)"
+    )
     max_meshes: int = Field(default=8, ge=0, description="meshes one POST /rollout may ask for inline")
     warmup_steps: int = Field(
         default=2, ge=0, description="steps of the warm-up rollout before /ready (0: none)"
     )
     torch_threads: int | None = Field(
-        default=None, ge=1, description="torch intra-op threads (None: torch default)"
+        default=None,
+        ge=1,
+        description="torch intra-op threads (None: torch's default, e.g. OMP_NUM_THREADS, capped at the CPU "
+        "count divided by max_concurrency, so concurrent rollouts do not oversubscribe the cores)",
     )
+
+    # --- connection limits (service.protocol; `nemsim serve` hands the uvicorn ones to uvicorn) ---
+    max_request_line_bytes: int = Field(
+        default=8_192, ge=256, description="longer request lines (URLs) get 414"
+    )
+    max_header_bytes: int = Field(default=32_768, ge=1_024, description="larger request heads get 431")
+    head_timeout_s: float = Field(
+        default=10.0, gt=0, description="a request head must arrive within this (else 408 / close)"
+    )
+    body_timeout_s: float = Field(
+        default=30.0, gt=0, description="a request body must arrive within this of its head (else 408)"
+    )
+    handler_timeout_s: float = Field(
+        default=300.0, gt=0, description="a request not answered within this gets 504"
+    )
+    max_connections: int = Field(default=512, ge=1, description="open connections; more are dropped at once")
+    limit_concurrency: int = Field(
+        default=256, ge=1, description="requests in flight; more get 503 at once (probes exempt)"
+    )
+    keep_alive_s: int = Field(
+        default=5, ge=1, description="uvicorn: idle keep-alive connections close after this"
+    )
+
+    # --- access control and operations (service.access, service.metrics) ---
+    api_keys: SecretStr = Field(
+        default=SecretStr(""), description="comma-separated API keys (header X-API-Key); none: loopback only"
+    )
+    api_keys_file: Path | None = Field(
+        default=None, description="file with one API key per line (# comments)"
+    )
+    allow_remote_without_key: bool = Field(
+        default=False, description="without API keys, also answer clients on other machines (not advised)"
+    )
+    rate_limit_per_minute: int = Field(
+        default=1200, ge=0, description="requests per minute per client (API key, else address); 0: no limit"
+    )
+    rate_limit_burst: int = Field(default=100, ge=1, description="requests a client may send at once")
+    docs: bool = Field(default=True, description="serve /docs, /redoc and /openapi.json")
+    access_log: bool = Field(
+        default=True, description="one JSON line per request on the service.access logger"
+    )
+
+    extrapolation: Literal["allow", "clip", "refuse"] = Field(
+        default="allow",
+        description="controls outside the training box: allow (answer with a quantitative warning), clip "
+        "(to the box, saying which) or refuse (422)",
+    )
+
+    exit_on_load_failure: bool = Field(
+        default=False,
+        description="stop the process (non-zero exit) when the checkpoint can never load; `nemsim serve` "
+        "turns this on",
+    )
+
+    @field_validator("checkpoint", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: object) -> object:
+        return None if isinstance(value, str) and not value.strip() else value
 
     @field_validator("checkpoint")
     @classmethod
     def _expand(cls, value: Path | None) -> Path | None:
         return value.expanduser() if value is not None else None
+
+    def api_key_set(self) -> frozenset[str]:
+        """The configured API keys (env and file); ValueError naming the source of a key too short."""
+        keys = [(k.strip(), "NEMSIM_API_KEYS") for k in self.api_keys.get_secret_value().split(",")]
+        if self.api_keys_file is not None:
+            try:
+                lines = self.api_keys_file.read_text().splitlines()
+            except OSError as exc:
+                raise ValueError(f"NEMSIM_API_KEYS_FILE cannot be read ({exc.strerror})") from None
+            keys += [(line.split("#", 1)[0].strip(), "NEMSIM_API_KEYS_FILE") for line in lines]
+        out = set()
+        for key, source in keys:
+            if not key:
+                continue
+            if len(key) < MIN_KEY_CHARS:
+                raise ValueError(
+                    f"{source} holds a key of {len(key)} characters; use at least {MIN_KEY_CHARS}"
+                )
+            out.add(key)
+        return frozenset(out)
 
     def resolved_checkpoint(self) -> Path | None:
         """The checkpoint to load: the explicit one, else the default one (None if there is none)."""

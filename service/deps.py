@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Annotated, NoReturn
+import logging
+from collections.abc import Callable
+from typing import Annotated, Any, NoReturn, TypeVar
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 
 from service.config import Settings, get_settings
-from service.surrogate import Surrogate
+from service.scheduler import ClientGone, FairGate, Gates, run_gated
+from service.surrogate import ServiceBusy, Surrogate
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 def get_surrogate(request: Request) -> Surrogate:
@@ -25,6 +31,47 @@ def get_surrogate(request: Request) -> Surrogate:
 
 SurrogateDep = Annotated[Surrogate, Depends(get_surrogate)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def get_gates(request: Request) -> Gates:
+    return request.app.state.gates
+
+
+GatesDep = Annotated[Gates, Depends(get_gates)]
+
+
+def client_key(request: Request) -> str:
+    """Who is asking, for fair queueing and rate limits: the API key's id when keys are in use (set by
+    the access middleware), else the client address."""
+    state = request.scope.get("state") or {}
+    if state.get("client_key"):
+        return str(state["client_key"])
+    client = request.scope.get("client")
+    return str(client[0]) if client else "-"
+
+
+async def gated(request: Request, gate: FairGate, fn: Callable[..., T], *args: Any) -> T:
+    """`run_gated` with its failures as HTTP answers: 503 + Retry-After when the queue is full, 499
+    (nobody reads it) when the client disconnected first."""
+    try:
+        return await run_gated(request, gate, client_key(request), fn, *args)
+    except ServiceBusy as exc:
+        busy(exc)
+    except ClientGone:
+        log.info("client gone before %s %s finished: dropped", request.method, request.url.path)
+        raise HTTPException(status_code=499, detail="client closed the request") from None
+
+
+LIST_QUERY_PARAMS = frozenset({"factors"})  # the only query parameters that may repeat
+
+
+def single_valued_query(request: Request) -> None:
+    """422 naming a query parameter given more than once (frameworks silently keep the last one)."""
+    seen: set[str] = set()
+    for key, _ in request.query_params.multi_items():
+        if key in seen and key not in LIST_QUERY_PARAMS:
+            reject(("query", key), "given more than once; give it once")
+        seen.add(key)
 
 
 def reject(loc: tuple[str | int, ...], msg: str) -> NoReturn:

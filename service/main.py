@@ -1,27 +1,34 @@
 """The FastAPI app: `create_app(settings=None)` builds it; `lifespan` loads the checkpoint and warms up.
 
 Loading runs in a background thread so `/health` answers at once while `/ready` stays 503 until the
-weights are loaded and a warm-up rollout ran (what an orchestrator's readiness probe wants). A missing or
-broken checkpoint never crashes the process: `/ready` reports it and model routes answer 503.
+weights are loaded and a warm-up rollout ran (what an orchestrator's readiness probe wants). A checkpoint
+that cannot load (missing, empty, truncated, unsafe, incompatible) is permanent: `/ready` reports why
+(without paths) and, with `exit_on_load_failure` (what `nemsim serve` sets), the process then stops with
+a non-zero status so a supervisor restarts or reports it instead of keeping a server that can never serve.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
 import torch
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
 from nemsim import __version__
+from service import errors, openapi
+from service.access import AccessMiddleware
 from service.config import Settings, get_settings
-from service.middleware import BodySizeLimitMiddleware
-from service.routes import health, mechanisms, rollouts
+from service.loading import CheckpointError
+from service.metrics import Metrics
+from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
+from service.routes import health, mechanisms, operations, rollouts
+from service.scheduler import Gates
 from service.surrogate import Surrogate
 
 log = logging.getLogger(__name__)
@@ -38,8 +45,21 @@ class ServiceState:
         return self.status == "ready"
 
 
-def load_surrogate(state: ServiceState, settings: Settings) -> None:
-    """Load the checkpoint and run the warm-up rollout, recording progress in `state` (never raises)."""
+LOAD_FAILURE_EXIT = {"failed": False}  # set when a load failure stopped the process (`nemsim serve` reads it)
+
+
+def stop_process() -> None:
+    """Ask the server to shut down (uvicorn turns SIGTERM into a graceful exit)."""
+    LOAD_FAILURE_EXIT["failed"] = True
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
+def load_surrogate(
+    state: ServiceState, settings: Settings, on_failure: Callable[[], None] | None = None
+) -> None:
+    """Load the checkpoint and run the warm-up rollout, recording progress in `state` (never raises).
+
+    On failure `state.error` gets a message safe for clients and `on_failure` (if any) is called."""
     path = settings.resolved_checkpoint()
     if path is None:
         state.status, state.error = (
@@ -47,27 +67,35 @@ def load_surrogate(state: ServiceState, settings: Settings) -> None:
             "no checkpoint: put a *.pt under checkpoints/ or set NEMSIM_CHECKPOINT",
         )
         log.error(state.error)
+        if on_failure is not None:
+            on_failure()
         return
     try:
-        if settings.torch_threads:
-            torch.set_num_threads(settings.torch_threads)
+        # concurrent rollouts share the cores
+        share = max(1, (os.cpu_count() or 1) // settings.max_concurrency)
+        torch.set_num_threads(settings.torch_threads or min(torch.get_num_threads(), share))
         state.status = "loading"
         log.info("loading checkpoint %s", path)
         surrogate = Surrogate.from_checkpoint(
-            path,
-            cache_size=settings.cache_size,
-            max_concurrency=settings.max_concurrency,
-            max_queue=settings.max_queue,
-            queue_timeout_s=settings.queue_timeout_s,
+            path, cache_size=settings.cache_size, cache_bytes=settings.cache_max_mb << 20
         )
         state.status = "warming-up"
         surrogate.warm_up(settings.warmup_steps)
+        if settings.warmup_steps > 0:
+            surrogate.warm_up_meshes()
         state.surrogate = surrogate
         state.status = "ready"
+        log.info("initial state: %s", surrogate.initial_state_source)
         log.info("model %s ready", surrogate.model_id)
-    except Exception as exc:  # noqa: BLE001 -- reported on /ready instead of killing the server
-        state.status, state.error = "failed", f"{type(exc).__name__}: {exc}"
+    except CheckpointError as exc:
+        state.status, state.error = "failed", str(exc)
+        log.error("could not load checkpoint %s: %s", path, exc)
+    except Exception:  # noqa: BLE001 -- reported on /ready (without internals) and in the log
+        state.status, state.error = "failed", "the model could not be loaded (the server log has details)"
         log.exception("could not load checkpoint %s", path)
+    if state.status == "failed" and on_failure is not None:
+        log.error("the checkpoint can never load: stopping the server")
+        on_failure()
 
 
 @asynccontextmanager
@@ -75,28 +103,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
     if state.surrogate is None:
         threading.Thread(
-            target=load_surrogate, args=(state, app.state.settings), name="nemsim-load", daemon=True
+            target=load_surrogate,
+            args=(state, app.state.settings, app.state.on_load_failure),
+            name="nemsim-load",
+            daemon=True,
         ).start()
     yield
-
-
-def _readable(errors: list[dict]) -> list[dict]:
-    """Validation errors without the offending input (it may hold NaN, which JSON cannot carry)."""
-    out = []
-    for e in errors:
-        loc = [str(p) for p in e.get("loc", ())]
-        msg = str(e.get("msg", "invalid value")).removeprefix("Value error, ")
-        out.append({"loc": loc, "msg": msg, "type": str(e.get("type", "value_error"))})
-    return out
-
-
-async def validation_error_handler(request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, RequestValidationError)
-    detail = _readable(list(exc.errors()))
-    message = "; ".join(
-        f"{'.'.join(d['loc'][1:] if len(d['loc']) > 1 else d['loc']) or 'body'}: {d['msg']}" for d in detail
-    )
-    return JSONResponse(status_code=422, content={"detail": detail, "message": message})
 
 
 def create_app(settings: Settings | None = None, surrogate: Surrogate | None = None) -> FastAPI:
@@ -108,15 +120,26 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
         description="Plasma-etch profile evolution from 14 process controls: rollouts, profile metrics, "
         "surface meshes and event-mechanism counterfactuals from a NEMSim checkpoint.",
         lifespan=lifespan,
+        responses=openapi.error_responses(*openapi.COMMON_ERRORS),
+        docs_url="/docs" if settings.docs else None,
+        redoc_url="/redoc" if settings.docs else None,
+        openapi_url="/openapi.json" if settings.docs else None,
     )
     app.state.settings = settings
     app.state.service = ServiceState()
+    app.state.gates = Gates.from_settings(settings)
+    app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
     if surrogate is not None:
         app.state.service.surrogate, app.state.service.status = surrogate, "ready"
     app.dependency_overrides[get_settings] = lambda: settings
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
-    app.add_exception_handler(RequestValidationError, validation_error_handler)
+    app.add_middleware(HandlerTimeoutMiddleware, timeout_s=settings.handler_timeout_s)
+    app.state.metrics = Metrics()
+    app.add_middleware(AccessMiddleware, settings=settings, metrics=app.state.metrics)  # outermost
+    errors.install(app)
+    openapi.install(app, settings)
     app.include_router(health.router)
     app.include_router(rollouts.router)
     app.include_router(mechanisms.router)
+    app.include_router(operations.router)
     return app

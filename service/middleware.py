@@ -1,15 +1,41 @@
-"""Request-body size limit as a plain ASGI middleware: 413 before anything parses an oversized body.
+"""Plain ASGI middlewares (no BaseHTTPMiddleware: they must not buffer or re-order messages).
 
-Checks the declared Content-Length first, then counts the streamed bytes (chunked uploads or a lying
-header), so no request can make the server buffer more than `max_bytes`.
+* `BodySizeLimitMiddleware`: 413 before anything parses an oversized body. Checks the declared
+  Content-Length first, then counts the streamed bytes (chunked uploads or a lying header), so no
+  request can make the server buffer more than `max_bytes`.
+* `HandlerTimeoutMiddleware`: a request not answered within `timeout_s` gets 504; the handler is
+  cancelled (work already running in a thread finishes in the background and is cached).
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
+import logging
 
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.errors import error_body
+
+log = logging.getLogger(__name__)
+
+
+async def send_error(send: Send, status: int, message: str, headers: list[tuple[bytes, bytes]] = ()) -> None:
+    """A complete JSON error response in the service's error shape."""
+    body = json.dumps(error_body(message, message)).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                *headers,
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})
 
 
 class BodyTooLarge(HTTPException):
@@ -66,15 +92,44 @@ class BodySizeLimitMiddleware:
 
     @staticmethod
     async def _reply(send: Send, status: int, detail: str) -> None:
-        body = json.dumps({"detail": detail, "message": detail}).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": status,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                ],
-            }
+        await send_error(send, status, detail)
+
+
+class HandlerTimeoutMiddleware:
+    def __init__(self, app: ASGIApp, timeout_s: float) -> None:
+        self.app = app
+        self.timeout_s = timeout_s
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = timed_out = False
+
+        async def guarded_send(message: Message) -> None:
+            nonlocal started
+            if timed_out:
+                return  # the client already has its 504
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        task = asyncio.ensure_future(self.app(scope, receive, guarded_send))
+        try:
+            done, _ = await asyncio.wait({task}, timeout=self.timeout_s)
+        except asyncio.CancelledError:
+            task.cancel()
+            raise
+        if task in done:
+            task.result()  # re-raise what the app raised
+            return
+        timed_out = True
+        log.warning(
+            "%s %s not answered within %g s: 504", scope.get("method"), scope.get("path"), self.timeout_s
         )
-        await send({"type": "http.response.body", "body": body})
+        task.cancel()
+        task.add_done_callback(lambda t: t.cancelled() or t.exception())  # retrieve, never re-raise
+        if not started:
+            await send_error(
+                send, 504, f"no answer within {self.timeout_s:g} s (the server's handler timeout)"
+            )

@@ -12,7 +12,15 @@ import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    create_model,
+    model_validator,
+)
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
 
@@ -26,12 +34,22 @@ FieldsMode = Literal["none", "final", "all"]
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
+def _json_integer(value: Any) -> Any:
+    """JSON Schema's integer: a number with no fractional part (3 and 3.0), never a string or boolean."""
+    if isinstance(value, bool | str):
+        raise ValueError("must be a JSON integer (a number, not a string or boolean)")
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
 def _finite_or_none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
 def _admissible(spec: Any):
-    """After-validator: reject physically impossible values with a message naming the control."""
+    """After-validator: reject physically impossible values, values past the scale guard and fractional
+    values of integer controls, with a message naming the control."""
 
     def check(value: float) -> float:
         if value < spec.phys_min or value > spec.phys_max:
@@ -40,28 +58,52 @@ def _admissible(spec: Any):
                 f"{spec.name} = {value:g} {spec.unit} is physically impossible: it must be "
                 f"{bound} {spec.unit}"
             )
+        check_scale_one(spec, value)
+        if spec.kind == "int" and value != math.floor(value):
+            raise ValueError(
+                f"{spec.name} = {value:g} is not an integer: cosine-power exponents are whole numbers "
+                f"(e.g. {math.floor(value):g} or {math.ceil(value):g})"
+            )
         return value
 
     return check
 
 
-MAX_ABS_NORMALIZED = 1e3  # |normalized control| beyond this is no process at all (e.g. 1e300 mol m^-2 s^-1)
+MAX_ABS_NORMALIZED = 1e3  # linear/int controls: |normalized| beyond this is no process at all
+MAX_FLUX_DECADES = 3.0  # fluxes: more than 10^3 x the design maximum is no process at all
+
+
+def guard_max(name: str) -> float:
+    """The largest value of control `name` (physical units) the service accepts: the scale guard.
+
+    Linear and integer controls: MAX_ABS_NORMALIZED half-widths of the design box past its centre.
+    Log-sampled fluxes: MAX_FLUX_DECADES decades above the design maximum. (A normalized bound would be
+    meaningless for fluxes: 1e300 mol m^-2 s^-1 normalizes to about 465.) Zero is always admissible.
+    """
+    spec = CONTROL_SPECS[CONTROL_NAMES.index(name)]
+    if spec.kind == "log":
+        return float(spec.high * 10.0**MAX_FLUX_DECADES)
+    return float(spec.low + (MAX_ABS_NORMALIZED + 1.0) * 0.5 * (spec.high - spec.low))
+
+
+_GUARD_MAX = np.array([guard_max(n) for n in CONTROL_NAMES])  # (14,)
+
+
+def check_scale_one(spec: Any, value: float, where: str = "") -> None:
+    if not value <= _GUARD_MAX[CONTROL_NAMES.index(spec.name)]:  # also catches NaN
+        raise ValueError(
+            f"{where}{spec.name} = {value:g} {spec.unit} is far outside any meaningful range "
+            f"(training range {spec.low:g}..{spec.high:g}, accepted up to {guard_max(spec.name):g})"
+        )
 
 
 def check_scale(raw: np.ndarray, where: str) -> None:
-    """Raise ValueError naming the control whose value is too far outside the design box to mean anything
-    (it would overflow the model's float32 input). raw: (..., 14) physical units."""
-    with np.errstate(all="ignore"):
-        norm = np.asarray(to_normalized(np.asarray(raw, dtype=np.float64)), dtype=np.float64)
-    bad = ~(np.abs(norm) <= MAX_ABS_NORMALIZED)  # also catches NaN
+    """Raise ValueError naming the first control past the scale guard (`guard_max`). raw: (..., 14)."""
+    rows = np.asarray(raw, dtype=np.float64).reshape(-1, len(CONTROL_NAMES))  # (K, 14)
+    bad = ~(rows <= _GUARD_MAX)  # (K, 14), NaN counts as bad
     if bad.any():
-        i = int(np.argwhere(bad)[0][-1])
-        spec = CONTROL_SPECS[i]
-        value = float(np.asarray(raw)[..., i].flat[int(np.argmax(bad[..., i].ravel()))])
-        raise ValueError(
-            f"{where}{spec.name} = {value:g} {spec.unit} is far outside any meaningful range "
-            f"(training range {spec.low:g}..{spec.high:g})"
-        )
+        k, i = (int(v) for v in np.argwhere(bad)[0])
+        check_scale_one(CONTROL_SPECS[i], float(rows[k, i]), where)
 
 
 def default_controls_raw() -> np.ndarray:
@@ -84,12 +126,14 @@ def _control_field(spec: Any, default: float | None, *, strict: bool = True) -> 
     }
     if math.isfinite(spec.phys_min):
         extra["minimum"] = spec.phys_min
-    if math.isfinite(spec.phys_max):
-        extra["maximum"] = spec.phys_max
+    extra["maximum"] = min(spec.phys_max, guard_max(spec.name))
+    if spec.kind == "int":
+        extra["multipleOf"] = 1
     what = "integer cosine-power exponent" if spec.kind == "int" else spec.kind + "-sampled"
     description = (
         f"{spec.name} in {spec.unit} ({what}); trained on {spec.low:g}..{spec.high:g}; "
-        f"physically admissible {spec.phys_min:g}..{spec.phys_max:g}"
+        f"physically admissible {spec.phys_min:g}..{spec.phys_max:g}; accepted up to "
+        f"{guard_max(spec.name):g}" + ("; whole numbers only" if spec.kind == "int" else "")
     )
     typ = Annotated[float, Field(strict=strict), AfterValidator(_admissible(spec))]
     example = float(default_controls_raw()[CONTROL_NAMES.index(spec.name)])
@@ -121,18 +165,33 @@ class _MechanismsBase(BaseModel):
         return self
 
 
+def _split_commas(value: Any) -> Any:
+    """`factors=0.5,2` and `factors=0.5&factors=2` mean the same list."""
+    if isinstance(value, str):
+        value = [value]
+    if isinstance(value, list):
+        return [part.strip() for v in value for part in (v.split(",") if isinstance(v, str) else [v])]
+    return value
+
+
 MechanismsQuery = create_model(
     "MechanismsQuery",
     __base__=_MechanismsBase,
     __doc__="A base control vector by name in physical units; missing controls take the documented default "
     "(centre of the design range, geometric mean for fluxes).",
     factors=(
-        Annotated[list[Annotated[float, Field(gt=0, le=100)]], Field(min_length=1, max_length=4)] | None,
+        Annotated[
+            list[Annotated[float, Field(gt=0, le=100)]],
+            Field(min_length=1, max_length=4),
+            BeforeValidator(_split_commas),
+        ]
+        | None,
         Field(
             None,
             description="flux multiplier levels for Cl+ and neutral Cl (> 0, at most 4); the "
             "interventions are all (s_Cl+, s_Cl) pairs of these levels and 1 except (1, 1). "
-            "Default: 0.5 and 1.5 (the eight of the paper)",
+            "Give them repeated (factors=0.5&factors=2) or comma-separated (factors=0.5,2). "
+            "Default: 0.5 and 1.5 (the eight of the paper). Every other parameter may appear once",
         ),
     ),
     **{s.name: _control_field(s, float(_DEFAULTS[i]), strict=False) for i, s in enumerate(CONTROL_SPECS)},
@@ -155,15 +214,49 @@ class MeshSpec(BaseModel):
     """One surface mesh to return inline with a rollout."""
 
     model_config = _STRICT
-    step: int = Field(ge=0, description="state index, 0 = initial geometry, `steps` = final")
+    step: Annotated[int, Field(ge=0, le=MAX_STEPS_HARD), BeforeValidator(_json_integer)] = Field(
+        description="state index, 0 = initial geometry, `steps` = final (at most `steps`)"
+    )
     channel: Channel = Field("si", description="mask (resist) or si (silicon)")
     format: MeshFormat = Field("glb", description="file format of the mesh")
 
 
+def _normalized_bounds() -> tuple[np.ndarray, np.ndarray]:
+    """(14,) lowest and highest accepted normalized value per control: the images of the physical
+    minimum (0) and of the scale guard (`guard_max`). Normalized input is checked against these
+    directly, so the schema and the server agree to the last bit."""
+    with np.errstate(divide="ignore"):
+        lo = np.asarray(to_normalized(np.array([s.phys_min for s in CONTROL_SPECS], dtype=np.float64)))
+    hi = np.asarray(to_normalized(_GUARD_MAX.copy()))
+    return lo, hi
+
+
+NORM_MIN, NORM_MAX = _normalized_bounds()
+
 NormalizedVector = Annotated[
     list[Annotated[float, Field(strict=True)]],
-    Field(min_length=len(CONTROL_NAMES), max_length=len(CONTROL_NAMES)),
+    Field(
+        min_length=len(CONTROL_NAMES),
+        max_length=len(CONTROL_NAMES),
+        json_schema_extra={
+            "prefixItems": [
+                {"type": "number", "minimum": float(lo), "maximum": float(hi), "title": n}
+                for n, lo, hi in zip(CONTROL_NAMES, NORM_MIN, NORM_MAX, strict=True)
+            ]
+        },
+    ),
 ]
+
+
+def _request_schema_extra(schema: dict[str, Any]) -> None:
+    """An example, and "exactly one of controls, controls_normalized, recipe" (null counts as absent)."""
+    schema["examples"] = [
+        {"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}
+    ]
+    schema["oneOf"] = [
+        {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
+        for name in ("controls", "controls_normalized", "recipe")
+    ]
 
 
 class RolloutRequest(BaseModel):
@@ -172,11 +265,7 @@ class RolloutRequest(BaseModel):
     model_config = ConfigDict(
         extra="forbid",
         allow_inf_nan=False,
-        json_schema_extra={
-            "examples": [
-                {"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}
-            ]
-        },
+        json_schema_extra=_request_schema_extra,
     )
 
     controls: Controls | None = Field(None, description="constant controls by name, physical units")  # type: ignore[valid-type]
@@ -191,10 +280,8 @@ class RolloutRequest(BaseModel):
         max_length=MAX_STEPS_HARD,
         description="one control set per transition (time-varying process)",
     )
-    steps: int | None = Field(
+    steps: Annotated[int, Field(ge=1, le=MAX_STEPS_HARD), BeforeValidator(_json_integer)] | None = Field(
         None,
-        ge=1,
-        le=MAX_STEPS_HARD,
         description=f"transitions of 0.1 s to predict; 1..{DEFAULT_STEPS} by default (server ceiling "
         f"NEMSIM_MAX_STEPS); default {DEFAULT_STEPS}, or the recipe length",
     )
@@ -226,17 +313,17 @@ class RolloutRequest(BaseModel):
         if self.steps is None:
             self.steps = DEFAULT_STEPS
         if self.controls_normalized is not None:
-            with np.errstate(all="ignore"):  # huge inputs overflow to inf, rejected below
-                raw = np.asarray(from_normalized(np.asarray(self.controls_normalized, dtype=np.float64)))
             for i, spec in enumerate(CONTROL_SPECS):
-                v = float(raw[i])
-                if not math.isfinite(v) or v < spec.phys_min or v > spec.phys_max:
+                v = self.controls_normalized[i]
+                if not NORM_MIN[i] <= v <= NORM_MAX[i]:
+                    what = "physically impossible" if v < NORM_MIN[i] else "far outside any meaningful range"
                     raise ValueError(
-                        f"controls_normalized[{i}] ({spec.name}) = {self.controls_normalized[i]:g} maps to "
-                        f"{v:g} {spec.unit}, which is physically impossible (admissible "
-                        f"{spec.phys_min:g}..{spec.phys_max:g})"
+                        f"controls_normalized[{i}] ({spec.name}) = {v:g} is {what}: accepted "
+                        f"{NORM_MIN[i]:.6g}..{NORM_MAX[i]:.6g} ({spec.phys_min:g}..{guard_max(spec.name):g} "
+                        f"{spec.unit})"
                     )
-        check_scale(self._rows_raw(), "")
+        else:
+            check_scale(self._rows_raw(), "")
         for k, mesh in enumerate(self.meshes):
             if mesh.step > self.steps:
                 raise ValueError(
@@ -292,6 +379,21 @@ class Timings(BaseModel):
     meshes_ms: float
 
 
+class ExtrapolationInfo(BaseModel):
+    """One control outside the training box (worst value over the transitions)."""
+
+    control: str
+    value: float = Field(description="the value given, physical units")
+    unit: str
+    train_min: float
+    train_max: float
+    side: Literal["below", "above"]
+    half_widths_outside: float = Field(
+        description="distance past the nearest edge of the box, in box half-widths, in the coordinate the "
+        "model sees (log10 for fluxes)"
+    )
+
+
 class RolloutResponse(BaseModel):
     id: str = Field(description="rollout id, for GET /rollouts/{id}/mesh")
     model_id: str
@@ -305,6 +407,10 @@ class RolloutResponse(BaseModel):
     controls: dict[str, float] = Field(description="controls of the first transition, physical units")
     recipe: list[dict[str, float]] | None = Field(None, description="per-transition controls, when varying")
     warnings: list[str]
+    extrapolation: list[ExtrapolationInfo] = Field(
+        [], description="controls outside the training box, as given (see the server's extrapolation policy)"
+    )
+    clipped: bool = Field(False, description="controls were clipped to the training box (policy 'clip')")
     fields: FieldsPayload | None = None
     meshes: list[MeshPayload] = []
     timings: Timings
@@ -332,6 +438,12 @@ class ModelInfo(BaseModel):
     summary: dict[str, Any]
     metrics: dict[str, Any]
     controls: list[ControlInfo]
+    initial_state: str = Field(
+        description="how the rollouts' initial state was built (simulator configuration)"
+    )
+    extrapolation: str = Field(
+        description="policy for controls outside the training box: allow, clip or refuse"
+    )
 
 
 class MechanismsResponse(BaseModel):
@@ -343,12 +455,15 @@ class MechanismsResponse(BaseModel):
         "attributions alpha"
     )
     warnings: list[str]
+    extrapolation: list[ExtrapolationInfo] = []
+    clipped: bool = False
 
 
 class Health(BaseModel):
     status: str
     detail: str | None = None
     model_id: str | None = None
+    message: str | None = Field(None, description="one readable line when not ready (the error shape)")
 
 
 def jsonable(value: Any) -> Any:

@@ -10,8 +10,9 @@ adds what a server needs:
   key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
   controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway) and the
   cache is bounded in entries;
-* bounded concurrency: at most `max_concurrency` computations at once and at most `max_queue` waiting;
-  more get `ServiceBusy` (the route answers 503). Cache hits never wait.
+* cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
+  `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
+  computations through its own gates (`service.scheduler`). This class does no admission control.
 """
 
 from __future__ import annotations
@@ -22,9 +23,8 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -84,41 +84,17 @@ def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str
     return out
 
 
-@dataclass
-class _Gate:
-    """Admission control: `limit` concurrent holders, `queue` more may wait (threads, loop-agnostic)."""
-
-    limit: int
-    queue: int
-    timeout_s: float
-    _sem: threading.Semaphore = field(init=False)
-    _lock: threading.Lock = field(default_factory=threading.Lock, init=False)
-    _inside: int = field(default=0, init=False)  # holding or waiting
-
-    def __post_init__(self) -> None:
-        self._sem = threading.Semaphore(self.limit)
-
-    @contextmanager
-    def slot(self) -> Iterator[None]:
-        with self._lock:
-            if self._inside >= self.limit + self.queue:
-                raise ServiceBusy(f"{self._inside} requests are already computing or queued; retry shortly")
-            self._inside += 1
-        try:
-            if not self._sem.acquire(timeout=self.timeout_s):
-                raise ServiceBusy(f"no compute slot became free within {self.timeout_s:g} s; retry shortly")
-            try:
-                yield
-            finally:
-                self._sem.release()
-        finally:
-            with self._lock:
-                self._inside -= 1
-
-
 class _LRU:
-    def __init__(self, size: int) -> None:
+    """Least-recently-used cache bounded in entries and, with `weigh`, in bytes (an entry larger than
+    the whole budget is not kept)."""
+
+    def __init__(
+        self, size: int, max_bytes: int | None = None, weigh: Callable[[Any], int] | None = None
+    ) -> None:
         self.size = size
+        self.max_bytes = max_bytes
+        self.weigh = weigh or (lambda value: 0)
+        self.bytes = 0
         self._items: OrderedDict[Any, Any] = OrderedDict()
         self._lock = threading.Lock()
 
@@ -130,13 +106,19 @@ class _LRU:
             return self._items[key]
 
     def put(self, key: Any, value: Any) -> None:
-        if self.size <= 0:
+        weight = self.weigh(value)
+        if self.size <= 0 or (self.max_bytes is not None and weight > self.max_bytes):
             return
         with self._lock:
+            if key in self._items:
+                self.bytes -= self.weigh(self._items.pop(key))
             self._items[key] = value
-            self._items.move_to_end(key)
-            while len(self._items) > self.size:
-                self._items.popitem(last=False)
+            self.bytes += weight
+            while len(self._items) > self.size or self._over_budget():
+                self.bytes -= self.weigh(self._items.popitem(last=False)[1])
+
+    def _over_budget(self) -> bool:
+        return self.max_bytes is not None and self.bytes > self.max_bytes
 
     def __len__(self) -> int:
         return len(self._items)
@@ -150,11 +132,31 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def checkpoint_sim_config(raw: dict[str, Any]) -> tuple[Any, str]:
+    """(SimConfig or None, how the initial state is built) from a checkpoint's `sim_config`: the
+    simulator configuration of its training data (the data file's `generator` attribute, whose
+    `config` entry is `SimConfig.to_meta`; a bare `to_meta` dict is accepted too). Read defensively:
+    older checkpoints have none, and an unreadable one falls back to the simulator's defaults."""
+    from nemsim.sim.config import SimConfig
+
+    recorded = raw.get("sim_config")
+    if not isinstance(recorded, dict) or not recorded:
+        return None, "simulator defaults (the checkpoint records no simulator configuration)"
+    meta = recorded.get("config") if isinstance(recorded.get("config"), dict) else recorded
+    try:
+        return SimConfig.from_meta(meta), "the checkpoint's simulator configuration (sim_config)"
+    except (TypeError, ValueError) as exc:
+        log.warning("checkpoint sim_config unreadable (%s): initial state from the simulator defaults", exc)
+        return None, "simulator defaults (the checkpoint's simulator configuration could not be read)"
+
+
 def initial_state(loaded: Any) -> np.ndarray:
-    """(2, D, H, W) float32 normalized SDF of the scene's initial geometry (the library builds it)."""
+    """(2, D, H, W) float32 normalized SDF of the scene's initial geometry, built by the simulator with
+    the configuration of the checkpoint's data when it records one (`checkpoint_sim_config`)."""
     from nemsim.sim import initial_state as build  # the simulator's SDF of the scene's initial geometry
 
-    return np.asarray(build(loaded.scene), dtype=np.float32)
+    config, _ = checkpoint_sim_config(loaded.raw or {})
+    return np.asarray(build(loaded.scene, config), dtype=np.float32)
 
 
 class Surrogate:
@@ -167,23 +169,25 @@ class Surrogate:
         model_id: str,
         x0: np.ndarray | None = None,
         cache_size: int = 32,
-        max_concurrency: int = 1,
-        max_queue: int = 16,
-        queue_timeout_s: float = 60.0,
+        cache_bytes: int | None = None,
     ) -> None:
         self.loaded = loaded
         self.model_id = model_id
         self.scene = loaded.scene
         self.x0 = initial_state(loaded) if x0 is None else np.asarray(x0, dtype=np.float32)
+        self.initial_state_source = (
+            checkpoint_sim_config(loaded.raw or {})[1] if x0 is None else "given by the caller"
+        )
         expected = tuple(self.scene.state_shape)
         if self.x0.shape != expected:
             raise ValueError(
                 f"initial state has shape {self.x0.shape}, scene {self.scene.name!r} needs {expected}"
             )
-        self._rollouts = _LRU(cache_size)
-        self._meshes = _LRU(4 * cache_size)
+        # cache_bytes: the budget of the rollout cache (states dominate: ~17 MB per 100-step `small`
+        # rollout); meshes get a quarter of it on top
+        self._rollouts = _LRU(cache_size, cache_bytes, lambda r: int(r.states.nbytes))
+        self._meshes = _LRU(4 * cache_size, None if cache_bytes is None else cache_bytes // 4, len)
         self._mechanisms = _LRU(cache_size)
-        self._gate = _Gate(max_concurrency, max_queue, queue_timeout_s)
         ranges = (loaded.raw or {}).get("control_ranges") or {}
         specs = {s.name: s for s in CONTROL_SPECS}
         # train range: what the checkpoint recorded at training time, else the current design range
@@ -198,10 +202,10 @@ class Surrogate:
     # --- construction ---------------------------------------------------------------------------
     @classmethod
     def from_checkpoint(cls, path: str | Path, **kwargs: Any) -> Surrogate:
-        from nemsim.training.checkpoint import load_checkpoint
+        from service.loading import load_checkpoint_safely  # weights-only: no code from the file runs
 
         path = Path(path)
-        loaded = load_checkpoint(path)
+        loaded = load_checkpoint_safely(path)
         model_id = f"{path.stem}@{file_sha256(path)[:12]}"
         return cls(loaded, model_id=model_id, **kwargs)
 
@@ -216,19 +220,9 @@ class Surrogate:
 
     def warnings_for(self, controls_raw: np.ndarray) -> list[str]:
         """Readable warnings for controls outside the training range. controls_raw: (T, 14) or (14,)."""
-        out: list[str] = []
-        rows = np.atleast_2d(controls_raw)
-        for i, spec in enumerate(CONTROL_SPECS):
-            lo, hi = self.train_range[spec.name]
-            col = rows[:, i]
-            vmin, vmax = float(col.min()), float(col.max())
-            if vmin < lo or vmax > hi:
-                bad = vmin if vmin < lo else vmax
-                out.append(
-                    f"{spec.name} = {bad:g} {spec.unit} is outside the training range {lo:g}..{hi:g}: "
-                    "the prediction is an extrapolation"
-                )
-        return out
+        from service.extrapolation import excursions
+
+        return [e.describe() for e in excursions(controls_raw, self.train_range)]
 
     @staticmethod
     def rollout_id(model_id: str, u_norm: np.ndarray, steps: int) -> str:
@@ -244,22 +238,30 @@ class Surrogate:
             raise UnknownRollout(rollout_id)
         return result
 
-    def rollout(self, controls_raw: np.ndarray) -> tuple[RolloutResult, bool]:
-        """Roll out (T,14) physical controls, one row per transition. Returns (result, served_from_cache)."""
+    def lookup_rollout(self, controls_raw: np.ndarray) -> tuple[str, RolloutResult | None]:
+        """(rollout id, the cached result or None) of (T, 14) physical controls, one row per transition."""
         controls_raw = np.asarray(controls_raw, dtype=np.float64)
-        steps = int(controls_raw.shape[0])
         u_norm = np.asarray(to_normalized(controls_raw), dtype=np.float32)  # (T, 14)
-        rid = self.rollout_id(self.model_id, u_norm, steps)
+        rid = self.rollout_id(self.model_id, u_norm, int(controls_raw.shape[0]))
+        return rid, self._rollouts.get(rid)
+
+    def compute_rollout(self, controls_raw: np.ndarray) -> tuple[RolloutResult, bool]:
+        """Roll out and cache (T, 14) physical controls (blocking). Returns (result, served_from_cache):
+        an identical request may have finished while this one waited for a slot."""
+        controls_raw = np.asarray(controls_raw, dtype=np.float64)
+        u_norm = np.asarray(to_normalized(controls_raw), dtype=np.float32)  # (T, 14)
+        rid = self.rollout_id(self.model_id, u_norm, int(controls_raw.shape[0]))
         cached = self._rollouts.get(rid)
         if cached is not None:
             return cached, True
-        with self._gate.slot():
-            cached = self._rollouts.get(rid)  # an identical request may have finished while we waited
-            if cached is not None:
-                return cached, True
-            result = self._compute(rid, controls_raw, u_norm)
+        result = self._compute(rid, controls_raw, u_norm)
         self._rollouts.put(rid, result)
         return result, False
+
+    def rollout(self, controls_raw: np.ndarray) -> tuple[RolloutResult, bool]:
+        """Cached or computed rollout of (T, 14) physical controls (blocking; no admission control)."""
+        _, cached = self.lookup_rollout(controls_raw)
+        return (cached, True) if cached is not None else self.compute_rollout(controls_raw)
 
     def _compute(self, rid: str, controls_raw: np.ndarray, u_norm: np.ndarray) -> RolloutResult:
         from nemsim.evaluation.rollout import rollout
@@ -302,30 +304,41 @@ class Surrogate:
             rollout(self.loaded.model, torch.from_numpy(self.x0)[None], u, steps, keep=False)
 
     # --- meshes -------------------------------------------------------------------------------------
+    def warm_up_meshes(self, formats: tuple[str, ...] = ("glb", "ply", "obj", "stl")) -> None:
+        """Extract and export the initial Si surface once per format, so the first mesh request does not
+        pay for imports and first-call compilation (about 1.5 s on `small`)."""
+        from nemsim.geometry.mesh import export_mesh, surface_mesh
+
+        mesh = surface_mesh(self.x0[1], self.scene, {"warm_up": True})
+        for fmt in formats:
+            export_mesh(mesh, fmt)
+
+    def cached_mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes | None:
+        return self._meshes.get((result.id, step, channel, fmt))
+
     def mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes:
-        """File bytes of the zero-level surface of one channel at one step (cached)."""
+        """File bytes of the zero-level surface of one channel at one step (cached; blocking)."""
         key = (result.id, step, channel, fmt)
         data = self._meshes.get(key)
         if data is not None:
             return data
         from nemsim.geometry.mesh import export_mesh, surface_mesh
 
-        with self._gate.slot():
-            ch = 0 if channel == "mask" else 1
-            field_ = result.states[step, ch].astype(np.float32)  # (D, H, W)
-            metadata = {
-                "model_id": self.model_id,
-                "rollout_id": result.id,
-                "step": step,
-                "time_s": result.times_s[step],
-                "channel": channel,
-                "scene": self.scene.name,
-                "controls": {
-                    n: float(v)
-                    for n, v in zip(CONTROL_NAMES, result.controls_raw[max(step - 1, 0)], strict=True)
-                },
-            }
-            data = export_mesh(surface_mesh(field_, self.scene, metadata), fmt)
+        ch = 0 if channel == "mask" else 1
+        field_ = result.states[step, ch].astype(np.float32)  # (D, H, W)
+        metadata = {
+            "model_id": self.model_id,
+            "rollout_id": result.id,
+            "step": step,
+            "time_s": result.times_s[step],
+            "channel": channel,
+            "scene": self.scene.name,
+            "controls": {
+                n: float(v)
+                for n, v in zip(CONTROL_NAMES, result.controls_raw[max(step - 1, 0)], strict=True)
+            },
+        }
+        data = export_mesh(surface_mesh(field_, self.scene, metadata), fmt)
         self._meshes.put(key, data)
         return data
 
@@ -335,6 +348,19 @@ class Surrogate:
         """Only NEMSim models expose event intensities and attributions (forward(..., return_aux=True))."""
         return "return_aux" in inspect.signature(self.loaded.model.forward).parameters
 
+    @staticmethod
+    def _mechanisms_key(controls_raw: np.ndarray, factors: list[float] | None) -> tuple[bytes, Any]:
+        if not factors:
+            return np.asarray(controls_raw, dtype="<f8").tobytes(), None
+        levels = sorted({1.0, *map(float, factors)})
+        pairs = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
+        return np.asarray(controls_raw, dtype="<f8").tobytes(), pairs
+
+    def cached_mechanisms(
+        self, controls_raw: np.ndarray, factors: list[float] | None
+    ) -> dict[str, Any] | None:
+        return self._mechanisms.get(self._mechanisms_key(controls_raw, factors))
+
     def mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any]:
         """`mechanism_response` for one base control vector (cached).
 
@@ -343,17 +369,13 @@ class Surrogate:
         """
         from nemsim.analysis.counterfactual import mechanism_response
 
-        kwargs: dict[str, Any] = {}
-        if factors:
-            levels = sorted({1.0, *map(float, factors)})
-            kwargs["factors"] = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
-        key = (np.asarray(controls_raw, dtype="<f8").tobytes(), kwargs.get("factors"))
+        key = self._mechanisms_key(controls_raw, factors)
         cached = self._mechanisms.get(key)
         if cached is not None:
             return cached
-        with self._gate.slot():  # no inference_mode: the library owns its autograd settings
-            result = mechanism_response(
-                self.loaded, np.asarray(controls_raw, dtype=np.float64), x0=self.x0, **kwargs
-            )
+        kwargs: dict[str, Any] = {} if key[1] is None else {"factors": key[1]}
+        # no inference_mode: the library owns its autograd settings
+        raw = np.asarray(controls_raw, dtype=np.float64)
+        result = mechanism_response(self.loaded, raw, x0=self.x0, **kwargs)
         self._mechanisms.put(key, result)
         return result

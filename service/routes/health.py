@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from pathlib import PurePath
+from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
@@ -15,23 +17,50 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/health", response_model=Health)
-def get_health() -> Health:
-    """The process is alive (says nothing about the model)."""
-    return Health(status="ok")
+async def get_health(request: Request) -> Health:
+    """The process is alive (liveness); `model_id` once the model is served, `detail` the loading stage."""
+    state = request.app.state.service
+    return Health(
+        status="ok",
+        model_id=state.surrogate.model_id if state.ready else None,
+        detail=None if state.ready else state.status,
+    )
 
 
 @router.get("/ready", response_model=Health, responses={503: {"model": Health}})
-def get_ready(request: Request) -> Health | JSONResponse:
+async def get_ready(request: Request) -> Health | JSONResponse:
     """200 once the checkpoint is loaded and a warm-up rollout ran, else 503 with the reason."""
     state = request.app.state.service
     if state.ready:
         return Health(status="ready", model_id=state.surrogate.model_id)
-    body = Health(status=state.status, detail=state.error)
+    reason = state.error or "the checkpoint is still loading"
+    body = Health(
+        status=state.status, detail=state.error, message=f"model not ready ({state.status}): {reason}"
+    )
     return JSONResponse(status_code=503, content=body.model_dump(), headers={"Retry-After": "2"})
 
 
+PER_CASE_KEYS = ("case_ids", "_per_case")  # long per-test-case lists: not what a client needs
+
+
+def public_record(value: Any) -> Any:
+    """A checkpoint's summary/metrics as shown on /model: per-case lists dropped, file paths reduced to
+    their base names (a developer's run directory is nobody's business)."""
+    if isinstance(value, dict):
+        return {
+            k: public_record(v)
+            for k, v in value.items()
+            if not (isinstance(v, list) and any(k.endswith(s) for s in PER_CASE_KEYS))
+        }
+    if isinstance(value, list):
+        return [public_record(v) for v in value]
+    if isinstance(value, str) and ("/" in value or "\\" in value):
+        return PurePath(value.replace("\\", "/")).name
+    return value
+
+
 @router.get("/model", response_model=ModelInfo)
-def get_model(surrogate: SurrogateDep, settings: SettingsDep) -> ModelInfo:
+async def get_model(surrogate: SurrogateDep, settings: SettingsDep) -> ModelInfo:
     """Checkpoint id, scene, rules SHA-256, training summary, test metrics and the controls' ranges."""
     loaded = surrogate.loaded
     controls = [
@@ -57,7 +86,9 @@ def get_model(surrogate: SurrogateDep, settings: SettingsDep) -> ModelInfo:
         rules_sha256=str(loaded.rules.sha256),
         max_steps=settings.max_steps,
         horizon_steps=surrogate.horizon_steps,
-        summary=jsonable(loaded.summary),
-        metrics=jsonable(loaded.metrics),
+        summary=public_record(jsonable(loaded.summary)),
+        metrics=public_record(jsonable(loaded.metrics)),
         controls=controls,
+        initial_state=surrogate.initial_state_source,
+        extrapolation=settings.extrapolation,
     )

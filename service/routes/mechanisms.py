@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
 
-from service.deps import SurrogateDep, busy, reject
+from service import extrapolation
+from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
+from service.openapi import ErrorBody
 from service.schemas import (
     MechanismsQuery,
     MechanismsResponse,
@@ -15,7 +16,6 @@ from service.schemas import (
     controls_to_array,
     jsonable,
 )
-from service.surrogate import ServiceBusy
 
 router = APIRouter(tags=["mechanisms"])
 
@@ -23,11 +23,15 @@ router = APIRouter(tags=["mechanisms"])
 @router.get(
     "/mechanisms",
     response_model=MechanismsResponse,
-    responses={501: {"description": "model without mechanisms"}, 503: {"description": "busy"}},
+    responses={501: {"model": ErrorBody, "description": "model without mechanisms"}},
+    dependencies=[Depends(single_valued_query)],
 )
 async def get_mechanisms(
+    request: Request,
     query: Annotated[MechanismsQuery, Query()],  # type: ignore[valid-type]
     surrogate: SurrogateDep,
+    settings: SettingsDep,
+    gates: GatesDep,
 ) -> MechanismsResponse:
     """Cl+ / neutral-Cl interventions around one base control: Delta M per family, Delta R, lambda, alpha."""
     if not surrogate.supports_mechanisms:
@@ -35,16 +39,24 @@ async def get_mechanisms(
             status_code=501,
             detail=f"model {surrogate.loaded.name!r} has no event mechanisms (not a NEMSim model)",
         )
-    raw = controls_to_array(query)
     try:
-        result = await run_in_threadpool(surrogate.mechanisms, raw, query.factors)
-    except ServiceBusy as exc:
-        busy(exc)
+        raw, warnings, found, clipped = extrapolation.apply(
+            controls_to_array(query), surrogate.train_range, settings.extrapolation
+        )  # raw: (14,) physical units
+    except extrapolation.Refused as exc:
+        reject(("query",), str(exc))
+    result = surrogate.cached_mechanisms(raw, query.factors)
+    request.app.state.metrics.cache_lookup("mechanisms", result is not None)
+    try:
+        if result is None:
+            result = await gated(request, gates.mechanisms, surrogate.mechanisms, raw, query.factors)
     except ValueError as exc:  # the library rejects an input it cannot analyse, naming it
         reject(("query",), str(exc))
     return MechanismsResponse(
         model_id=surrogate.model_id,
         controls=array_to_controls(raw),
         result=jsonable(result),
-        warnings=surrogate.warnings_for(raw[None]),
+        warnings=warnings,
+        extrapolation=[e.as_dict() for e in found],
+        clipped=clipped,
     )

@@ -6,12 +6,14 @@ import base64
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Path, Query
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response
 
 from nemsim.geometry.mesh import MEDIA_TYPES
-from service.deps import SettingsDep, SurrogateDep, busy, reject
+from service import extrapolation
+from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
+from service.openapi import ErrorBody
+from service.scheduler import Gates
 from service.schemas import (
     Channel,
     FieldsPayload,
@@ -22,28 +24,37 @@ from service.schemas import (
     Timings,
     array_to_controls,
 )
-from service.surrogate import RolloutResult, ServiceBusy, Surrogate, UnknownRollout
+from service.surrogate import RolloutResult, Surrogate, UnknownRollout
 
 router = APIRouter(tags=["rollouts"])
+
 
 def _mesh_url(rollout_id: str, step: int, channel: str, fmt: str) -> str:
     return f"/rollouts/{rollout_id}/mesh?step={step}&channel={channel}&format={fmt}"
 
 
 async def _mesh_bytes(
-    surrogate: Surrogate, result: RolloutResult, step: int, channel: str, fmt: str
+    request: Request,
+    surrogate: Surrogate,
+    gates: Gates,
+    result: RolloutResult,
+    step: int,
+    channel: str,
+    fmt: str,
 ) -> bytes:
+    cached = surrogate.cached_mesh(result, step, channel, fmt)
+    request.app.state.metrics.cache_lookup("mesh", cached is not None)
+    if cached is not None:
+        return cached
     try:
-        return await run_in_threadpool(surrogate.mesh, result, step, channel, fmt)
-    except ServiceBusy as exc:
-        busy(exc)
+        return await gated(request, gates.mesh, surrogate.mesh, result, step, channel, fmt)
     except ValueError as exc:  # e.g. no zero-level surface in this channel at this step
         reject(("query", "step"), f"no {channel} mesh at step {step}: {exc}")
 
 
-@router.post("/rollout", response_model=RolloutResponse, responses={503: {"description": "busy or loading"}})
+@router.post("/rollout", response_model=RolloutResponse)
 async def post_rollout(
-    body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep
+    request: Request, body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep, gates: GatesDep
 ) -> RolloutResponse:
     """Predict the etch over `steps` transitions of 0.1 s; metrics always, fields and meshes on demand."""
     t_start = time.perf_counter()
@@ -57,17 +68,27 @@ async def post_rollout(
             ("body", "meshes"),
             f"{len(body.meshes)} meshes requested; at most {settings.max_meshes} per rollout",
         )
-    schedule = body.schedule_raw()  # (T, 14) physical units
-    warnings = surrogate.warnings_for(schedule)
+    source = next(n for n in ("controls", "controls_normalized", "recipe") if getattr(body, n) is not None)
+    try:
+        schedule, warnings, found, clipped = extrapolation.apply(
+            body.schedule_raw(), surrogate.train_range, settings.extrapolation
+        )  # schedule: (T, 14) physical units
+    except extrapolation.Refused as exc:
+        reject(("body", source), str(exc))
     if body.steps > surrogate.horizon_steps:
         warnings.append(
             f"steps = {body.steps} goes beyond the {surrogate.horizon_steps}-step horizon the model was "
             "trained on"
         )
-    try:
-        result, cached = await run_in_threadpool(surrogate.rollout, schedule)
-    except ServiceBusy as exc:
-        busy(exc)
+    _, hit = surrogate.lookup_rollout(schedule)
+    metrics = request.app.state.metrics
+    metrics.cache_lookup("rollout", hit is not None)
+    if hit is not None:
+        result, cached = hit, True
+    else:
+        result, cached = await gated(request, gates.rollout, surrogate.compute_rollout, schedule)
+        if not cached:
+            metrics.rollout_computed(result.rollout_ms / 1e3)
     warnings.extend(result.warnings)
 
     t0 = time.perf_counter()
@@ -84,7 +105,7 @@ async def post_rollout(
     t1 = time.perf_counter()
     meshes = []
     for spec in body.meshes:
-        raw = await _mesh_bytes(surrogate, result, spec.step, spec.channel, spec.format)
+        raw = await _mesh_bytes(request, surrogate, gates, result, spec.step, spec.channel, spec.format)
         meshes.append(
             MeshPayload(
                 step=spec.step,
@@ -110,6 +131,8 @@ async def post_rollout(
         controls=array_to_controls(result.controls_raw[0]),
         recipe=[array_to_controls(row) for row in result.controls_raw] if varying else None,
         warnings=warnings,
+        extrapolation=[e.as_dict() for e in found],
+        clipped=clipped,
         fields=fields,
         meshes=meshes,
         timings=Timings(
@@ -127,12 +150,15 @@ async def post_rollout(
     response_class=Response,
     responses={
         200: {"content": {t: {} for t in sorted(set(MEDIA_TYPES.values()))}, "description": "the mesh file"},
-        404: {"description": "unknown or expired rollout id"},
+        404: {"model": ErrorBody, "description": "unknown or expired rollout id"},
     },
+    dependencies=[Depends(single_valued_query)],
 )
 async def get_mesh(
+    request: Request,
     rollout_id: Annotated[str, Path(max_length=64)],
     surrogate: SurrogateDep,
+    gates: GatesDep,
     step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
     channel: Annotated[Channel, Query(description="mask or si")] = "si",
     format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
@@ -149,7 +175,7 @@ async def get_mesh(
     step = result.steps if step is None else step
     if step > result.steps:
         reject(("query", "step"), f"step = {step} is beyond this rollout's last state ({result.steps})")
-    data = await _mesh_bytes(surrogate, result, step, channel, format)
+    data = await _mesh_bytes(request, surrogate, gates, result, step, channel, format)
     filename = f"nemsim_{rollout_id}_step{step}_{channel}.{format}"
     return Response(
         content=data,

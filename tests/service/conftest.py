@@ -43,7 +43,11 @@ def client(tiny_checkpoint):
     from service.config import Settings
     from service.main import create_app
 
-    app = create_app(Settings(checkpoint=tiny_checkpoint, warmup_steps=1, max_steps=100, cache_size=16))
+    app = create_app(
+        Settings(
+            checkpoint=tiny_checkpoint, warmup_steps=1, max_steps=100, cache_size=16, rate_limit_per_minute=0
+        )
+    )
     with TestClient(app) as c:
         wait_ready(c)
         yield c
@@ -61,7 +65,9 @@ def make_client(surrogate):
     clients = []
 
     def make(**overrides):
-        app = create_app(Settings(**{"warmup_steps": 0, **overrides}), surrogate=surrogate)
+        # no rate limit unless a test asks: a whole test module may send hundreds of requests at once
+        settings = Settings(**{"warmup_steps": 0, "rate_limit_per_minute": 0, **overrides})
+        app = create_app(settings, surrogate=surrogate)
         app.dependency_overrides[get_surrogate] = lambda: surrogate
         c = TestClient(app)
         c.__enter__()

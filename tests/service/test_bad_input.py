@@ -128,53 +128,39 @@ def test_oversized_streamed_body_413(make_client, default_controls):
     assert r.status_code == 413
 
 
-def test_busy_503(make_client, surrogate, default_controls):
-    """A full queue answers 503 with Retry-After instead of piling up threads."""
-    from service.surrogate import Surrogate
-
-    busy = Surrogate(surrogate.loaded, model_id="busy", x0=surrogate.x0, max_concurrency=1, max_queue=0)
-    from fastapi.testclient import TestClient
-
-    from service.config import Settings
-    from service.main import create_app
-
-    app = create_app(Settings(warmup_steps=0), surrogate=busy)
+def test_busy_503(make_client, surrogate, default_controls, monkeypatch):
+    """A full queue answers 503 with Retry-After instead of piling up work."""
     hold, release = threading.Event(), threading.Event()
+    compute = type(surrogate)._compute
 
-    def occupy():
-        with busy._gate.slot():
-            hold.set()
-            release.wait(10)
+    def slow(self, *args):
+        hold.set()
+        release.wait(10)
+        return compute(self, *args)
 
-    t = threading.Thread(target=occupy)
-    t.start()
+    monkeypatch.setattr(type(surrogate), "_compute", slow)
+    c = make_client(max_queue=0)
+    first = threading.Thread(
+        target=c.post,
+        args=("/rollout",),
+        kwargs={"json": {"controls": {**default_controls, "flux_cl": 0.0137}, "steps": 1}},  # uncached
+    )
+    first.start()
     try:
-        hold.wait(10)
-        with TestClient(app) as c:
-            r = c.post("/rollout", json={"controls": default_controls, "steps": 1})
-            assert r.status_code == 503 and r.headers["retry-after"] == "1"
+        assert hold.wait(10)
+        other = {**default_controls, "flux_cl": default_controls["flux_cl"] * 1.01}
+        r = c.post("/rollout", json={"controls": other, "steps": 1})
+        assert r.status_code == 503 and r.headers["retry-after"] == "1" and r.json()["message"]
     finally:
         release.set()
-        t.join()
-
-
-def test_gate_bounds_waiters():
-    from service.surrogate import ServiceBusy, _Gate
-
-    gate = _Gate(limit=1, queue=1, timeout_s=0.05)
-    with gate.slot():
-        with pytest.raises(ServiceBusy, match="no compute slot"):  # the one queued waiter times out
-            with gate.slot():
-                pass
-    with gate.slot():
-        pass  # released properly
+        first.join()
 
 
 def test_absurd_magnitude_422(client, default_controls):
     r = client.post("/rollout", json={"controls": _controls(default_controls, energy_std_ar_plus=1e30)})
     assert r.status_code == 422 and "energy_std_ar_plus" in r.json()["message"]
-    # a log-sampled flux stays representable: a (loud) extrapolation, not an error
-    r = client.post("/rollout", json={"controls": _controls(default_controls, flux_cl=1e300), "steps": 1})
+    # a flux 50x the design maximum is a (loud) extrapolation, not an error
+    r = client.post("/rollout", json={"controls": _controls(default_controls, flux_cl=1.0), "steps": 1})
     assert r.status_code == 200 and "flux_cl" in r.json()["warnings"][0]
     r = client.get("/mechanisms", params={"energy_mean_cl_plus": 1e30})
     assert r.status_code == 422 and "energy_mean_cl_plus" in r.json()["message"]

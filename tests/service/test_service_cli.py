@@ -32,7 +32,7 @@ def test_bench_service(tiny_checkpoint, tmp_path, capsys):
             "-n",
             "2",
             "--cached-requests",
-            "3",
+            "120",  # more than the default rate-limit burst: the benchmark runs without the limit
             "--json",
             str(out),
         ]
@@ -41,5 +41,34 @@ def test_bench_service(tiny_checkpoint, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "uncached: p50" in text and "cached:" in text
     report = json.loads(out.read_text())
-    assert report["uncached"]["n"] == 2 and report["cached"]["n"] == 3
+    assert report["uncached"]["n"] == 2 and report["cached"]["n"] == 120
     assert report["cached"]["p50_ms"] < report["uncached"]["p50_ms"] * 10
+
+
+def test_bench_service_load(tiny_checkpoint, tmp_path, capsys):
+    """Load mode: a real server, a few clients for a moment; every route answered, no errors."""
+    out = tmp_path / "load.json"
+    code = main(
+        ["bench", "service", "--checkpoint", str(tiny_checkpoint), "--steps", "2", "--clients", "2",
+         "--seconds", "2", "--json", str(out)]
+    )
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert report["errors"] == 0 and report["server"]["rss_mb"] > 0
+    assert report["routes"]["GET /health"]["n"] > 0 and report["routes"]["POST /rollout cached"]["n"] > 0
+    assert "p99 ms" in capsys.readouterr().out
+
+
+def test_serve_port_from_env(monkeypatch, capsys):
+    monkeypatch.setenv("NEMSIM_PORT", "not-a-port")
+    assert main(["serve"]) == 2
+    assert "NEMSIM_PORT" in capsys.readouterr().err
+
+
+def test_bad_setting_exit_2(monkeypatch, tiny_checkpoint, capsys):
+    # `serve` writes these two into the environment; monkeypatch restores them afterwards
+    monkeypatch.setenv("NEMSIM_CHECKPOINT", str(tiny_checkpoint))
+    monkeypatch.setenv("NEMSIM_EXIT_ON_LOAD_FAILURE", "0")
+    monkeypatch.setenv("NEMSIM_API_KEYS", "short")
+    assert main(["serve", "--checkpoint", str(tiny_checkpoint)]) == 2
+    assert "at least 16" in capsys.readouterr().err

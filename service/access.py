@@ -1,0 +1,215 @@
+"""The outermost middleware: request ids, access control, rate limits, security headers, access logs
+and request metrics, for every request (pure ASGI, nothing buffered).
+
+* Request id: the client's `X-Request-ID` if it is short and plain (<= 64 of [A-Za-z0-9._-]), else a
+  new one; stored in `scope["state"]["request_id"]`, returned as `X-Request-ID`, in every log line and
+  in 500 bodies.
+* API keys (optional): with keys configured (`NEMSIM_API_KEYS`, comma-separated, and/or
+  `NEMSIM_API_KEYS_FILE`, one per line) every route but /health and /ready needs a valid `X-API-Key`
+  (401 otherwise; keys are compared in constant time and never logged: a key is known by the first 8
+  hex digits of its SHA-256). Without keys the server answers only clients on this machine (loopback;
+  403 for others) unless `NEMSIM_ALLOW_REMOTE_WITHOUT_KEY` is set; `nemsim serve` warns when it binds
+  elsewhere without keys.
+* Rate limit per client (API key, else address): a token bucket of `rate_limit_per_minute` with bursts
+  of `rate_limit_burst`; beyond it 429 with Retry-After. Probes and /metrics are exempt.
+* At most `limit_concurrency` requests in flight (probes exempt); beyond it 503 with Retry-After at once.
+* Security headers on every response (nosniff, no framing, no referrer, no caching of API answers, a
+  strict Content-Security-Policy except on the interactive docs, which load their UI script).
+* One JSON access-log line per request on the `service.access` logger (id, client, key id, method,
+  route, status, ms, bytes) and the request counters/latency of `service.metrics`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import ipaddress
+import json
+import logging
+import re
+import time
+import uuid
+from collections import OrderedDict
+from typing import Any
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.middleware import send_error
+
+log = logging.getLogger("service.access")
+
+OPEN_PATHS = frozenset({"/health", "/ready"})  # probes: never need a key, never rate limited
+UNLIMITED_PATHS = OPEN_PATHS | {"/metrics"}
+DOCS_PATHS = frozenset({"/docs", "/redoc", "/docs/oauth2-redirect"})
+_RID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+SECURITY_HEADERS = [
+    (b"x-content-type-options", b"nosniff"),
+    (b"x-frame-options", b"DENY"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"cross-origin-resource-policy", b"same-origin"),
+]
+API_CSP = (b"content-security-policy", b"default-src 'none'; frame-ancestors 'none'")
+
+
+def key_id(key: str) -> str:
+    return "key:" + hashlib.sha256(key.encode()).hexdigest()[:8]
+
+
+def is_loopback(host: str | None) -> bool:
+    if host in ("testclient", "localhost"):  # starlette's TestClient; a name only the machine resolves
+        return True
+    try:
+        return ipaddress.ip_address(host or "").is_loopback
+    except ValueError:
+        return False
+
+
+def bind_warning(host: str, keys: frozenset[str], allow_remote: bool) -> str | None:
+    """The start-up warning for binding beyond loopback without API keys (None when there is nothing to
+    say)."""
+    if keys or is_loopback(host):
+        return None
+    consequence = (
+        "NEMSIM_ALLOW_REMOTE_WITHOUT_KEY is set, so anyone who can reach the port can use it"
+        if allow_remote
+        else "every client on another machine gets 403"
+    )
+    return (
+        f"binding {host} without API keys: {consequence}; set NEMSIM_API_KEYS (or NEMSIM_API_KEYS_FILE) "
+        "to serve other machines"
+    )
+
+
+class TokenBuckets:
+    """Per-client token buckets (at most `max_clients` remembered, least recently seen forgotten)."""
+
+    def __init__(self, per_minute: int, burst: int, max_clients: int = 10_000) -> None:
+        self.rate = per_minute / 60.0
+        self.burst = float(max(burst, 1))
+        self.max_clients = max_clients
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()
+
+    def take(self, client: str, now: float) -> float:
+        """0 if the request may go ahead, else the seconds until a token is available."""
+        tokens, last = self._buckets.pop(client, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - last) * self.rate)
+        wait = 0.0 if tokens >= 1.0 else (1.0 - tokens) / self.rate
+        self._buckets[client] = (tokens - 1.0 if wait == 0.0 else tokens, now)
+        while len(self._buckets) > self.max_clients:
+            self._buckets.popitem(last=False)
+        return wait
+
+
+class AccessMiddleware:
+    def __init__(self, app: ASGIApp, settings: Any, metrics: Any) -> None:
+        self.app = app
+        self.keys = settings.api_key_set()
+        self.allow_remote = settings.allow_remote_without_key
+        self.buckets = (
+            TokenBuckets(settings.rate_limit_per_minute, settings.rate_limit_burst)
+            if settings.rate_limit_per_minute > 0
+            else None
+        )
+        self.metrics = metrics
+        self.access_log = settings.access_log
+        self.max_in_flight = settings.limit_concurrency
+        self.in_flight = 0
+
+    def _client_key(self, scope: Scope, headers: dict[bytes, bytes]) -> tuple[str | None, int, str]:
+        """(client key, refusal status or 0, refusal message)."""
+        host = scope["client"][0] if scope.get("client") else None
+        if not self.keys:
+            if self.allow_remote or is_loopback(host):
+                return host or "-", 0, ""
+            return (
+                None,
+                403,
+                "this server has no API keys configured and answers only clients on its own machine",
+            )
+        given = headers.get(b"x-api-key", b"").decode("latin-1")
+        if given and any(hmac.compare_digest(given.encode(), k.encode()) for k in self.keys):
+            return key_id(given), 0, ""
+        return (
+            None,
+            401,
+            "a valid X-API-Key header is required" if not given else "the X-API-Key is not valid",
+        )
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        t0 = time.perf_counter()
+        headers = dict(scope.get("headers") or [])
+        given_rid = headers.get(b"x-request-id", b"").decode("latin-1")
+        rid = given_rid if _RID.match(given_rid) else uuid.uuid4().hex[:16]
+        state = scope.setdefault("state", {})
+        state["request_id"] = rid
+        path = scope.get("path", "")
+        status, size = 500, 0
+        extra = [(b"x-request-id", rid.encode()), *SECURITY_HEADERS]
+        if path not in DOCS_PATHS:
+            extra.append(API_CSP)
+            extra.append((b"cache-control", b"no-store"))
+
+        async def send_with_headers(message: Message) -> None:
+            nonlocal status, size
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+                message = {**message, "headers": [*message.get("headers", []), *extra]}
+            elif message["type"] == "http.response.body":
+                size += len(message.get("body", b""))
+            await send(message)
+
+        client, refused, why = (scope["client"][0] if scope.get("client") else "-"), 0, ""
+        if path not in OPEN_PATHS:
+            client, refused, why = self._client_key(scope, headers)
+        try:
+            if refused:
+                await send_error(send_with_headers, refused, why)
+                return
+            state["client_key"] = client
+            if self.buckets is not None and path not in UNLIMITED_PATHS:
+                wait = self.buckets.take(str(client), time.monotonic())
+                if wait > 0:
+                    retry = str(max(1, int(wait + 0.999)))
+                    await send_error(
+                        send_with_headers,
+                        429,
+                        f"rate limit exceeded for this client; retry in {retry} s",
+                        [(b"retry-after", retry.encode())],
+                    )
+                    return
+            if path not in OPEN_PATHS and self.in_flight >= self.max_in_flight:
+                await send_error(
+                    send_with_headers,
+                    503,
+                    f"{self.in_flight} requests are in flight (the server's limit); retry shortly",
+                    [(b"retry-after", b"1")],
+                )
+                return
+            self.in_flight += 1
+            try:
+                await self.app(scope, receive, send_with_headers)
+            finally:
+                self.in_flight -= 1
+        finally:
+            seconds = time.perf_counter() - t0
+            route = getattr(scope.get("route"), "path", None) or "unmatched"
+            self.metrics.observe_request(scope.get("method", "-"), route, status, seconds)
+            if self.access_log:
+                log.info(
+                    json.dumps(
+                        {
+                            "request_id": rid,
+                            "client": scope["client"][0] if scope.get("client") else None,
+                            "key": client if str(client).startswith("key:") else None,
+                            "method": scope.get("method"),
+                            "route": route,
+                            "path": path[:200],
+                            "status": status,
+                            "ms": round(seconds * 1e3, 2),
+                            "bytes": size,
+                        }
+                    )
+                )

@@ -1,0 +1,199 @@
+"""Scheduling (defects 8, 9): cheap requests never wait behind rollouts, fair queueing between clients,
+and queued work is dropped when its client disconnects."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import numpy as np
+import pytest
+
+from service.scheduler import ClientGone, FairGate, run_gated
+from service.surrogate import ServiceBusy
+
+
+@pytest.fixture
+def blocked_rollouts(surrogate, monkeypatch):
+    """block(): from then on uncached rollouts wait until `release` is set; `started` is set when one is
+    computing."""
+    started, release = threading.Event(), threading.Event()
+    compute = type(surrogate)._compute
+
+    def slow(self, *args):
+        started.set()
+        release.wait(20)
+        return compute(self, *args)
+
+    def block():
+        monkeypatch.setattr(type(surrogate), "_compute", slow)
+        return started, release
+
+    yield block
+    release.set()
+
+
+def test_cheap_requests_do_not_wait_behind_rollouts(
+    make_client, default_controls, surrogate, blocked_rollouts
+):
+    c = make_client(max_queue=0)
+    done = c.post(
+        "/rollout", json={"controls": default_controls, "steps": 2}
+    ).json()  # cached before blocking
+    _ = c.get("/mechanisms")  # cached analysis
+    started, release = blocked_rollouts()
+    busy = threading.Thread(
+        target=c.post,
+        args=("/rollout",),
+        kwargs={"json": {"controls": {**default_controls, "flux_cl": 0.0111}, "steps": 1}},
+    )
+    busy.start()
+    try:
+        assert started.wait(10)
+        other = {**default_controls, "flux_cl": 0.0112}
+        assert c.post("/rollout", json={"controls": other, "steps": 1}).status_code == 503  # rollouts full
+        # ... while a cached rollout, a new mesh of a finished rollout and a cached analysis are served
+        assert c.post("/rollout", json={"controls": default_controls, "steps": 2}).json()["cached"]
+        mesh = c.get(f"/rollouts/{done['id']}/mesh", params={"step": 1, "format": "ply"})
+        assert mesh.status_code == 200, mesh.text
+        assert c.get("/mechanisms").status_code == 200
+        assert c.get("/health").status_code == 200 and c.get("/ready").status_code == 200
+    finally:
+        release.set()
+        busy.join()
+
+
+def test_gate_round_robin_between_clients():
+    async def scenario() -> list[str]:
+        gate = FairGate("test", limit=1, queue=10, per_client=10, timeout_s=5)
+        order: list[str] = []
+        hold = asyncio.Event()
+
+        async def job(client: str, tag: str) -> None:
+            async with gate.slot(client):
+                order.append(tag)
+                if tag == "first":
+                    await hold.wait()
+
+        tasks = [asyncio.create_task(job("a", "first"))]
+        await asyncio.sleep(0)
+        for tag in ("a1", "a2", "a3"):
+            tasks.append(asyncio.create_task(job("a", tag)))
+            await asyncio.sleep(0)
+        tasks.append(asyncio.create_task(job("b", "b1")))
+        await asyncio.sleep(0)
+        hold.set()
+        await asyncio.gather(*tasks)
+        return order
+
+    # b's one request goes second, not behind a's whole backlog
+    assert asyncio.run(scenario()) == ["first", "a1", "b1", "a2", "a3"]
+
+
+def test_gate_limits_queue_per_client_and_in_all():
+    async def scenario() -> None:
+        gate = FairGate("test", limit=1, queue=3, per_client=2, timeout_s=5)
+        hold = asyncio.Event()
+
+        async def job(client: str) -> None:
+            async with gate.slot(client):
+                await hold.wait()
+
+        tasks = [asyncio.create_task(job("a")) for _ in range(3)]  # 1 running + 2 queued
+        await asyncio.sleep(0.01)
+        with pytest.raises(ServiceBusy, match="per-client"):
+            await job("a")
+        tasks.append(asyncio.create_task(job("b")))
+        await asyncio.sleep(0.01)
+        with pytest.raises(ServiceBusy, match="queued"):
+            await job("c")
+        hold.set()
+        await asyncio.gather(*tasks)
+        assert gate.active == 0 and gate.waiting == 0
+
+    asyncio.run(scenario())
+
+
+def test_gate_timeout_leaves_queue_clean():
+    async def scenario() -> None:
+        gate = FairGate("test", limit=1, queue=4, per_client=4, timeout_s=0.05)
+        async with gate.slot("a"):
+            with pytest.raises(ServiceBusy, match="no slot became free"):
+                async with gate.slot("b"):
+                    pass
+            assert gate.waiting == 0
+        async with gate.slot("b"):
+            assert gate.active == 1
+
+    asyncio.run(scenario())
+
+
+class _Gone:
+    """A request whose client disconnects after `after_s`."""
+
+    def __init__(self, after_s: float) -> None:
+        self.after_s = after_s
+        self.url = type("U", (), {"path": "/rollout"})()
+
+    async def receive(self):
+        await asyncio.sleep(self.after_s)
+        return {"type": "http.disconnect"}
+
+
+def test_disconnected_client_leaves_the_queue_and_its_work_never_runs():
+    ran: list[str] = []
+
+    async def scenario() -> None:
+        gate = FairGate("test", limit=1, queue=20, per_client=20, timeout_s=30)
+        hold = asyncio.Event()
+
+        async def occupant() -> None:
+            async with gate.slot("x"):
+                await hold.wait()
+
+        running = asyncio.create_task(occupant())
+        await asyncio.sleep(0)
+        waiters = [
+            asyncio.create_task(run_gated(_Gone(0.3), gate, f"c{i}", ran.append, f"job{i}"))
+            for i in range(17)
+        ]
+        await asyncio.sleep(0.01)
+        assert gate.waiting == 17
+        for w in waiters:
+            with pytest.raises(ClientGone):
+                await w
+        assert gate.waiting == 0  # all 17 left the queue at once, not after their turn
+        hold.set()
+        await running
+        assert gate.active == 0
+
+    asyncio.run(scenario())
+    assert ran == []
+
+
+def test_rollout_cache_is_bounded_in_bytes(surrogate, default_controls):
+    """The cache keeps at most `cache_bytes` of states, evicting the least recently used."""
+    from service.surrogate import Surrogate
+
+    s = Surrogate(surrogate.loaded, model_id="bytes", x0=surrogate.x0, cache_size=100, cache_bytes=1)
+    raw = np.array([list(default_controls.values())] * 2)
+    result, cached = s.rollout(raw)
+    assert not cached and result.states.nbytes > 1
+    assert s.rollout(raw)[1] is False  # larger than the whole budget: never kept
+    one = result.states.nbytes
+    s = Surrogate(surrogate.loaded, model_id="bytes2", x0=surrogate.x0, cache_size=100, cache_bytes=2 * one)
+    rows = [raw * f for f in (1.0, 1.01, 1.02)]
+    for r in rows:
+        s.rollout(r)
+    assert s._rollouts.bytes <= 2 * one and len(s._rollouts) == 2
+    assert s.rollout(rows[0])[1] is False and s.rollout(rows[2])[1] is True
+
+
+def test_mesh_warm_up_exports_every_format(surrogate, monkeypatch):
+    import nemsim.geometry.mesh as mesh_lib
+
+    seen: list[str] = []
+    export = mesh_lib.export_mesh
+    monkeypatch.setattr(mesh_lib, "export_mesh", lambda mesh, fmt: seen.append(fmt) or export(mesh, fmt))
+    surrogate.warm_up_meshes()
+    assert sorted(seen) == ["glb", "obj", "ply", "stl"]
