@@ -969,8 +969,8 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
             "per trajectory at the throughput batch; wall and CPU seconds. Prints the Markdown table and "
             "writes speed_error.{json,md,png} to --out (default runs/speed_error: committed results under "
             "benchmarks/ are only written when named with --out). "
-            "Example: nemsim bench speed-error --data data/small.h5 --checkpoints checkpoints/nemsim-small.pt "
-            "--out benchmarks/small"
+            "Example: nemsim bench speed-error --data data/small.h5 "
+            "--checkpoints checkpoints/nemsim-small.pt --out benchmarks/small"
         ),
     )
     p.add_argument("--data", required=True, metavar="FILE.h5", help="trajectory file (nemsim generate)")

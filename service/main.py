@@ -59,6 +59,9 @@ def load_surrogate(state: ServiceState, settings: Settings) -> None:
             max_concurrency=settings.max_concurrency,
             max_queue=settings.max_queue,
             queue_timeout_s=settings.queue_timeout_s,
+            runtime_backend=settings.runtime_backend,
+            runtime_precision=settings.runtime_precision,
+            runtime_threads=settings.runtime_threads,
         )
         state.status = "warming-up"
         surrogate.warm_up(settings.warmup_steps)

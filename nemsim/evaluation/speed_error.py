@@ -65,7 +65,7 @@ NOISE_FLOOR_NOTE = "noise floor (two full-budget seeds)"
 @dataclass(frozen=True)
 class SpeedErrorConfig:
     cases: int = 5  # first N test cases of the setting
-    budgets: tuple[float, ...] = (1.0, 0.5, 0.25, 0.125, 0.0625)  # simulator particle budgets (1: noise floor)
+    budgets: tuple[float, ...] = (1.0, 0.5, 0.25, 0.125, 0.0625)  # particle budgets (1: the noise floor)
     runtimes: tuple[str, ...] = RUNTIMES  # "<backend>-<precision>"; "torch-f32" (the reference) always runs
     threads: int = 1  # torch / OpenVINO threads per rollout
     throughput_batch: int = 16  # batch of the throughput run (0: none)

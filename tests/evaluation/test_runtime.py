@@ -78,8 +78,10 @@ def test_openvino_bf16_close_to_pytorch(trained):
     model, x0, u = trained
     ref = rollout(model, x0[:1], u[:1])
     pred = compile_model(model, "openvino", "bf16")
+    with torch.inference_mode():  # how the service calls it: the graph is traced from inference tensors
+        out = rollout(pred, x0[:1], u[:1])
     assert pred.backend == "openvino" and pred.precision == "bf16"
-    d = rollout(pred, x0[:1], u[:1]) - ref
+    d = out - ref
     assert d.abs().max() <= 0.05 and d.pow(2).mean().sqrt() <= 0.01
 
 
@@ -155,3 +157,13 @@ def test_multi_step_models_go_through_predict():
 def test_bad_options_name_the_choices(kwargs, match):
     with pytest.raises(ValueError, match=match):
         compile_model(nn.Identity(), **kwargs)
+
+
+@pytest.mark.slow
+@needs_openvino
+def test_bench_rollout_has_openvino_variants(trained):
+    from nemsim.evaluation.bench import bench_rollout
+
+    model, x0, _ = trained
+    rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-f32"])
+    assert rep["variants"]["openvino-f32"]["max_abs_diff_vs_fp32"] <= 1e-4
