@@ -121,12 +121,17 @@ def _export_kernels() -> Iterator[None]:
     thread takes the standard path too: same values, only slower for that moment."""
     from nemsim.model import decoder, layers
 
-    originals = decoder.upsample2, layers._onednn_ok
-    decoder.upsample2, layers._onednn_ok = _upsample_nearest, _never
+    swaps = [(mod, name, new) for mod, name, new in
+             ((decoder, "upsample2", _upsample_nearest), (layers, "_onednn_ok", _never))
+             if hasattr(mod, name)]  # fmt: skip
+    originals = [getattr(mod, name) for mod, name, _ in swaps]
+    for mod, name, new in swaps:
+        setattr(mod, name, new)
     try:
         yield
     finally:
-        decoder.upsample2, layers._onednn_ok = originals
+        for (mod, name, _), old in zip(swaps, originals, strict=True):
+            setattr(mod, name, old)
 
 
 def _never(x: torch.Tensor) -> bool:
