@@ -29,13 +29,15 @@ them). The default is 1: two concurrent 1-thread rollouts fill a 2-core machine 
 and 2 threads were slower per rollout on the shared machine measured (below). For ``"torch"`` the thread
 count is process-global (``torch.set_num_threads``) and left to the caller; ``threads`` is only recorded.
 
-Measured (``small``, shipped checkpoint, batch 1, 100-step rollout, CPU seconds, median of 5 interleaved
-repeats; AMD EPYC with AVX-512 BF16, no AMX, 2 cores shared with other jobs at load ~7): torch f32 1.085 s
-(the reference), torch bf16 1.107 s (0.98x), openvino f32 1.039 s (1.04x, max |Δ| 1.6e-6 over the
-trajectory), openvino bf16 0.934 s (1.16x, max |Δ| 0.020, RMS Δ 1.1e-3). With 2 threads under that load:
-torch f32 0.09x (spin-waiting), openvino f32 0.59x, bf16 0.69x. The fast eager path of the model layers
-(prepacked oneDNN convolutions, fused MRC increment) leaves OpenVINO less to gain here than the 1.35x /
-1.63x measured before those existed. Export: 2-6 s CPU per (shape, precision) on ``tiny``/``small``.
+Measured (``small``, shipped checkpoint, batch 1, 100-step rollout, CPU seconds, medians of 5 and 7
+interleaved repeats in two runs; AMD EPYC with AVX-512 BF16, no AMX, 2 cores shared with other jobs at load
+4-8): torch f32 1.085 / 1.127 s (the reference), torch bf16 0.98x / 0.97x, openvino f32 1.04x / 1.05x (max |Δ|
+1.6e-6 over the trajectory), openvino bf16 1.16x / 1.06x (max |Δ| 0.020, RMS Δ 1.1e-3; Avg RMSE against the
+simulator +0.8 % on 2 control-id test cases). With 2 threads under that load: torch f32 0.09x
+(spin-waiting), openvino f32 0.59x / 0.66x, bf16 0.69x / 0.64x. At batch 16 (per trajectory) openvino f32
+was 0.78x of torch, bf16 1.04x. That is less than an earlier measurement (1.35x / 1.63x): the eager path
+is already fast here (prepacked oneDNN convolutions, fused MRC increment), and this CPU has no AMX for bf16.
+Export + compile: a few CPU seconds per (shape, precision).
 
 Multi-step models: ``predict`` returns the next k = ``model.config.steps_per_call`` states; a model that only
 has ``step`` is shimmed as ``step(x, cache)[:, None]`` (k = 1).
