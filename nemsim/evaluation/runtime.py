@@ -19,9 +19,10 @@ evaluating ``precompute`` at two random control vectors: entries that differ are
 buffers, weight products) are folded into the graph as constants. Models without ``precompute``
 (baselines) are exported as ``forward(x, u)`` with ``u`` the input.
 Shapes are static: one OpenVINO model is converted and compiled per (state shape incl. batch, input shapes)
-on first use and kept, so a scene at batch 1 and 16 compiles twice. Each calling thread gets its own infer
-request (an infer request is not thread-safe; the compiled model is shared). Outputs are copied out of the
-request's buffers, so a kept trajectory is never overwritten by the next step.
+on first use and kept, so a scene at batch 1 and 16 compiles twice. Infer requests (not thread-safe; the
+compiled model is shared) come from a pool: a call takes an idle one or makes one, and gives it back, so
+there are as many as calls ever ran at once, not one per thread that ever called (a server's thread pool).
+Outputs are copied out of the request's buffers, so a kept trajectory is never overwritten by the next step.
 
 Threads (choice): ``threads`` is OpenVINO's ``INFERENCE_NUM_THREADS`` with one stream and CPU pinning off
 (pinned single-thread streams of concurrent requests can land on the same core; unpinned, the OS spreads
@@ -252,7 +253,7 @@ class OpenVINOPredictor(_Predictor):
         self._core = ov.Core()
         self._compiled: dict[tuple, Any] = {}
         self._lock = threading.Lock()
-        self._local = threading.local()
+        self._idle: dict[tuple, list[Any]] = {}  # shape key -> infer requests not in use
         self._fallback: TorchPredictor | None = None
         self._spec, self._variable = self._cache_layout()
 
@@ -303,19 +304,21 @@ class OpenVINOPredictor(_Predictor):
                  self.precision, self.threads)  # fmt: skip
         return compiled
 
-    def _request(self, x: torch.Tensor, cache: _OVCache) -> Any:
+    def _acquire(self, x: torch.Tensor, cache: _OVCache) -> tuple[tuple, Any]:
+        """(key, an idle infer request for this shape): from the pool, else a new one (compiling first)."""
         key = (tuple(x.shape), tuple(a.shape for a in cache.inputs))
-        requests = getattr(self._local, "requests", None)
-        if requests is None:
-            requests = self._local.requests = {}
-        req = requests.get(key)
-        if req is None:
-            with self._lock:
-                compiled = self._compiled.get(key)
-                if compiled is None:
-                    compiled = self._compiled[key] = self._compile(x, cache, key)
-            req = requests[key] = compiled.create_infer_request()
-        return req
+        with self._lock:
+            idle = self._idle.setdefault(key, [])
+            if idle:
+                return key, idle.pop()
+            compiled = self._compiled.get(key)
+            if compiled is None:
+                compiled = self._compiled[key] = self._compile(x, cache, key)
+            return key, compiled.create_infer_request()
+
+    def _release(self, key: tuple, req: Any) -> None:
+        with self._lock:
+            self._idle[key].append(req)
 
     def predict(self, x: torch.Tensor, cache: Any) -> torch.Tensor:
         if not isinstance(cache, _OVCache):
@@ -325,16 +328,19 @@ class OpenVINOPredictor(_Predictor):
         if self._fallback is not None:
             return self._fallback.predict(x, cache.torch_cache)
         try:
-            req = self._request(x, cache)
+            key, req = self._acquire(x, cache)
         except Exception as exc:  # noqa: BLE001 -- an export failure falls back to the reference path
             self.fallback_reason = f"openvino export failed: {type(exc).__name__}: {_first_line(exc)}"
             log.warning("runtime: using torch instead of openvino: %s", self.fallback_reason)
             self._fallback = TorchPredictor(self.model, self.precision, self.threads)
             self.backend = "torch"
             return self._fallback.predict(x, cache.torch_cache)
-        xin = x.detach().float().contiguous().numpy()
-        out = req.infer([xin, *cache.inputs], share_inputs=True, share_outputs=True)[0]
-        return torch.from_numpy(out.copy())  # (B, k, 2, D, H, W); copied out of the request's buffer
+        try:
+            xin = x.detach().float().contiguous().numpy()
+            out = req.infer([xin, *cache.inputs], share_inputs=True, share_outputs=True)[0]
+            return torch.from_numpy(out.copy())  # (B, k, 2, D, H, W); copied out of the request's buffer
+        finally:
+            self._release(key, req)
 
 
 def compile_model(

@@ -11,6 +11,7 @@ bf16 max |Δ| <= 0.05 and RMS Δ <= 0.01 (bf16 has 8 mantissa bits; the rule sid
 from __future__ import annotations
 
 import logging
+import threading
 
 import pytest
 import torch
@@ -70,6 +71,16 @@ def test_openvino_f32_matches_pytorch(trained):
     assert len(pred._compiled) == 1
     # a kept trajectory is not overwritten by later steps (outputs are copied out of the request)
     assert not torch.equal(out[:, 1], out[:, 2])
+    # concurrent rollouts (a server's threads) each get their own infer request from the pool
+    results: list[torch.Tensor] = []
+    threads = [threading.Thread(target=lambda: results.append(rollout(pred, x0, u))) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(results) == 3 and all(torch.equal(r, out) for r in results)
+    (idle,) = pred._idle.values()
+    assert 1 <= len(idle) <= 3  # as many requests as calls ran at once, all returned to the pool
 
 
 @pytest.mark.slow
