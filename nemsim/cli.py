@@ -1453,16 +1453,23 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
 
 
 def _add_speed_error(sub: argparse._SubParsersAction) -> None:
+    from nemsim.evaluation.speed_error import RUNTIMES as SPEED_ERROR_RUNTIMES
+
     bench_sub = _bench_subparsers(sub)
     p = bench_sub.add_parser(
         "speed-error",
-        help="wall time per trajectory against error: simulator budgets 1, 1/4, 1/16 and checkpoints",
+        help="speed against error: simulator budgets 1..1/16 and surrogate variants, incl. equal accuracy",
         description=(
-            "On the setting's first N test cases, time one trajectory of the simulator at full, 1/4 and 1/16 "
-            "particle budget and of every checkpoint in fp32 and bf16, and score each against an "
-            "independent full-budget simulator run (the file's own trajectory vs that run is the noise "
-            "floor). Prints the Markdown table and writes speed_error.{json,md,png} to --out. "
-            "Example: nemsim bench speed-error --data data/small.h5 --checkpoints runs/nemsim/best.pt"
+            "On the setting's first N test cases, time one trajectory of the simulator at particle budgets "
+            "1, 1/2, 1/4, 1/8, 1/16 and of every checkpoint under every runtime (backend-precision), score "
+            "each against an independent full-budget simulator run (the file's own trajectory vs that run "
+            "is the noise floor), and report the speed-up against the full-budget simulator and at equal "
+            "accuracy (the simulator's time interpolated log-log at the variant's Avg RMSE), at batch 1 and "
+            "per trajectory at the throughput batch; wall and CPU seconds. Prints the Markdown table and "
+            "writes speed_error.{json,md,png} to --out (default runs/speed_error: committed results under "
+            "benchmarks/ are only written when named with --out). "
+            "Example: nemsim bench speed-error --data data/small.h5 "
+            "--checkpoints checkpoints/nemsim-small.pt --out benchmarks/small"
         ),
     )
     p.add_argument("--data", required=True, metavar="FILE.h5", help="trajectory file (nemsim generate)")
@@ -1472,14 +1479,19 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--splits", default=None, metavar="DIR",
                    help="directory of <setting>.json manifests (default: <data dir>/splits, else computed)")
     p.add_argument("--cases", type=int, default=5, help="first N test cases (default 5)")
-    p.add_argument("--budgets", default="1,0.25,0.0625",
+    p.add_argument("--budgets", default="1,0.5,0.25,0.125,0.0625",
                    help="simulator particle budgets, fractions in (0, 1] of the full budget "
-                   "(default 1,0.25,0.0625)")  # fmt: skip
-    p.add_argument("--precisions", default="fp32,bf16", help="model precisions (default fp32,bf16)")
+                   "(default 1,0.5,0.25,0.125,0.0625)")  # fmt: skip
+    p.add_argument("--runtimes", default=",".join(SPEED_ERROR_RUNTIMES),
+                   help="surrogate runtimes <backend>-<precision>, from "
+                   f"{', '.join(SPEED_ERROR_RUNTIMES)} (default: all; torch-f32, the reference, always runs; "
+                   "openvino falls back to torch, noted, when not installed)")  # fmt: skip
+    p.add_argument("--batch", type=int, default=16,
+                   help="batch of the throughput run, reported per trajectory (default 16; 0: skip)")
     p.add_argument("--seed", type=int, default=1, help="entropy of the reference reruns (default 1)")
     p.add_argument("--steps", type=int, default=None, help="transitions (default: the scene's horizon)")
     p.add_argument("--threads", type=int, default=1,
-                   help="torch threads (default 1: the simulator is single-threaded too)")
+                   help="torch and OpenVINO threads (default 1: the simulator is single-threaded too)")
     p.add_argument("--out", default="runs/speed-error", metavar="DIR",
                    help="output directory (default runs/speed-error; the committed results: "
                    "--out benchmarks/small)")
@@ -1528,6 +1540,7 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
     from nemsim.evaluation.speed_error import (
         SpeedErrorConfig,
         format_markdown,
+        parse_runtime,
         run_speed_error,
         write_speed_error,
     )
@@ -1537,23 +1550,28 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
     missing = [c for c in args.checkpoints if not os.path.isfile(c)]
     if missing:
         raise UserError(f"no such checkpoint: {missing[0]}")
-    if args.cases < 1 or args.threads < 1:
-        raise UserError("--cases and --threads must be >= 1")
+    if args.cases < 1 or args.threads < 1 or args.batch < 0:
+        raise UserError("--cases and --threads must be >= 1, --batch >= 0")
     try:
         budgets = tuple(float(b) for b in args.budgets.split(",") if b.strip())
     except ValueError:
         raise UserError(f"--budgets {args.budgets!r}: expected numbers, e.g. 1,0.25") from None
     if any(not 0 < b <= 1 for b in budgets):
         raise UserError(f"--budgets {args.budgets!r}: each budget must be in (0, 1]")
-    precisions = tuple(p.strip() for p in args.precisions.split(",") if p.strip())
+    runtimes = tuple(r.strip() for r in args.runtimes.split(",") if r.strip())
+    try:
+        for r in runtimes:
+            parse_runtime(r)
+    except ValueError as exc:
+        raise UserError(f"--runtimes: {exc}") from None
     torch.set_num_threads(args.threads)
     manifest = _load_setting_manifest(args.data, args.setting, args.splits)
-    cfg = SpeedErrorConfig(cases=args.cases, budgets=budgets, precisions=precisions, seed=args.seed,
-                           steps=args.steps)  # fmt: skip
+    cfg = SpeedErrorConfig(cases=args.cases, budgets=budgets, runtimes=runtimes, threads=args.threads,
+                           throughput_batch=args.batch, seed=args.seed, steps=args.steps)  # fmt: skip
     try:
         report = run_speed_error(args.data, args.checkpoints, manifest, cfg)
     except (KeyError, ValueError) as exc:
-        raise UserError(str(exc).splitlines()[0]) from exc
+        raise UserError(str(exc).strip("'\"").splitlines()[0]) from exc
     paths = write_speed_error(report, args.out)
     print(format_markdown(report))  # noqa: T201
     print(f"wrote {paths['json']}, {paths['md']}, {paths['png']}")  # noqa: T201

@@ -77,7 +77,9 @@ def load_surrogate(
         state.status = "loading"
         log.info("loading checkpoint %s", path)
         surrogate = Surrogate.from_checkpoint(
-            path, cache_size=settings.cache_size, cache_bytes=settings.cache_max_mb << 20
+            path, cache_size=settings.cache_size, cache_bytes=settings.cache_max_mb << 20,
+            runtime_backend=settings.runtime_backend, runtime_precision=settings.runtime_precision,
+            runtime_threads=settings.runtime_threads,
         )
         state.status = "warming-up"
         surrogate.warm_up(settings.warmup_steps)

@@ -170,8 +170,15 @@ class Surrogate:
         x0: np.ndarray | None = None,
         cache_size: int = 32,
         cache_bytes: int | None = None,
+        runtime_backend: str = "openvino",
+        runtime_precision: str = "bf16",
+        runtime_threads: int = 1,
     ) -> None:
+        from nemsim.evaluation.runtime import compile_model
+
         self.loaded = loaded
+        # rollouts run through the fast CPU runtime (PyTorch eager when openvino is missing, logged)
+        self.predictor = compile_model(loaded.model, runtime_backend, runtime_precision, runtime_threads)
         self.model_id = model_id
         self.scene = loaded.scene
         self.x0 = initial_state(loaded) if x0 is None else np.asarray(x0, dtype=np.float32)
@@ -272,7 +279,7 @@ class Surrogate:
         u = torch.from_numpy(u_norm)[None]  # (1, T, 14)
         t0 = time.perf_counter()
         with torch.inference_mode():
-            traj = rollout(self.loaded.model, x0, u, steps)[0].float().numpy()  # (T+1, 2, D, H, W)
+            traj = rollout(self.predictor, x0, u, steps)[0].float().numpy()  # (T+1, 2, D, H, W)
         t1 = time.perf_counter()
         metrics = {k: [float(v) for v in vals] for k, vals in profile_metrics_batch(traj, self.scene).items()}
         t2 = time.perf_counter()
@@ -301,7 +308,7 @@ class Surrogate:
 
         u = torch.zeros(1, steps, len(CONTROL_NAMES))
         with torch.inference_mode():
-            rollout(self.loaded.model, torch.from_numpy(self.x0)[None], u, steps, keep=False)
+            rollout(self.predictor, torch.from_numpy(self.x0)[None], u, steps, keep=False)
 
     # --- meshes -------------------------------------------------------------------------------------
     def warm_up_meshes(self, formats: tuple[str, ...] = ("glb", "ply", "obj", "stl")) -> None:

@@ -11,7 +11,9 @@ Variants:
   * ``fp32-percall``: the same model called as ``model(x, u_t)`` every step (no control cache), the
     reference for what the cache saves;
   * ``bf16``: ``torch.autocast("cpu", torch.bfloat16)`` around the rollout (the rule side stays fp32);
-  * ``channels_last``: a copy of the model and the state in ``torch.channels_last_3d`` memory format.
+  * ``channels_last``: a copy of the model and the state in ``torch.channels_last_3d`` memory format;
+  * ``openvino-f32`` / ``openvino-bf16``: the step graph under OpenVINO (``nemsim.evaluation.runtime``, one
+    inference thread; PyTorch if openvino is missing, see the log).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from torch import nn
 from nemsim.controls import N_CONTROLS
 from nemsim.evaluation.rollout import rollout
 
-VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last")
+VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last", "openvino-f32", "openvino-bf16")
 
 
 class _PerCall(nn.Module):
@@ -55,6 +57,10 @@ def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[nn.Module, 
     if name == "channels_last":
         cl = copy.deepcopy(model).to(memory_format=torch.channels_last_3d)
         return cl, x0.contiguous(memory_format=torch.channels_last_3d), contextlib.nullcontext
+    if name in ("openvino-f32", "openvino-bf16"):
+        from nemsim.evaluation.runtime import compile_model
+
+        return compile_model(model, "openvino", name.split("-")[1]), x0, contextlib.nullcontext
     raise ValueError(f"unknown variant {name!r}; expected one of {VARIANTS}")
 
 

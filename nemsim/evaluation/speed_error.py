@@ -5,28 +5,41 @@ scored against one **reference**: an independent full-budget simulator run of th
 from the data file (``np.random.default_rng([seed, case_id, 0])``; the file's cases use
 ``default_rng(case_seed(base_seed, case_id))``, another stream). Methods:
 
-  * the simulator at particle budget 1, 1/4, 1/16 (``SimConfig.particle_budget``; the budget-b reruns use
-    ``default_rng([seed, case_id, k])``, k = 1, 2, ...). At budget 1 the compared trajectory is the data
-    file's own (a second full-budget seed), so that row **is the noise floor**: two equally good
-    simulator runs differ by this much; its time is the reference run's wall time;
-  * every checkpoint (NEMSim or a baseline) in fp32 and under ``torch.autocast("cpu", torch.bfloat16)``,
-    rolled out from the case's x_0 with the file's controls, batch 1 (``nemsim.evaluation.rollout``).
+  * the simulator at particle budgets 1, 1/2, 1/4, 1/8, 1/16 (``SimConfig.particle_budget``; the budget-b
+    reruns use ``default_rng([seed, case_id, k])``, k = 1, 2, ...). At budget 1 the compared trajectory is
+    the data file's own (a second full-budget seed), so that row **is the noise floor**: two equally good
+    simulator runs differ by this much; its time is the reference run's time;
+  * every surrogate **variant**: each checkpoint (NEMSim or a baseline) under each runtime
+    ``<backend>-<precision>`` (``nemsim.evaluation.runtime.compile_model``: ``torch-f32`` is PyTorch eager,
+    the reference; ``torch-bf16`` CPU autocast; ``openvino-f32`` / ``openvino-bf16`` the exported step
+    graph), rolled out from the case's x_0 with the file's controls (``nemsim.evaluation.rollout``).
 
 Errors go through ``nemsim.evaluation.metrics``: Avg / Final RMSE over t = 1..H (RMSE_t over cases, then
 sqrt), and the final-step Chamfer distance (voxels) averaged over cases. The error against the data file
 (what ``nemsim train`` reports) is kept in the JSON as ``avg_rmse_vs_data``.
 
-Timing: methods run side by side, case by case (reference, budgets, then each model and precision), after
-one warm-up of every kernel and precision, so load from other jobs on the machine hits them alike. Reported:
-the median over cases of the wall seconds per trajectory and of the CPU seconds (``time.process_time``;
-honest on a shared machine). The simulator is single-threaded; the CLI runs torch with one thread by default
-so both sides use one core. A precision "keeps the error" when its Avg RMSE is within ``keep_error_rel``
-(5 %) of the same model's fp32; the fastest such precision is marked, and NEMSim's is ``speed.nemsim_s``.
+Speed, two figures per variant:
+  (a) ``speedup``: the full-budget simulator's time per trajectory over the variant's (batch 1);
+  (b) ``equal_accuracy``: the simulator's time at the variant's Avg RMSE over the variant's time. The
+      simulator's time at error e is interpolated linearly in (log Avg RMSE, log seconds) between the measured
+      budgets, sorted by error (``equal_accuracy_time``). Outside the measured errors it is not extrapolated:
+      an error below every simulator row's gives the most accurate row's time as a **lower** bound on the
+      simulator's cost (speed-up reported as ">="), an error above every row's gives the cheapest row's time
+      as an **upper** bound ("<=").
+Both are reported on wall and on CPU seconds (``time.process_time``: honest on a shared machine).
+
+Timing: batch 1 on one thread (torch and OpenVINO threads = ``threads``; the simulator is single-threaded):
+methods run side by side, case by case (reference, budgets, then each variant), after one warm-up of every
+kernel and variant, so load from other jobs hits them alike; reported is the median over cases. Throughput:
+after the cases, each variant rolls out ``throughput_batch`` trajectories in one batch (the cases repeated
+cyclically, keep=False), once, interleaved; per-trajectory time = batch time / batch. The simulator does not
+batch: its per-trajectory time is the batch-1 time at any batch. A variant "keeps the error" when its Avg
+RMSE is within ``keep_error_rel`` (5 %) of the same checkpoint's ``torch-f32``; the fastest such variant is
+marked, and NEMSim's is ``speed.nemsim_*``.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
@@ -42,18 +55,23 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-PRECISIONS = ("fp32", "bf16")
+BACKENDS = ("torch", "openvino")
+PRECISIONS = ("f32", "bf16")
+RUNTIMES = tuple(f"{b}-{p}" for b in BACKENDS for p in PRECISIONS)
+REFERENCE_RUNTIME = "torch-f32"
 NOISE_FLOOR_NOTE = "noise floor (two full-budget seeds)"
 
 
 @dataclass(frozen=True)
 class SpeedErrorConfig:
     cases: int = 5  # first N test cases of the setting
-    budgets: tuple[float, ...] = (1.0, 0.25, 0.0625)  # simulator particle budgets (1 = noise floor row)
-    precisions: tuple[str, ...] = PRECISIONS  # model precisions ("fp32" always runs)
+    budgets: tuple[float, ...] = (1.0, 0.5, 0.25, 0.125, 0.0625)  # particle budgets (1: the noise floor)
+    runtimes: tuple[str, ...] = RUNTIMES  # "<backend>-<precision>"; "torch-f32" (the reference) always runs
+    threads: int = 1  # torch / OpenVINO threads per rollout
+    throughput_batch: int = 16  # batch of the throughput run (0: none)
     seed: int = 1  # entropy of the reference / reruns: default_rng([seed, case_id, k])
     steps: int | None = None  # transitions per trajectory (default: the scene's horizon, 100)
-    keep_error_rel: float = 0.05  # a precision keeps the error if Avg RMSE <= fp32 * (1 + this)
+    keep_error_rel: float = 0.05  # a variant keeps the error if Avg RMSE <= torch-f32 * (1 + this)
 
 
 def budget_label(b: float) -> str:
@@ -62,14 +80,33 @@ def budget_label(b: float) -> str:
     return str(f.numerator) if f.denominator == 1 else f"{f.numerator}/{f.denominator}"
 
 
-def _autocast(precision: str):
-    import torch
+def parse_runtime(name: str) -> tuple[str, str]:
+    """'openvino-bf16' -> ('openvino', 'bf16'); ValueError naming the choices otherwise."""
+    if name not in RUNTIMES:
+        raise ValueError(f"unknown runtime {name!r}; expected one of {RUNTIMES}")
+    backend, precision = name.split("-")
+    return backend, precision
 
-    if precision == "fp32":
-        return contextlib.nullcontext()
-    if precision == "bf16":
-        return torch.autocast("cpu", dtype=torch.bfloat16)
-    raise ValueError(f"unknown precision {precision!r}; expected one of {PRECISIONS}")
+
+def equal_accuracy_time(points: Sequence[tuple[float, float]], error: float) -> tuple[float | None, str]:
+    """The simulator's time at ``error``, from its measured (Avg RMSE, seconds) points (one per budget).
+
+    Linear interpolation of log(seconds) against log(Avg RMSE) between the points sorted by error.
+    Returns (seconds, bound): bound "interpolated" inside the measured errors; "lower" when ``error`` is
+    below every point's (the most accurate point's time: the simulator needs at least that); "upper" when
+    above every point's (the cheapest such point's time: the simulator needs at most that); (None, "none")
+    without usable points (errors or times <= 0 or not finite).
+    """
+    pts = sorted((e, t) for e, t in points if e > 0 and t > 0 and math.isfinite(e) and math.isfinite(t))
+    if not pts or not (error > 0 and math.isfinite(error)):
+        return None, "none"
+    errs = [e for e, _ in pts]
+    if error < errs[0]:
+        return pts[0][1], "lower"
+    if error > errs[-1]:
+        return pts[-1][1], "upper"
+    log_t = np.interp(math.log(error), np.log(errs), np.log([t for _, t in pts]))
+    return float(math.exp(log_t)), "interpolated"
 
 
 def _timed(fn):
@@ -127,26 +164,31 @@ def run_speed_error(
         checkpoints: ``.pt`` files (any registered model); their scene must be the data file's.
         manifest: split manifest of the setting (``{"setting", "test": [case ids], ...}``).
     Returns:
-        JSON-able report: ``rows`` (one per method: label, kind, budget / precision, wall_s, cpu_s,
-        avg_rmse, final_rmse, cd, avg_rmse_vs_data, speedup, noise_floor, keeps_error, fastest), plus
-        ``noise_floor`` {avg_rmse, final_rmse, cd} and ``speed`` {simulator_s, nemsim_s, nemsim_precision}.
+        JSON-able report: ``rows`` (one per method: label, kind, budget / runtime, backend, precision, wall_s,
+        cpu_s, avg_rmse, final_rmse, cd, avg_rmse_vs_data, speedup, speedup_cpu, equal_accuracy {...},
+        batch_wall_s / batch_cpu_s per trajectory at the throughput batch, noise_floor, keeps_error, fastest),
+        plus ``noise_floor`` {avg_rmse, final_rmse, cd} and ``speed`` (simulator and fastest NEMSim figures).
     """
     import torch
 
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.evaluation.rollout import rollout
+    from nemsim.evaluation.runtime import compile_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
     from nemsim.sim import SimConfig, run_trajectory
     from nemsim.sim.events import build_event_tables
     from nemsim.training.checkpoint import load_checkpoint
 
-    precisions = ["fp32"] + [p for p in config.precisions if p != "fp32"]
-    for p in precisions:
-        _autocast(p)  # validates the name
-    budgets = [1.0] + [float(b) for b in config.budgets if float(b) != 1.0]
+    runtimes = [REFERENCE_RUNTIME] + [r for r in dict.fromkeys(config.runtimes) if r != REFERENCE_RUNTIME]
+    for r in runtimes:
+        parse_runtime(r)  # validates the name
+    budgets = [1.0] + [float(b) for b in dict.fromkeys(config.budgets) if float(b) != 1.0]
     if config.cases < 1:
         raise ValueError(f"cases must be >= 1, got {config.cases}")
+    if config.threads < 1 or config.throughput_batch < 0:
+        raise ValueError(f"threads must be >= 1 and throughput_batch >= 0, got {config.threads}, "
+                         f"{config.throughput_batch}")  # fmt: skip
 
     tf = open_trajectories(data)
     try:
@@ -157,6 +199,9 @@ def run_speed_error(
         test_ids = [int(c) for c in manifest.get("test", [])][: config.cases]
         if not test_ids:
             raise ValueError(f"setting {manifest.get('setting')!r} has no test cases")
+        missing = [c for c in test_ids if c not in set(int(i) for i in tf.case_ids)]
+        if missing:
+            raise ValueError(f"test cases {missing} are not in {data}; generate them first")
         rows = [tf.row_of(c) for c in test_ids]
         unfinished = [c for c, r in zip(test_ids, rows) if not tf.complete[r]]
         if unfinished:
@@ -171,13 +216,18 @@ def run_speed_error(
         sim_cfgs = {b: replace(base_cfg, particle_budget=b).resolved(scene) for b in budgets}
         tables = build_event_tables(rules, base_cfg.resolved(scene))
 
-        models: list[tuple[str, Any, Any]] = []  # (label, LoadedModel, path)
+        models: list[tuple[str, Any, Path]] = []  # (label, LoadedModel, path)
         for path in checkpoints:
             loaded = load_checkpoint(path, scene=scene)
             label = loaded.name
             if any(label == m[0] for m in models):
                 label = f"{loaded.name} ({Path(path).stem})"
             models.append((label, loaded, Path(path)))
+        variants: dict[tuple[str, str], Any] = {}  # (model label, runtime) -> predictor
+        for label, loaded, _ in models:
+            for rt in runtimes:
+                backend, precision = parse_runtime(rt)
+                variants[(label, rt)] = compile_model(loaded.model, backend, precision, config.threads)
 
         def controls_of(row: int):
             sched = tf.controls_raw_schedule
@@ -185,20 +235,22 @@ def run_speed_error(
             u = torch.as_tensor(tf.controls_normalized_schedule(row)[:steps], dtype=torch.float32)[None]
             return np.asarray(raw), u  # (14,) or (T, 14) raw; (1, T, 14) normalized
 
-        # ---- warm-up: JIT kernels, first-call allocations of every model and precision ----
+        # ---- warm-up: JIT kernels, first-call allocations and graph compilation of every variant ----
         raw0, u0 = controls_of(rows[0])
         x00 = torch.as_tensor(np.asarray(tf.states[rows[0], 0], dtype=np.float32))[None]
+        nb = config.throughput_batch
         for b in budgets:
             run_trajectory(scene, rules, raw0, np.random.default_rng(0), sim_cfgs[b], tables=tables,
                            n_transitions=1)  # fmt: skip
-        for _, loaded, _ in models:
-            for p in precisions:
-                with _autocast(p):
-                    rollout(loaded.model, x00, u0, min(2, steps))
+        for pred in variants.values():
+            rollout(pred, x00, u0, min(2, steps))
+            if nb:
+                rollout(pred, x00.expand(nb, -1, -1, -1, -1), u0.expand(nb, -1, -1), 1, keep=False)
 
-        keys = [("sim", b) for b in budgets] + [(label, p) for label, _, _ in models for p in precisions]
+        keys = [("sim", b) for b in budgets] + list(variants)
         scores = {k: _Scores() for k in keys}
         cd_cache: dict = {}
+        inputs: list[tuple[torch.Tensor, torch.Tensor]] = []  # (x0 (1, 2, D, H, W), u (1, T, 14)) per case
         for case_id, row in zip(test_ids, rows):
             raw, u = controls_of(row)
             data_states = np.asarray(tf.states[row, : steps + 1], dtype=np.float32)  # (T+1, 2, D, H, W)
@@ -219,19 +271,23 @@ def run_speed_error(
                 scores[("sim", b)].add(res.states, ref, data_states, scene, case_id, steps, wall, cpu,
                                        cd_cache)  # fmt: skip
             x0 = torch.as_tensor(data_states[0])[None]  # (1, 2, D, H, W)
-            for label, loaded, _ in models:
-                for p in precisions:
-                    def run(model=loaded.model, p=p):
-                        with _autocast(p):
-                            return rollout(model, x0, u, steps)
-
-                    pred, wall, cpu = _timed(run)
-                    pred = pred[0].float().numpy()  # (T+1, 2, D, H, W)
-                    scores[(label, p)].add(pred, ref, data_states, scene, case_id, steps, wall, cpu, cd_cache)
+            inputs.append((x0, u))
+            for key, pred in variants.items():
+                out, wall, cpu = _timed(lambda pred=pred: rollout(pred, x0, u, steps))
+                out = out[0].float().numpy()  # (T+1, 2, D, H, W)
+                scores[key].add(out, ref, data_states, scene, case_id, steps, wall, cpu, cd_cache)
             log.info("case %d done", case_id)
         data_seeds = [int(tf.seeds[r]) for r in rows]
     finally:
         tf.close()
+
+    batch_times: dict[tuple[str, str], tuple[float, float]] = {}  # per trajectory (wall, cpu)
+    if nb:
+        xb = torch.cat([inputs[i % len(inputs)][0] for i in range(nb)])  # (nb, 2, D, H, W)
+        ub = torch.cat([inputs[i % len(inputs)][1] for i in range(nb)])  # (nb, T, 14)
+        for key, pred in variants.items():
+            _, wall, cpu = _timed(lambda pred=pred: rollout(pred, xb, ub, steps, keep=False))
+            batch_times[key] = (wall / nb, cpu / nb)
 
     from nemsim.evaluation.metrics import count_params
 
@@ -241,38 +297,58 @@ def run_speed_error(
         s = scores[("sim", b)].summary()
         report_rows.append({
             "label": f"simulator, budget {budget_label(b)}", "kind": "simulator", "model": "simulator",
-            "budget": b, "precision": None, "params": None, "noise_floor": b == 1.0,
-            "note": NOISE_FLOOR_NOTE if b == 1.0 else "", **s,
+            "budget": b, "runtime": None, "backend": None, "precision": None, "params": None,
+            "noise_floor": b == 1.0, "note": NOISE_FLOOR_NOTE if b == 1.0 else "", **s,
+            "batch_wall_s": s["wall_s"] if nb else None, "batch_cpu_s": s["cpu_s"] if nb else None,
         })  # fmt: skip
+    sims = list(report_rows)
     fastest: dict[str, str] = {}
     for label, loaded, path in models:
         group = []
-        for p in precisions:
-            s = scores[(label, p)].summary()
-            group.append({"label": f"{label} {p}", "kind": "model", "model": label, "checkpoint": str(path),
-                          "budget": None, "precision": p, "params": int(count_params(loaded.model)),
-                          "noise_floor": False, "note": "", **s})  # fmt: skip
-        fp32 = group[0]["avg_rmse"]
+        for rt in runtimes:
+            pred = variants[(label, rt)]
+            s = scores[(label, rt)].summary()
+            backend, precision = parse_runtime(rt)
+            note = f"ran on torch: {pred.fallback_reason}" if pred.backend != backend else ""
+            bw, bc = batch_times.get((label, rt), (None, None))
+            group.append({"label": f"{label} {rt}", "kind": "model", "model": label, "checkpoint": str(path),
+                          "budget": None, "runtime": rt, "backend": pred.backend, "precision": precision,
+                          "threads": config.threads, "params": int(count_params(loaded.model)),
+                          "noise_floor": False, "note": note, **s, "batch_wall_s": bw,
+                          "batch_cpu_s": bc})  # fmt: skip
+        ref_err = group[0]["avg_rmse"]
         for r in group:
-            r["keeps_error"] = bool(r["avg_rmse"] <= fp32 * (1.0 + config.keep_error_rel))
+            r["keeps_error"] = bool(r["avg_rmse"] <= ref_err * (1.0 + config.keep_error_rel))
         best = min((r for r in group if r["keeps_error"]), key=lambda r: r["wall_s"])
         best["fastest"] = True
-        fastest[label] = best["precision"]
+        fastest[label] = best["runtime"]
         report_rows.extend(group)
     for r in report_rows:
         r.setdefault("keeps_error", None)
         r.setdefault("fastest", False)
         r["speedup"] = sim_full["wall_s"] / max(r["wall_s"], 1e-12)
+        r["speedup_cpu"] = sim_full["cpu_s"] / max(r["cpu_s"], 1e-12)
+        r["batch_speedup"] = sim_full["wall_s"] / r["batch_wall_s"] if r.get("batch_wall_s") else None
+        eq = {}
+        for clock in ("wall", "cpu"):
+            t, bound = equal_accuracy_time([(s["avg_rmse"], s[f"{clock}_s"]) for s in sims], r["avg_rmse"])
+            eq[f"simulator_{clock}_s"] = t
+            eq[f"speedup_{clock}"] = t / max(r[f"{clock}_s"], 1e-12) if t is not None else None
+            eq["bound"] = bound
+        r["equal_accuracy"] = eq
 
     nemsim_rows = [r for r in report_rows if r["kind"] == "model" and r["fastest"]
                    and r["model"].split(" (")[0] == "nemsim"]  # fmt: skip
+    best = nemsim_rows[0] if nemsim_rows else None
     return {
         "scene": scene.name,
         "data": str(data),
         "setting": manifest.get("setting"),
         "case_ids": test_ids,
         "steps": steps,
+        "threads": config.threads,
         "torch_threads": torch.get_num_threads(),
+        "throughput_batch": nb,
         "config": asdict(config),
         "reference": {
             "what": "independent full-budget simulator run per case",
@@ -286,8 +362,19 @@ def run_speed_error(
         "speed": {
             "simulator_s": sim_full["wall_s"],
             "simulator_cpu_s": sim_full["cpu_s"],
-            "nemsim_s": nemsim_rows[0]["wall_s"] if nemsim_rows else None,
-            "nemsim_precision": nemsim_rows[0]["precision"] if nemsim_rows else None,
+            "nemsim_s": best["wall_s"] if best else None,
+            "nemsim_cpu_s": best["cpu_s"] if best else None,
+            "nemsim_runtime": best["runtime"] if best else None,
+            "nemsim_precision": best["precision"] if best else None,
+            "nemsim_avg_rmse": best["avg_rmse"] if best else None,
+            "speedup": best["speedup"] if best else None,
+            "nemsim_batch_s": best["batch_wall_s"] if best else None,
+            "batch_speedup": best["batch_speedup"] if best else None,
+            "equal_accuracy": (
+                {"simulator_s": best["equal_accuracy"]["simulator_wall_s"],
+                 "speedup": best["equal_accuracy"]["speedup_wall"],
+                 "bound": best["equal_accuracy"]["bound"]} if best else None
+            ),  # fmt: skip
         },
     }
 
@@ -298,29 +385,50 @@ def _fmt(v: Any, spec: str) -> str:
     return format(v, spec)
 
 
+_BOUND_MARK = {"interpolated": "", "lower": ">=", "upper": "<=", "none": ""}
+
+
+def _eq_cell(r: dict[str, Any], clock: str) -> str:
+    eq = r.get("equal_accuracy") or {}
+    v = eq.get(f"speedup_{clock}")
+    if v is None:
+        return "-"
+    return f"{_BOUND_MARK.get(eq.get('bound'), '')}{v:.3g}x"
+
+
 def format_markdown(report: dict[str, Any]) -> str:
-    """The report as a Markdown table (one row per method; the noise floor and fastest precisions marked)."""
+    """The report as a Markdown table (one row per method; the noise floor and fastest variants marked)."""
+    nb = report.get("throughput_batch") or 0
     lines = [
         f"## Speed against error: {report['scene']}, {report['setting']}, {len(report['case_ids'])} test "
         f"cases, {report['steps']} steps",
         "",
         "Errors are against an independent full-budget simulator run of each case (not the data file). "
-        f"Times: median over cases, one trajectory, batch 1, torch threads {report['torch_threads']}.",
+        f"Times: median over cases, one trajectory, batch 1, {report.get('threads', 1)} thread(s); "
+        "speed-ups against the full-budget simulator (wall; CPU in brackets), and at equal accuracy: the "
+        "simulator's time interpolated log-log at the method's Avg RMSE (>= / <=: the error lies outside "
+        "the simulator's measured range, the figure is a bound)."
+        + (f" Batch {nb}: wall seconds per trajectory of one batch-{nb} rollout (the simulator does not "
+           "batch: its batch-1 time)." if nb else ""),
         "",
-        "| method | s / trajectory | CPU s | speed-up vs simulator | Avg RMSE | Final RMSE | CD (vox) | "
-        "Avg RMSE vs data | note |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| method | s / traj | CPU s | speed-up | speed-up at equal accuracy | "
+        + (f"s / traj at batch {nb} | speed-up at batch {nb} | " if nb else "")
+        + "Avg RMSE | Final RMSE | CD (vox) | Avg RMSE vs data | note |",
+        "|---|---:|---:|---:|---:|" + ("---:|---:|" if nb else "") + "---:|---:|---:|---:|---|",
     ]
     for r in report["rows"]:
         note = r["note"]
         if r.get("fastest"):
-            note = "fastest precision keeping the error"
+            note = "; ".join(x for x in ("fastest variant keeping the error", note) if x)
         elif r.get("keeps_error") is False:
-            note = "loses accuracy vs fp32"
+            note = "; ".join(x for x in ("loses accuracy vs torch-f32", note) if x)
         label = f"**{r['label']}**" if r["noise_floor"] else r["label"]
+        batch = (f"{_fmt(r.get('batch_wall_s'), '.3g')} | "
+                 f"{_fmt(r.get('batch_speedup'), '.3g')}x | ") if nb else ""  # fmt: skip
         lines.append(
             f"| {label} | {_fmt(r['wall_s'], '.3g')} | {_fmt(r['cpu_s'], '.3g')} | "
-            f"{_fmt(r['speedup'], '.3g')}x | "
+            f"{_fmt(r['speedup'], '.3g')}x ({_fmt(r.get('speedup_cpu'), '.3g')}x) | "
+            f"{_eq_cell(r, 'wall')} ({_eq_cell(r, 'cpu')}) | {batch}"
             f"{_fmt(r['avg_rmse'], '.4f')} | {_fmt(r['final_rmse'], '.4f')} | {_fmt(r['cd'], '.3f')} | "
             f"{_fmt(r['avg_rmse_vs_data'], '.4f')} | {note} |"
         )
@@ -331,7 +439,8 @@ def format_markdown(report: dict[str, Any]) -> str:
 
 
 def plot_speed_error(report: dict[str, Any], path: str | Path) -> Path:
-    """Log-log PNG: wall seconds per trajectory (x) against Avg RMSE (y); the noise floor marked."""
+    """Log-log PNG: wall seconds per trajectory (x) against Avg RMSE (y); the noise floor marked; hollow
+    markers: the same variant's per-trajectory time at the throughput batch."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -347,20 +456,25 @@ def plot_speed_error(report: dict[str, Any], path: str | Path) -> Path:
     for r in sim:
         ax.annotate(f"budget {budget_label(r['budget'])}", (max(r["wall_s"], tiny), max(r["avg_rmse"], tiny)),
                     textcoords="offset points", xytext=(6, 4), fontsize=8)  # fmt: skip
-    markers = {"fp32": "s", "bf16": "^"}
+    markers = {"torch-f32": "s", "torch-bf16": "D", "openvino-f32": "^", "openvino-bf16": "v"}
     models = sorted({r["model"] for r in report["rows"] if r["kind"] == "model"})
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    nb = report.get("throughput_batch") or 0
     for i, m in enumerate(models):
         for r in (r for r in report["rows"] if r["model"] == m):
-            ax.plot(max(r["wall_s"], tiny), max(r["avg_rmse"], tiny), markers.get(r["precision"], "o"),
-                    color=colors[i % len(colors)], label=r["label"], ms=8)  # fmt: skip
+            mk, color = markers.get(r.get("runtime"), "o"), colors[i % len(colors)]
+            y = max(r["avg_rmse"], tiny)
+            ax.plot(max(r["wall_s"], tiny), y, mk, color=color, label=r["label"], ms=8)
+            if r.get("batch_wall_s"):
+                ax.plot(max(r["batch_wall_s"], tiny), y, mk, color=color, mfc="none", ms=8)
     nf = report["noise_floor"]["avg_rmse"]
     ax.axhline(max(nf, tiny), color="tab:red", ls="--", lw=1.2, label=f"noise floor (Avg RMSE {nf:.4f})")
     floor = next(r for r in sim if r["noise_floor"])
     ax.plot(max(floor["wall_s"], tiny), max(nf, tiny), "*", color="tab:red", ms=16, zorder=5)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("wall time per trajectory (s, median)")
+    ax.set_xlabel("wall time per trajectory (s, median; hollow: per trajectory at batch "
+                  f"{nb})" if nb else "wall time per trajectory (s, median)")  # fmt: skip
     ax.set_ylabel("Avg RMSE vs independent full-budget run")
     ax.set_title(f"speed vs error: {report['scene']} {report['setting']}, {len(report['case_ids'])} cases")
     ax.grid(alpha=0.3, which="both")

@@ -1,7 +1,9 @@
 """`nemsim bench speed-error` and `nemsim bench collect` on a 3-case `tiny` data file, untrained checkpoint.
 
 One simulator-generated data file (3 design cases, full tiny horizon, ~2 s) and one untrained NEMSim
-checkpoint are shared by the module; the bench runs once (1 case) through the CLI: ~7 s in all.
+checkpoint are shared by the module; the bench runs once (1 case, runtimes torch-f32, torch-bf16 and, when
+openvino is installed, openvino-f32; throughput batch 2) through the CLI. The equal-accuracy interpolation
+is checked against hand-computed numbers.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import math
 
 import pytest
 import torch
+
+from nemsim.evaluation.runtime import openvino_available
 
 torch.set_num_threads(1)
 
@@ -45,9 +49,13 @@ def speed_error_out(tmp_path_factory, tiny_sim_data, tiny_checkpoint):
 
     out = tmp_path_factory.mktemp("bench")
     rc = main(["bench", "speed-error", "--data", str(tiny_sim_data), "--setting", "control-id",
-               "--checkpoints", str(tiny_checkpoint), "--cases", "1", "--out", str(out)])  # fmt: skip
+               "--checkpoints", str(tiny_checkpoint), "--cases", "1", "--runtimes", ",".join(RUNTIMES),
+               "--batch", "2", "--out", str(out)])  # fmt: skip
     assert rc == 0
     return out
+
+
+RUNTIMES = ["torch-f32", "torch-bf16"] + (["openvino-f32"] if openvino_available() else [])
 
 
 def _finite(v) -> bool:
@@ -58,37 +66,94 @@ def test_speed_error_report(speed_error_out):
     rep = json.loads((speed_error_out / "speed_error.json").read_text())
     assert rep["scene"] == "tiny" and rep["setting"] == "control-id" and rep["steps"] == 100
     assert rep["case_ids"] == [2]  # first test case in manifest order
+    assert rep["threads"] == 1 and rep["throughput_batch"] == 2
     rows = rep["rows"]
     sims = [r for r in rows if r["kind"] == "simulator"]
     models = [r for r in rows if r["kind"] == "model"]
-    assert [r["budget"] for r in sims] == [1.0, 0.25, 0.0625]
-    assert [r["precision"] for r in models] == ["fp32", "bf16"] and {r["model"] for r in models} == {"nemsim"}
+    assert [r["budget"] for r in sims] == [1.0, 0.5, 0.25, 0.125, 0.0625]
+    assert [r["runtime"] for r in models] == RUNTIMES and {r["model"] for r in models} == {"nemsim"}
+    assert [r["backend"] for r in models] == [r.split("-")[0] for r in RUNTIMES]  # no fallback happened
     for r in rows:
-        for key in ("wall_s", "cpu_s", "avg_rmse", "final_rmse", "cd", "avg_rmse_vs_data", "speedup"):
+        for key in ("wall_s", "cpu_s", "avg_rmse", "final_rmse", "cd", "avg_rmse_vs_data", "speedup",
+                    "speedup_cpu", "batch_wall_s", "batch_speedup"):  # fmt: skip
             assert _finite(r[key]) and r[key] >= 0, (r["label"], key, r[key])
         assert r["wall_s"] > 0
+        eq = r["equal_accuracy"]
+        assert eq["bound"] in ("interpolated", "lower", "upper")
+        assert _finite(eq["simulator_wall_s"]) and _finite(eq["speedup_wall"]) and _finite(eq["speedup_cpu"])
+        assert eq["speedup_wall"] == pytest.approx(eq["simulator_wall_s"] / r["wall_s"])
+    # the simulator does not batch: its per-trajectory time at the throughput batch is the batch-1 time
+    assert all(r["batch_wall_s"] == r["wall_s"] for r in sims)
     # exactly one noise-floor row: the full-budget simulator, compared with a second full-budget seed
     floor = [r for r in rows if r["noise_floor"]]
     assert len(floor) == 1 and floor[0]["kind"] == "simulator" and floor[0]["budget"] == 1.0
     assert floor[0]["avg_rmse"] > 0  # the reference is an independent run, not the data file
     assert floor[0]["avg_rmse_vs_data"] == 0.0  # that row *is* the data file's trajectory
+    assert floor[0]["speedup"] == 1.0
     assert rep["noise_floor"] == {k: floor[0][k] for k in ("avg_rmse", "final_rmse", "cd")}
     assert rep["speed"]["simulator_s"] == floor[0]["wall_s"]
-    assert _finite(rep["speed"]["nemsim_s"]) and rep["speed"]["nemsim_precision"] in ("fp32", "bf16")
+    best = next(r for r in models if r["fastest"])
+    assert rep["speed"]["nemsim_s"] == best["wall_s"] and rep["speed"]["nemsim_runtime"] == best["runtime"]
+    assert rep["speed"]["equal_accuracy"]["speedup"] == best["equal_accuracy"]["speedup_wall"]
     assert sum(r["fastest"] for r in models) == 1 and models[0]["keeps_error"] is True
     assert models[0]["params"] > 0
-    # the untrained model is far from the simulator; lower budgets are noisier, not better, than the floor
-    assert models[0]["avg_rmse"] > floor[0]["avg_rmse"]
+    # the untrained model is far from the simulator: worse than every budget, so the equal-accuracy time is
+    # the cheapest budget's, an upper bound
+    assert models[0]["avg_rmse"] > max(r["avg_rmse"] for r in sims)
+    cheapest = max(sims, key=lambda r: r["avg_rmse"])
+    assert models[0]["equal_accuracy"]["bound"] == "upper"
+    assert models[0]["equal_accuracy"]["simulator_wall_s"] == cheapest["wall_s"]
 
 
 def test_speed_error_table_and_plot(speed_error_out):
     md = (speed_error_out / "speed_error.md").read_text()
     assert "| method |" in md and "noise floor (two full-budget seeds)" in md
-    assert "**simulator, budget 1**" in md
-    for label in ("simulator, budget 1/4", "simulator, budget 1/16", "nemsim fp32", "nemsim bf16"):
+    assert "**simulator, budget 1**" in md and "speed-up at equal accuracy" in md and "batch 2" in md
+    for label in ("simulator, budget 1/2", "simulator, budget 1/8", "simulator, budget 1/16",
+                  *(f"nemsim {r}" for r in RUNTIMES)):  # fmt: skip
         assert label in md
+    assert "<=" in md  # the untrained model's equal-accuracy speed-up is a bound
     png = (speed_error_out / "speed_error.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+def test_equal_accuracy_interpolates_log_log():
+    from nemsim.evaluation.speed_error import equal_accuracy_time
+
+    # (Avg RMSE, seconds) of budgets 1, 1/4, 1/16; listed unsorted
+    pts = [(0.04, 1.0), (0.01, 4.0), (0.02, 2.0)]
+    # between 0.01 and 0.02: log t = log 4 + (log e - log 0.01) / (log 0.02 - log 0.01) * (log 2 - log 4);
+    # e = 0.01 * sqrt(2) is half-way in log: t = sqrt(4 * 2) = 2.828...
+    t, bound = equal_accuracy_time(pts, 0.01 * 2**0.5)
+    assert bound == "interpolated" and t == pytest.approx(8**0.5)
+    # e = 0.03: fraction log(1.5)/log(2) = 0.585 of the way from 2 s to 1 s: t = 2 * 0.5**0.585 = 1.3333
+    t, _ = equal_accuracy_time(pts, 0.03)
+    assert t == pytest.approx(2 * 0.5 ** (math.log(1.5) / math.log(2)), rel=1e-12)
+    assert t == pytest.approx(4 / 3)  # the points lie on t = 0.04 / e, which log-log interpolation keeps
+    assert equal_accuracy_time(pts, 0.02) == (pytest.approx(2.0), "interpolated")
+    # outside the measured errors: bounds, never extrapolated
+    assert equal_accuracy_time(pts, 0.005) == (4.0, "lower")
+    assert equal_accuracy_time(pts, 0.08) == (1.0, "upper")
+    assert equal_accuracy_time([], 0.02) == (None, "none")
+    assert equal_accuracy_time(pts, float("nan")) == (None, "none")
+
+
+def test_bad_runtime_is_one_line_exit_2(tmp_path, tiny_sim_data, capsys):
+    from nemsim.cli import main
+
+    rc = main(["bench", "speed-error", "--data", str(tiny_sim_data), "--runtimes", "onnx-f32",
+               "--out", str(tmp_path)])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "unknown runtime 'onnx-f32'" in err and "openvino-bf16" in err
+    assert len(err.splitlines()) == 1
+
+
+def test_default_out_is_not_the_committed_results():
+    from nemsim.cli import build_parser
+
+    args = build_parser().parse_args(["bench", "speed-error", "--data", "x.h5"])
+    assert args.out == "runs/speed_error" and args.batch == 16 and args.threads == 1
+    assert args.budgets == "1,0.5,0.25,0.125,0.0625"
 
 
 def test_collect_builds_results_json_and_readme(tmp_path, speed_error_out):

@@ -1,0 +1,180 @@
+"""``nemsim.evaluation.runtime``: the OpenVINO step graph against PyTorch eager on trained `tiny` weights,
+and the fallback to PyTorch.
+
+"Trained" here: the untrained model after a few Adam steps on a synthetic target, so every zero-initialized
+head (MRC amplitudes, ...) is non-zero and takes part in the comparison. Tolerances (normalized SDF units,
+whole trajectory): f32 max |Δ| <= 1e-4 (float rounding of a different kernel order; measured ~1e-6);
+bf16 max |Δ| <= 0.05 and RMS Δ <= 0.01 (bf16 has 8 mantissa bits; the rule side stays in fp32 because
+``precompute`` runs in PyTorch).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import pytest
+import torch
+from torch import nn
+
+from nemsim.evaluation import runtime
+from nemsim.evaluation.rollout import rollout
+from nemsim.evaluation.runtime import compile_model, openvino_available
+
+torch.set_num_threads(1)
+
+needs_openvino = pytest.mark.skipif(not openvino_available(), reason="openvino not installed (nemsim[fast])")
+
+STEPS = 6
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_scene):
+    """(model, x0 (2, 2, D, H, W), u (2, STEPS, 14)): NEMSim after 5 Adam steps; a recipe per case."""
+    from nemsim.evaluation.stress import initial_state
+    from nemsim.model.registry import build_model
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+
+    torch.manual_seed(0)
+    model = build_model("nemsim", tiny_scene, compile_rules(load_rules()))
+    zero = [n for n, p in model.named_parameters() if p.abs().max() == 0]
+    x0 = torch.as_tensor(initial_state(tiny_scene))[None].repeat(2, 1, 1, 1, 1)  # (2, 2, D, H, W)
+    g = torch.Generator().manual_seed(1)
+    target = (x0 + 0.05 * torch.randn(x0.shape, generator=g)).clamp(-1, 1)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    for _ in range(5):
+        u = torch.rand(2, 14, generator=g) * 2 - 1
+        loss = (model(x0, u) - target).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    assert zero and all(dict(model.named_parameters())[n].abs().max() > 0 for n in zero)
+    u = torch.rand(2, 1, 14, generator=g).repeat(1, STEPS, 1) * 2 - 1  # (2, STEPS, 14)
+    u[:, STEPS // 2 :] = torch.rand(2, 1, 14, generator=g) * 2 - 1  # the controls change mid-rollout
+    return model, x0, u
+
+
+@pytest.mark.slow
+@needs_openvino
+def test_openvino_f32_matches_pytorch(trained):
+    model, x0, u = trained
+    ref = rollout(model, x0, u)  # (2, STEPS+1, 2, D, H, W) PyTorch eager, the reference
+    pred = compile_model(model, "openvino", "f32", threads=1)
+    assert pred.backend == "openvino" and pred.fallback_reason is None
+    out = rollout(pred, x0, u)
+    assert out.shape == ref.shape and out.dtype == torch.float32
+    assert (out[:, 1:] - out[:, :1]).abs().max() > 1e-3  # the trajectory moves: the check is not vacuous
+    assert (out - ref).abs().max() <= 1e-4
+    # one compiled graph per (state shape, input shapes), reused across the steps and the control change
+    assert len(pred._compiled) == 1
+    # a kept trajectory is not overwritten by later steps (outputs are copied out of the request)
+    assert not torch.equal(out[:, 1], out[:, 2])
+    # concurrent rollouts (a server's threads) each get their own infer request from the pool
+    results: list[torch.Tensor] = []
+    threads = [threading.Thread(target=lambda: results.append(rollout(pred, x0, u))) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(results) == 3 and all(torch.equal(r, out) for r in results)
+    (idle,) = pred._idle.values()
+    assert 1 <= len(idle) <= 3  # as many requests as calls ran at once, all returned to the pool
+
+
+@pytest.mark.slow
+@needs_openvino
+def test_openvino_bf16_close_to_pytorch(trained):
+    model, x0, u = trained
+    ref = rollout(model, x0[:1], u[:1])
+    pred = compile_model(model, "openvino", "bf16")
+    with torch.inference_mode():  # how the service calls it: the graph is traced from inference tensors
+        out = rollout(pred, x0[:1], u[:1])
+    assert pred.backend == "openvino" and pred.precision == "bf16"
+    d = out - ref
+    assert d.abs().max() <= 0.05 and d.pow(2).mean().sqrt() <= 0.01
+
+
+def test_torch_backend_is_the_reference(trained):
+    model, x0, u = trained
+    ref = rollout(model, x0, u)
+    pred = compile_model(model, "torch", "f32")
+    assert pred.backend == "torch" and torch.equal(rollout(pred, x0, u), ref)
+    with torch.no_grad():  # the per-call form, too
+        assert torch.equal(pred(x0, u[:, 0]), model.step(x0, model.precompute(u[:, 0])))
+    bf = rollout(compile_model(model, "torch", "bf16"), x0, u)
+    assert 0 < (bf - ref).abs().max() <= 0.05  # autocast really ran in bf16
+
+
+def test_fallback_when_openvino_is_missing(trained, monkeypatch, caplog):
+    model, x0, u = trained
+    monkeypatch.setattr(runtime, "openvino_available", lambda: False)
+    with caplog.at_level(logging.WARNING, logger="nemsim.evaluation.runtime"):
+        pred = compile_model(model, "openvino", "f32")
+    assert pred.backend == "torch" and "not installed" in pred.fallback_reason
+    assert "not installed" in caplog.text
+    assert torch.equal(rollout(pred, x0, u), rollout(model, x0, u))
+
+
+@needs_openvino
+def test_fallback_when_the_export_fails(trained, monkeypatch, caplog):
+    model, x0, u = trained
+
+    def broken(self, *args, **kwargs):
+        raise RuntimeError("unsupported operation\nmore detail")
+
+    monkeypatch.setattr(runtime.OpenVINOPredictor, "_compile", broken)
+    pred = compile_model(model, "openvino", "f32")
+    with caplog.at_level(logging.WARNING, logger="nemsim.evaluation.runtime"):
+        out = rollout(pred, x0, u)
+    assert pred.backend == "torch"
+    assert pred.fallback_reason == "openvino export failed: RuntimeError: unsupported operation"
+    assert "unsupported operation" in caplog.text
+    assert torch.equal(out, rollout(model, x0, u))
+
+
+class _TwoStep(nn.Module):
+    """A k = 2 stand-in: predict(x, cache) -> (B, 2, ...) = (x + u0, x + 2 u0)."""
+
+    class config:  # noqa: N801 -- attribute access like a dataclass config
+        steps_per_call = 2
+
+    def precompute(self, u):
+        return {"u": u}
+
+    def predict(self, x, cache):
+        a = cache["u"][:, :1, None, None, None]  # (B, 1, 1, 1, 1)
+        return torch.stack([x + a, x + 2 * a], dim=1)  # (B, 2, 2, D, H, W)
+
+    def forward(self, x, u):
+        return self.predict(x, self.precompute(u))[:, 0]
+
+
+def test_multi_step_models_go_through_predict():
+    pred = compile_model(_TwoStep(), "torch")
+    x, u = torch.zeros(1, 2, 3, 3, 3), torch.ones(1, 14)
+    out = pred.predict(x, pred.precompute(u))
+    assert pred.k == 2 and out.shape == (1, 2, 2, 3, 3, 3) and out[0, 1].max() == 2
+    with pytest.raises(ValueError, match="steps_per_call"):
+        pred.step(x, pred.precompute(u))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [({"backend": "onnx"}, "unknown backend 'onnx'"), ({"precision": "fp16"}, "unknown precision 'fp16'"),
+     ({"threads": 0}, "threads must be >= 1")],  # fmt: skip
+)
+def test_bad_options_name_the_choices(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        compile_model(nn.Identity(), **kwargs)
+
+
+@pytest.mark.slow
+@needs_openvino
+def test_bench_rollout_has_openvino_variants(trained):
+    from nemsim.evaluation.bench import bench_rollout
+
+    model, x0, _ = trained
+    rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-f32"])
+    assert rep["variants"]["openvino-f32"]["max_abs_diff_vs_fp32"] <= 1e-4
