@@ -97,9 +97,13 @@ def collect_results(run_dirs: Sequence[str | Path], speed_error: str | Path | di
             "n_cases": len(rep.get("case_ids", [])),
             "setting": rep.get("setting"),
         }
-        out["speed"] = {k: rep["speed"].get(k) for k in ("simulator_s", "nemsim_s", "nemsim_precision")}
+        out["speed"] = {k: rep["speed"].get(k) for k in SPEED_KEYS}
         out["scene"] = rep.get("scene")
     return out
+
+
+SPEED_KEYS = ("simulator_s", "simulator_cpu_s", "nemsim_s", "nemsim_cpu_s", "nemsim_runtime", "nemsim_precision",
+              "speedup", "equal_accuracy")  # copied from a speed-error report into results.json
 
 
 def _f(v: Any, spec: str) -> str:

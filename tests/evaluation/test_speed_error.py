@@ -152,7 +152,7 @@ def test_default_out_is_not_the_committed_results():
     from nemsim.cli import build_parser
 
     args = build_parser().parse_args(["bench", "speed-error", "--data", "x.h5"])
-    assert args.out == "runs/speed_error" and args.batch == 16 and args.threads == 1
+    assert args.out == "runs/speed-error" and args.batch == 16 and args.threads == 1
     assert args.budgets == "1,0.5,0.25,0.125,0.0625"
 
 
@@ -184,6 +184,8 @@ def test_collect_builds_results_json_and_readme(tmp_path, speed_error_out):
     assert res["settings"]["control-id"]["nemsim"]["rollout_s"] == 0.2
     assert _finite(res["noise_floor"]["avg_rmse"]) and _finite(res["noise_floor"]["cd"])
     assert _finite(res["speed"]["simulator_s"]) and _finite(res["speed"]["nemsim_s"])
+    eq = res["speed"]["equal_accuracy"]  # DESIGN.md: the simulator's time at the surrogate's error, the ratio
+    assert set(eq) == {"simulator_s", "speedup", "bound"} and res["speed"]["nemsim_runtime"]
     text = readme.read_text()
     assert text.startswith("# Benchmarks\n\nhand-written intro") and "### control-id" in text
     assert text.index("| nemsim |") < text.index("| fno |")  # sorted by Avg RMSE
