@@ -515,16 +515,6 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     config = _sim_config(args.overrides)
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
-    args.host = args.host or os.environ.get("NEMSIM_HOST") or "127.0.0.1"
-    port = args.port if args.port is not None else os.environ.get("NEMSIM_PORT", "8000")
-    try:
-        args.port = int(port)
-        if not 0 < args.port < 65536:
-            raise ValueError
-    except ValueError:
-        raise UserError(
-            f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}"
-        ) from None
     if args.controls:
         if not os.path.isfile(args.controls):
             raise UserError(f"no such file: {args.controls}")
