@@ -452,6 +452,17 @@ class RolloutResponse(BaseModel):
     timings: Timings
 
 
+class SlicesResponse(BaseModel):
+    """Cross-sections through the hole axis of every state: bytes q = round((sdf + 1) * 127.5)."""
+
+    encoding: Literal["base64"] = "base64"
+    dtype: Literal["u1"] = "u1"
+    shape: list[int] = Field(description="(n_states, 2, D, W); channel 0 = mask, 1 = si; depth = z + 1")
+    voxel_nm: float
+    d_max_nm: float
+    data: str
+
+
 class ControlInfo(BaseModel):
     name: str
     unit: str
