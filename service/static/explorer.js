@@ -9,7 +9,7 @@ const state = {
   model: null, specs: [], inputs: {}, run: null, step: 0, slices: null, meshes: new Map(),
   fetchToken: 0, a: null, sim: null, playing: null, recipe: [],
 };
-window.explorer = state; // for tests and the console
+window.explorer = state; // for tests and the console (explorer.setStep(k) is set below)
 
 // --- API --------------------------------------------------------------------------------------------
 async function api(method, path, body) {
@@ -108,16 +108,21 @@ function init3d() {
   const camera = new THREE.PerspectiveCamera(35, canvas.width / canvas.height, 1, 50 * size.length());
   const centre = size.clone().multiplyScalar(0.5);
   camera.up.set(0, 0, 1);
-  camera.position.set(centre.x + 1.6 * size.z, centre.y - 1.9 * size.z, centre.z + 0.9 * size.z);
+  camera.position.set(centre.x + 0.8 * size.z, centre.y - 1.25 * size.z, centre.z + 0.55 * size.z);
   const controls = new OrbitControls(camera, canvas);
   controls.target.copy(centre); controls.update();
   scene.add(new THREE.AmbientLight(0xffffff, 0.55));
   const sun = new THREE.DirectionalLight(0xffffff, 1.6); sun.position.set(1, -2, 3); scene.add(sun);
   const back = new THREE.DirectionalLight(0xffffff, 0.5); back.position.set(-2, 1, -1); scene.add(back);
-  const mat = (c) => new THREE.MeshStandardMaterial({ color: c, roughness: 0.7, side: THREE.DoubleSide });
+  // cutaway: the half nearer the camera (y below the hole axis) is clipped away so the hole shows
+  const cut = new THREE.Plane(new THREE.Vector3(0, 1, 0), -(sc.ny * vx) / 2);
+  renderer.localClippingEnabled = true;
+  const clip = () => ($('cutaway').checked ? [cut] : []);
+  const mat = (c) => new THREE.MeshStandardMaterial({ color: c, roughness: 0.7, side: THREE.DoubleSide, clippingPlanes: clip() });
   const mask = new THREE.Mesh(new THREE.BufferGeometry(), mat(0x8a8f99));
   const si = new THREE.Mesh(new THREE.BufferGeometry(), mat(0xe0913c));
-  const err = new THREE.Mesh(new THREE.BufferGeometry(), new THREE.MeshStandardMaterial({ vertexColors: true, side: THREE.DoubleSide }));
+  const err = new THREE.Mesh(new THREE.BufferGeometry(), new THREE.MeshStandardMaterial({ vertexColors: true, side: THREE.DoubleSide, clippingPlanes: clip() }));
+  $('cutaway').addEventListener('change', () => { for (const m of [mask, si, err]) { m.material.clippingPlanes = clip(); m.material.needsUpdate = true; } render(); });
   err.visible = false;
   scene.add(mask, si, err);
   Object.assign(three, { renderer, scene, camera, controls, mask, si, err });
@@ -248,7 +253,7 @@ function drawChart() {
     const v = ymin + ((ymax - ymin) * i) / 4; ctx.fillText(v.toFixed(0), 4, Y(v) + 4);
     const t = (tmax * i) / 4; ctx.fillText(t.toFixed(1), X(t) - 8, c.height - 8);
   }
-  ctx.fillText('nm', 4, T + 10); ctx.fillText('time (s)', L + w - 40, c.height - 8);
+  ctx.fillText('nm', L + w + 8, T + h); ctx.fillText('time (s)', L + w + 22, c.height - 8);
   names.forEach((n, i) => {
     ctx.strokeStyle = COLORS[i % COLORS.length];
     for (const [s, dash] of series) {
@@ -435,6 +440,7 @@ async function start() {
   $('verify').addEventListener('click', verify);
   $('recipe-mode').addEventListener('change', (e) => { $('recipe').hidden = !e.target.checked; });
   $('add-phase').addEventListener('click', () => { state.recipe.push({ duration: 2.5, controls: readControls() }); renderRecipe(); });
+  state.setStep = setStep;
   document.body.dataset.ready = '1';
 }
 start();
