@@ -10,6 +10,7 @@ import anyio.to_thread
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 
+from nemsim.evaluation.truth import particle_work
 from nemsim.geometry.mesh import MEDIA_TYPES
 from service import extrapolation
 from service.deps import SettingsDep, SurrogateDep, busy, reject, single_valued_query
@@ -62,6 +63,16 @@ async def post_simulation(
         )  # (T, 14) physical units
     except extrapolation.Refused as exc:
         reject(("body", source), str(exc))
+    if body.steps > settings.max_steps:
+        reject(("body", "steps"), f"steps = {body.steps} exceeds this server's ceiling of {settings.max_steps}")
+    # simulated particles scale with the total flux: bound the work one job may ask for
+    work = particle_work([(row, 0) for row in schedule]) / horizon
+    if work > settings.sim_max_work:
+        reject(
+            ("body", source),
+            f"this simulation is {work:.3g}x the work of a design-centre run; this server simulates at most "
+            f"{settings.sim_max_work:g}x (lower the fluxes or the steps)",
+        )
     seed = body.seed
     try:
         job = jobs.submit("simulation", lambda j: simulate_and_compare(j, surrogate, schedule, seed))

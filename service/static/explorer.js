@@ -407,10 +407,10 @@ function showComparison(res) {
     const f = (x) => (x === null || x === undefined ? '–' : x.toFixed(1));
     html += `<tr><td>${n}</td><td>${f(s[s.length - 1])}</td><td>${f(m[m.length - 1])}</td><td>${f(d)}</td></tr>`;
   }
-  html += '</table><button id="show-err">Show simulator surface coloured by surrogate error</button>';
+  html += '</table><button id="show-err">Show the simulator\'s Si surface at this time, coloured by the surrogate\'s error</button>';
   const box = $('comparison'); box.innerHTML = html; box.dataset.done = '1';
   $('show-err').addEventListener('click', async () => {
-    const g = await fetchGeometry(res.mesh);
+    const g = await fetchGeometry(res.mesh.replace(/step=\d+/, `step=${Math.min(state.step, res.steps)}`));
     if (!g) return;
     three.err.geometry = g; three.err.visible = true; three.si.visible = false; render();
   });

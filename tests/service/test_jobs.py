@@ -122,3 +122,11 @@ def test_finished_jobs_are_forgotten_beyond_the_count():
         jobs.get(made[0].id)
     assert jobs.get(made[2].id).status == "done"
     jobs.close()
+
+
+def test_simulation_beyond_the_work_limit_is_refused(make_client, default_controls):
+    client = make_client(sim_max_work=2.0)
+    heavy = {**default_controls, "flux_cl": default_controls["flux_cl"] * 50}
+    r = client.post("/simulations", json={"controls": heavy, "steps": 50})
+    assert r.status_code == 422 and "work of a design-centre run" in r.json()["message"]
+    assert client.post("/simulations", json={"controls": default_controls, "steps": 1}).status_code == 202
