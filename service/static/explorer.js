@@ -358,10 +358,12 @@ function pinA() {
 function renderAB() {
   const box = $('ab'); box.hidden = !state.a;
   if (!state.a || !state.run) { drawChart(); return; }
-  const ca = state.a.recipe ? state.a.recipe[0] : state.a.controls, cb = state.run.recipe ? state.run.recipe[0] : state.run.controls;
-  const diff = state.specs.filter((s) => ca[s.name] !== cb[s.name]);
-  let html = '<table><tr><th>control (first transition)</th><th>A</th><th>current</th></tr>';
-  html += diff.map((s) => `<tr><td>${s.name}</td><td>${fmt(ca[s.name])}</td><td>${fmt(cb[s.name])}</td></tr>`).join('') || '<tr><td colspan=3>same controls</td></tr>';
+  // a control's values over the run, consecutive repeats merged (one value for constant controls)
+  const seq = (r, n) => (r.recipe ? r.recipe.map((c) => c[n]) : [r.controls[n]]).filter((v, i, a) => i === 0 || v !== a[i - 1]);
+  const show = (vals) => vals.map(fmt).join(' → ');
+  const diff = state.specs.filter((s) => show(seq(state.a, s.name)) !== show(seq(state.run, s.name)));
+  let html = '<table><tr><th>control (over time)</th><th>A</th><th>current</th></tr>';
+  html += diff.map((s) => `<tr><td>${s.name}</td><td>${show(seq(state.a, s.name))}</td><td>${show(seq(state.run, s.name))}</td></tr>`).join('') || '<tr><td colspan=3>same controls</td></tr>';
   html += '</table><table><tr><th>final (nm)</th><th>A</th><th>current</th><th>current − A</th></tr>';
   for (const n of Object.keys(state.run.metrics)) {
     const a = state.a.metrics[n][state.a.metrics[n].length - 1], b = state.run.metrics[n][state.run.metrics[n].length - 1];

@@ -103,6 +103,10 @@ def test_cancel_a_running_simulation(make_client, default_controls):
     client = make_client()
     loc = client.post("/simulations", json={"controls": default_controls, "steps": 100}).json()["location"]
     wait_status(client, loc, {"running"}, timeout_s=10)
+    deadline = time.monotonic() + 30
+    while client.get(loc).json()["progress"] == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert 0 < client.get(loc).json()["progress"] < 1  # the simulator reports its transitions
     r = client.delete(loc)
     assert r.status_code == 200
     assert wait_status(client, loc, {"cancelled", "done", "failed"}, timeout_s=20)["status"] == "cancelled"
@@ -130,3 +134,13 @@ def test_simulation_beyond_the_work_limit_is_refused(make_client, default_contro
     r = client.post("/simulations", json={"controls": heavy, "steps": 50})
     assert r.status_code == 422 and "work of a design-centre run" in r.json()["message"]
     assert client.post("/simulations", json={"controls": default_controls, "steps": 1}).status_code == 202
+
+
+def test_simulation_of_a_recipe(make_client, default_controls):
+    client = make_client()
+    other = {**default_controls, "energy_mean_cl_plus": 450.0}
+    r = client.post("/simulations", json={"recipe": [default_controls, other]})
+    assert r.status_code == 202, r.text
+    done = wait_status(client, r.json()["location"], {"done", "failed", "cancelled"})
+    assert done["status"] == "done", done
+    assert done["result"]["steps"] == 2 and len(done["result"]["rmse_per_step"]) == 3

@@ -166,3 +166,19 @@ def test_simulator_job_from_the_page_shows_the_comparison(page):
     text = page.inner_text("#comparison")
     assert "avg RMSE" in text and "etch_depth" in text
     assert page.is_visible("#rmse") and canvas_stats(page, "#rmse")[0] > 100
+    assert "simulator" in page.inner_text("#final-metrics")  # its curves join the chart and table
+
+
+def test_ab_and_recipe_mode(page):
+    run_and_wait(page)
+    page.click("#pin-a")
+    page.check("#recipe-mode")
+    page.click("#add-phase")
+    set_control(page, "energy_mean_cl_plus", 450)
+    page.click("#add-phase")
+    assert page.locator("#recipe-table tbody tr").count() == 2
+    run_and_wait(page, runs=2)
+    assert page.evaluate("() => window.explorer.run.recipe.length") == 50  # two phases of 2.5 s
+    ab = page.inner_text("#ab")
+    assert "energy_mean_cl_plus" in ab and "current − A" in ab
+    assert page.console_errors == []
