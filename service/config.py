@@ -140,7 +140,8 @@ class Settings(BaseSettings):
     )
     sim_workers: int = Field(default=1, ge=1, le=64, description="simulator jobs run at the same time")
     sim_queue: int = Field(
-        default=4, ge=0, le=1_000, description="simulator jobs waiting for a worker; more get 503 + Retry-After"
+        default=4, ge=0, le=1_000,
+        description="simulator jobs waiting for a worker; more get 503 + Retry-After",
     )
     sim_max_work: float = Field(
         default=20.0, gt=0, description="largest simulator job accepted, in runs of the design centre "

@@ -223,7 +223,12 @@ def _simulate_child(scene: Any, config: Any, schedule: np.ndarray, seed: int, ou
 
 
 def run_simulator(
-    job: Job, scene: Any, config: Any, schedule: np.ndarray, seed: int, share: float = 0.9,
+    job: Job,
+    scene: Any,
+    config: Any,
+    schedule: np.ndarray,
+    seed: int,
+    share: float = 0.9,
     poll_s: float = 0.05,
 ) -> np.ndarray:
     """Simulate `schedule` (T, 14) in a child process; progress 0..`share`. Returns (T+1, 2, D, H, W) f16."""

@@ -24,10 +24,10 @@ from nemsim import __version__
 from service import errors, openapi
 from service.access import AccessMiddleware
 from service.config import Settings, get_settings
+from service.jobs import JobQueue
 from service.loading import CheckpointError
 from service.metrics import Metrics
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
-from service.jobs import JobQueue
 from service.routes import health, jobs, mechanisms, operations, page, rollouts
 from service.scheduler import Gates
 from service.surrogate import Surrogate

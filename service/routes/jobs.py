@@ -6,7 +6,6 @@ from __future__ import annotations
 from typing import Annotated
 
 import anyio.to_thread
-
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 
@@ -64,7 +63,9 @@ async def post_simulation(
     except extrapolation.Refused as exc:
         reject(("body", source), str(exc))
     if body.steps > settings.max_steps:
-        reject(("body", "steps"), f"steps = {body.steps} exceeds this server's ceiling of {settings.max_steps}")
+        reject(
+            ("body", "steps"), f"steps = {body.steps} exceeds this server's ceiling of {settings.max_steps}"
+        )
     # simulated particles scale with the total flux: bound the work one job may ask for
     work = particle_work([(row, 0) for row in schedule]) / horizon
     if work > settings.sim_max_work:
@@ -125,9 +126,13 @@ async def get_job_mesh(
         reject(("query", "step"), f"step = {step} is beyond this job's last state ({last})")
     ch = 0 if channel == "mask" else 1
     meta = {"job_id": job_id, "step": step, "channel": channel, "colour": "surrogate signed distance, nm"}
-    data = await anyio.to_thread.run_sync(error_mesh, sim[step, ch], pred[step, ch], surrogate.scene, format, meta)
+    data = await anyio.to_thread.run_sync(
+        error_mesh, sim[step, ch], pred[step, ch], surrogate.scene, format, meta
+    )
     return Response(
         content=data,
         media_type=MEDIA_TYPES[format],
-        headers={"Content-Disposition": f'attachment; filename="nemsim_job_{job_id}_step{step}_{channel}.{format}"'},
+        headers={
+            "Content-Disposition": f'attachment; filename="nemsim_job_{job_id}_step{step}_{channel}.{format}"'
+        },
     )

@@ -15,7 +15,9 @@ import time
 import httpx
 import pytest
 
-sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install -e .[test])")
+sync_api = pytest.importorskip(
+    "playwright.sync_api", reason="playwright is not installed (pip install -e .[test])"
+)
 
 CHROMIUM = os.environ.get("NEMSIM_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = pytest.mark.skipif(
@@ -134,7 +136,10 @@ def test_time_slider_changes_the_view(page):
     run_and_wait(page)
     _, before3d = canvas_stats(page, "#canvas3d")
     _, before_sec = canvas_stats(page, "#section")
-    page.evaluate("() => { const s = document.getElementById('time'); s.value = 0; s.dispatchEvent(new Event('input')); }")
+    page.evaluate(
+        "() => { const s = document.getElementById('time'); s.value = 0;"
+        " s.dispatchEvent(new Event('input')); }"
+    )
     page.wait_for_function("() => window.explorer.step === 0")
     page.wait_for_timeout(500)  # the step-0 meshes arrive
     assert page.inner_text("#time-label").startswith("t = 0.0 s")
