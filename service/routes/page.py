@@ -1,4 +1,7 @@
-"""The process explorer page at `/` and its static files under `/static` (no build step, no CDN)."""
+"""The process explorer page at `/`, its static files under `/static` (no build step, no CDN), and the one
+endpoint only the page needs: `GET /rollouts/{id}/slices`, the cross-sections through the hole axis of every
+state of a cached rollout (bytes, so 101 states of `small` are ~0.5 MB of JSON: the time slider then redraws
+the section without asking the server again)."""
 
 from __future__ import annotations
 
