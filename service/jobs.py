@@ -39,6 +39,7 @@ from service.surrogate import ServiceBusy
 log = logging.getLogger(__name__)
 
 STATUSES = ("pending", "running", "done", "failed", "cancelled")
+KEEP_ARTIFACTS = 4  # finished jobs whose trajectories are kept for GET /jobs/{id}/mesh
 
 
 class JobCancelled(Exception):
@@ -190,6 +191,11 @@ class JobQueue:
         done = [j for j in self._jobs.values() if j.finished is not None]
         for j in done[: max(0, len(done) - self.keep_max)]:  # oldest first (insertion order)
             del self._jobs[j.id]
+        # trajectories are big (two float16 trajectories: ~40 MB per 100-step job on `small`): only the
+        # newest KEEP_ARTIFACTS finished jobs keep them (for their meshes); results stay
+        done = [j for j in self._jobs.values() if j.finished is not None]
+        for j in done[: max(0, len(done) - KEEP_ARTIFACTS)]:
+            j.artifacts.clear()
 
 
 # --- the simulator job ---------------------------------------------------------------------------------

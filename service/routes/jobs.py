@@ -103,6 +103,8 @@ async def delete_job(job_id: JobId, jobs: Annotated[JobQueue, Depends(get_jobs)]
     responses={
         200: {"content": {t: {} for t in sorted(set(MEDIA_TYPES.values()))}, "description": "the mesh file"},
         404: {"model": ErrorBody},
+        409: {"model": ErrorBody, "description": "the job is not done"},
+        410: {"model": ErrorBody, "description": "the job's trajectories are no longer kept"},
     },
     dependencies=[Depends(single_valued_query)],
 )
@@ -118,8 +120,14 @@ async def get_job_mesh(
     colours)."""
     job = _job(jobs, job_id)
     sim, pred = job.artifacts.get("sim"), job.artifacts.get("pred")
-    if job.status != "done" or sim is None or pred is None:
+    if job.status != "done":
         raise HTTPException(status_code=409, detail=f"job {job_id!r} is {job.status}: no mesh yet")
+    if sim is None or pred is None:
+        raise HTTPException(
+            status_code=410,
+            detail=f"the trajectories of job {job_id!r} are no longer kept (only the newest finished jobs' "
+            "are): submit the simulation again",
+        )
     last = len(sim) - 1
     step = last if step is None else step
     if step > last:

@@ -37,6 +37,8 @@ def test_simulation_job_compares_surrogate_with_simulator(make_client, default_c
     assert set(res["final_differences"]) >= {"etch_depth", "top_width", "bottom_width"}
     mesh = client.get(res["mesh"])
     assert mesh.status_code == 200 and mesh.content[:4] == b"glTF"
+    ply = client.get(res["mesh"].replace("format=glb", "format=ply"))
+    assert ply.status_code == 200 and b"property uchar red" in ply.content  # coloured by the error
 
 
 def test_unknown_job_is_404_with_the_error_shape(make_client):
@@ -107,6 +109,8 @@ def test_cancel_a_running_simulation(make_client, default_controls):
     while client.get(loc).json()["progress"] == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
     assert 0 < client.get(loc).json()["progress"] < 1  # the simulator reports its transitions
+    r = client.get(f"{loc}/mesh")
+    assert r.status_code == 409 and "no mesh yet" in r.json()["message"]
     r = client.delete(loc)
     assert r.status_code == 200
     assert wait_status(client, loc, {"cancelled", "done", "failed"}, timeout_s=20)["status"] == "cancelled"
@@ -144,3 +148,25 @@ def test_simulation_of_a_recipe(make_client, default_controls):
     done = wait_status(client, r.json()["location"], {"done", "failed", "cancelled"})
     assert done["status"] == "done", done
     assert done["result"]["steps"] == 2 and len(done["result"]["rmse_per_step"]) == 3
+
+
+def test_only_the_newest_finished_jobs_keep_their_trajectories():
+    from service.jobs import KEEP_ARTIFACTS
+
+    jobs = JobQueue(workers=1, max_queue=4, keep_max=KEEP_ARTIFACTS + 2)
+
+    def work(job):
+        job.artifacts["sim"] = object()
+        return {}
+
+    made = []
+    for _ in range(KEEP_ARTIFACTS + 1):
+        job = jobs.submit("t", work)
+        made.append(job)
+        deadline = time.monotonic() + 5
+        while job.status != "done" and time.monotonic() < deadline:
+            time.sleep(0.01)
+    jobs.get(made[-1].id)  # a lookup prunes
+    assert not made[0].artifacts and all(j.artifacts for j in made[1:])
+    assert jobs.get(made[0].id).status == "done"  # the result stays
+    jobs.close()
