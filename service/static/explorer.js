@@ -381,7 +381,7 @@ async function verify() {
   try {
     const { data } = await api('POST', '/simulations', body);
     $('job-status').textContent = `job ${data.id}: ${data.status}`;
-    state.job = data;
+    state.job = data; $('job-cancel').hidden = false;
     let job;
     for (;;) {
       job = (await api('GET', data.location)).data;
@@ -389,9 +389,12 @@ async function verify() {
       if (['done', 'failed', 'cancelled'].includes(job.status)) break;
       await new Promise((r) => setTimeout(r, 300));
     }
+    if (job.status === 'cancelled') { $('job-status').textContent = `job ${job.id}: cancelled`; return; }
     if (job.status !== 'done') { showError(`simulator job ${job.status}: ${job.message || ''}`); return; }
     showComparison(job.result);
-  } catch (e) { showError(e.message); } finally { $('verify').disabled = false; $('job-progress').hidden = true; }
+  } catch (e) { showError(e.message); } finally {
+    $('verify').disabled = false; $('job-progress').hidden = true; $('job-cancel').hidden = true;
+  }
 }
 function showComparison(res) {
   state.sim = { metrics: res.simulator_metrics, times_s: res.times_s, result: res };
@@ -440,6 +443,7 @@ async function start() {
   $('clear-a').addEventListener('click', () => { state.a = null; $('clear-a').disabled = true; $('ab-label').textContent = ''; renderAB(); });
   $('mech-run').addEventListener('click', mechanisms);
   $('verify').addEventListener('click', verify);
+  $('job-cancel').addEventListener('click', () => state.job && api('DELETE', state.job.location).catch((e) => showError(e.message)));
   $('recipe-mode').addEventListener('change', (e) => { $('recipe').hidden = !e.target.checked; });
   $('add-phase').addEventListener('click', () => { state.recipe.push({ duration: 2.5, controls: readControls() }); renderRecipe(); });
   state.setStep = setStep;

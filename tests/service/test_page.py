@@ -187,3 +187,14 @@ def test_ab_and_recipe_mode(page):
     ab = page.inner_text("#ab")
     assert "energy_mean_cl_plus" in ab and "current − A" in ab
     assert page.console_errors == []
+
+
+def test_a_simulator_job_can_be_cancelled_from_the_page(page):
+    run_and_wait(page)
+    page.click("#verify")
+    page.wait_for_selector("#job-cancel:not([hidden])", timeout=10_000)
+    page.click("#job-cancel")
+    page.wait_for_function(
+        "() => document.getElementById('job-status').textContent.endsWith('cancelled')", timeout=15_000
+    )
+    assert page.is_hidden("#error") and page.inner_text("#comparison") == ""
