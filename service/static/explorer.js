@@ -216,23 +216,29 @@ async function prefetch(run, token) {
 function drawSection(step) {
   const c = $('section'), ctx = c.getContext('2d');
   ctx.fillStyle = '#fff'; ctx.fillRect(0, 0, c.width, c.height);
-  const sl = state.slices; if (!sl) return;
-  const [, , D, W] = sl.shape, plane = D * W, base = step * 2 * plane;
-  const img = ctx.createImageData(W, D);
-  for (let z = 0; z < D; z++) for (let x = 0; x < W; x++) {
-    const m = sl.bytes[base + z * W + x] / 127.5 - 1, s = sl.bytes[base + plane + z * W + x] / 127.5 - 1;
-    const o = ((D - 1 - z) * W + x) * 4; // depth index grows upwards
-    let rgb = [238, 241, 245];
-    if (s < 0) rgb = [224, 145, 60]; else if (m < 0) rgb = [138, 143, 153];
-    const edge = Math.min(Math.abs(m), Math.abs(s)) < 0.08;
-    if (edge) rgb = [30, 36, 48];
-    img.data.set([...rgb, 255], o);
-  }
-  const tmp = document.createElement('canvas'); tmp.width = W; tmp.height = D;
-  tmp.getContext('2d').putImageData(img, 0, 0);
-  const scale = Math.min(c.width / W, c.height / D);
-  ctx.imageSmoothingEnabled = false;
-  ctx.drawImage(tmp, (c.width - W * scale) / 2, 0, W * scale, D * scale);
+  if (!state.slices) return;
+  // side by side with A when A is pinned (same time)
+  const panels = [[state.slices, 'current']];
+  if (state.a && state.a.slices) panels.push([state.a.slices, 'A']);
+  const pw = c.width / panels.length;
+  panels.forEach(([sl, label], p) => {
+    const [n, , D, W] = sl.shape, plane = D * W, base = Math.min(step, n - 1) * 2 * plane;
+    const img = ctx.createImageData(W, D);
+    for (let z = 0; z < D; z++) for (let x = 0; x < W; x++) {
+      const m = sl.bytes[base + z * W + x] / 127.5 - 1, s = sl.bytes[base + plane + z * W + x] / 127.5 - 1;
+      const o = ((D - 1 - z) * W + x) * 4; // depth index grows upwards
+      let rgb = [238, 241, 245];
+      if (s < 0) rgb = [224, 145, 60]; else if (m < 0) rgb = [138, 143, 153];
+      if (Math.min(Math.abs(m), Math.abs(s)) < 0.08) rgb = [30, 36, 48];
+      img.data.set([...rgb, 255], o);
+    }
+    const tmp = document.createElement('canvas'); tmp.width = W; tmp.height = D;
+    tmp.getContext('2d').putImageData(img, 0, 0);
+    const scale = Math.min((pw - 8) / W, (c.height - 16) / D);
+    ctx.imageSmoothingEnabled = false;
+    ctx.drawImage(tmp, p * pw + (pw - W * scale) / 2, 16, W * scale, D * scale);
+    if (panels.length > 1) { ctx.fillStyle = '#334'; ctx.font = '11px system-ui'; ctx.fillText(label, p * pw + 6, 12); }
+  });
 }
 
 // --- chart ------------------------------------------------------------------------------------------
@@ -351,13 +357,13 @@ async function mechanisms() {
 
 // --- A/B --------------------------------------------------------------------------------------------
 function pinA() {
-  state.a = { ...state.run, label: 'A' };
+  state.a = { ...state.run, label: 'A', slices: state.slices };
   $('clear-a').disabled = false; $('ab-label').textContent = 'A pinned: change the controls and Run to compare';
   renderAB();
 }
 function renderAB() {
   const box = $('ab'); box.hidden = !state.a;
-  if (!state.a || !state.run) { drawChart(); return; }
+  if (!state.a || !state.run) { drawChart(); if (state.run) drawSection(state.step); return; }
   // a control's values over the run, consecutive repeats merged (one value for constant controls)
   const seq = (r, n) => (r.recipe ? r.recipe.map((c) => c[n]) : [r.controls[n]]).filter((v, i, a) => i === 0 || v !== a[i - 1]);
   const show = (vals) => vals.map(fmt).join(' → ');
@@ -370,7 +376,7 @@ function renderAB() {
     html += `<tr><td>${n}</td><td>${a?.toFixed(1) ?? '–'}</td><td>${b?.toFixed(1) ?? '–'}</td><td>${a !== null && b !== null ? (b - a).toFixed(1) : '–'}</td></tr>`;
   }
   box.innerHTML = html + '</table>';
-  drawChart(); metricsTable();
+  drawChart(); metricsTable(); drawSection(state.step);
 }
 
 // --- simulator jobs ---------------------------------------------------------------------------------

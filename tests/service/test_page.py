@@ -176,7 +176,9 @@ def test_simulator_job_from_the_page_shows_the_comparison(page):
 
 def test_ab_and_recipe_mode(page):
     run_and_wait(page)
+    _, alone = canvas_stats(page, "#section")
     page.click("#pin-a")
+    assert canvas_stats(page, "#section")[1] != alone  # A's cross-section beside the current one
     page.check("#recipe-mode")
     page.click("#add-phase")
     set_control(page, "energy_mean_cl_plus", 450)
