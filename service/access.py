@@ -49,6 +49,16 @@ SECURITY_HEADERS = [
     (b"cross-origin-resource-policy", b"same-origin"),
 ]
 API_CSP = (b"content-security-policy", b"default-src 'none'; frame-ancestors 'none'")
+# the explorer page (/ and /static/): its own scripts, styles and API only; nothing inline, nothing remote
+PAGE_CSP = (
+    b"content-security-policy",
+    b"default-src 'self'; img-src 'self' data: blob:; object-src 'none'; base-uri 'none'; "
+    b"form-action 'none'; frame-ancestors 'none'",
+)
+
+
+def is_page(path: str) -> bool:
+    return path == "/" or path.startswith("/static/")
 
 
 def key_id(key: str) -> str:
@@ -148,7 +158,10 @@ class AccessMiddleware:
         path = scope.get("path", "")
         status, size = 500, 0
         extra = [(b"x-request-id", rid.encode()), *SECURITY_HEADERS]
-        if path not in DOCS_PATHS:
+        if is_page(path):
+            extra.append(PAGE_CSP)
+            extra.append((b"cache-control", b"no-cache"))
+        elif path not in DOCS_PATHS:
             extra.append(API_CSP)
             extra.append((b"cache-control", b"no-store"))
 

@@ -138,6 +138,19 @@ class Settings(BaseSettings):
         description="stop the process (non-zero exit) when the checkpoint can never load; `nemsim serve` "
         "turns this on",
     )
+    sim_workers: int = Field(default=1, ge=1, le=64, description="simulator jobs run at the same time")
+    sim_queue: int = Field(
+        default=4, ge=0, le=1_000,
+        description="simulator jobs waiting for a worker; more get 503 + Retry-After",
+    )
+    sim_max_work: float = Field(
+        default=20.0, gt=0, description="largest simulator job accepted, in runs of the design centre "
+        "(simulated particles scale with the total flux and the steps; 422 beyond it)",
+    )
+    jobs_keep_s: float = Field(default=3_600.0, gt=0, description="finished jobs are forgotten after this")
+    jobs_keep_max: int = Field(
+        default=16, ge=1, le=10_000, description="finished jobs kept (oldest forgotten first)"
+    )
 
     @field_validator("checkpoint", mode="before")
     @classmethod

@@ -24,10 +24,11 @@ from nemsim import __version__
 from service import errors, openapi
 from service.access import AccessMiddleware
 from service.config import Settings, get_settings
+from service.jobs import JobQueue
 from service.loading import CheckpointError
 from service.metrics import Metrics
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
-from service.routes import health, mechanisms, operations, rollouts
+from service.routes import health, jobs, mechanisms, operations, page, rollouts
 from service.scheduler import Gates
 from service.surrogate import Surrogate
 
@@ -111,6 +112,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
             daemon=True,
         ).start()
     yield
+    app.state.jobs.close()
 
 
 def create_app(settings: Settings | None = None, surrogate: Surrogate | None = None) -> FastAPI:
@@ -130,6 +132,9 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     app.state.settings = settings
     app.state.service = ServiceState()
     app.state.gates = Gates.from_settings(settings)
+    app.state.jobs = JobQueue(
+        settings.sim_workers, settings.sim_queue, settings.jobs_keep_s, settings.jobs_keep_max
+    )
     app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
     if surrogate is not None:
         app.state.service.surrogate, app.state.service.status = surrogate, "ready"
@@ -144,4 +149,6 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     app.include_router(rollouts.router)
     app.include_router(mechanisms.router)
     app.include_router(operations.router)
+    app.include_router(jobs.router)
+    page.install(app)
     return app

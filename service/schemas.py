@@ -251,7 +251,7 @@ NormalizedVector = Annotated[
 def _request_schema_extra(schema: dict[str, Any]) -> None:
     """An example, and "exactly one of controls, controls_normalized, recipe" (null counts as absent)."""
     schema["examples"] = [
-        {"controls": array_to_controls(default_controls_raw()), "steps": 100, "fields": "none"}
+        {"controls": array_to_controls(default_controls_raw()), "steps": 100}
     ]
     schema["oneOf"] = [
         {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
@@ -259,8 +259,9 @@ def _request_schema_extra(schema: dict[str, Any]) -> None:
     ]
 
 
-class RolloutRequest(BaseModel):
-    """Give exactly one of `controls` (physical units), `controls_normalized` or `recipe`."""
+class ControlSource(BaseModel):
+    """The controls of a run: exactly one of `controls` (physical units), `controls_normalized` or `recipe`,
+    and `steps`. Shared by rollouts and simulator jobs, so both validate their controls the same way."""
 
     model_config = ConfigDict(
         extra="forbid",
@@ -285,17 +286,9 @@ class RolloutRequest(BaseModel):
         description=f"transitions of 0.1 s to predict; 1..{DEFAULT_STEPS} by default (server ceiling "
         f"NEMSIM_MAX_STEPS); default {DEFAULT_STEPS}, or the recipe length",
     )
-    fields: FieldsMode = Field(
-        "none", description="SDF fields to return: none, the final state, or all states (float16, base64)"
-    )
-    meshes: list[MeshSpec] = Field(
-        default_factory=list,
-        max_length=64,
-        description="surface meshes to return inline (server limit applies)",
-    )
 
     @model_validator(mode="after")
-    def _one_source(self) -> RolloutRequest:
+    def _one_source(self) -> ControlSource:
         given = [n for n in ("controls", "controls_normalized", "recipe") if getattr(self, n) is not None]
         if len(given) != 1:
             raise ValueError(
@@ -324,11 +317,6 @@ class RolloutRequest(BaseModel):
                     )
         else:
             check_scale(self._rows_raw(), "")
-        for k, mesh in enumerate(self.meshes):
-            if mesh.step > self.steps:
-                raise ValueError(
-                    f"meshes[{k}].step = {mesh.step} is beyond the last state (steps = {self.steps})"
-                )
         return self
 
     def _rows_raw(self) -> np.ndarray:
@@ -344,6 +332,54 @@ class RolloutRequest(BaseModel):
         assert self.steps is not None  # set by the validator
         rows = self._rows_raw()
         return rows if self.recipe is not None else np.repeat(rows, self.steps, axis=0)
+
+
+class RolloutRequest(ControlSource):
+    """Give exactly one of `controls` (physical units), `controls_normalized` or `recipe`."""
+
+    fields: FieldsMode = Field(
+        "none", description="SDF fields to return: none, the final state, or all states (float16, base64)"
+    )
+    meshes: list[MeshSpec] = Field(
+        default_factory=list,
+        max_length=64,
+        description="surface meshes to return inline (server limit applies)",
+    )
+
+    @model_validator(mode="after")
+    def _meshes_in_range(self) -> RolloutRequest:
+        assert self.steps is not None  # resolved by ControlSource._one_source
+        for k, mesh in enumerate(self.meshes):
+            if mesh.step > self.steps:
+                raise ValueError(
+                    f"meshes[{k}].step = {mesh.step} is beyond the last state (steps = {self.steps})"
+                )
+        return self
+
+
+class SimulationRequest(ControlSource):
+    """A simulator run of the loaded checkpoint's scene for the same controls a rollout takes."""
+
+    seed: Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(_json_integer)] = Field(
+        1, description="simulator seed (np.random.default_rng(seed)); the same seed gives the same run"
+    )
+
+
+class JobCreated(BaseModel):
+    id: str
+    kind: str
+    status: str
+    location: str = Field(description="GET this for the job's status and result")
+
+
+class JobStatus(BaseModel):
+    id: str
+    kind: str
+    status: Literal["pending", "running", "done", "failed", "cancelled"]
+    progress: float = Field(ge=0.0, le=1.0)
+    created: float = Field(description="creation time, seconds since the epoch")
+    result: dict[str, Any] | None = Field(None, description="present when done")
+    message: str | None = Field(None, description="why the job failed (one line)")
 
 
 # --- responses -------------------------------------------------------------------------------------
@@ -416,6 +452,17 @@ class RolloutResponse(BaseModel):
     timings: Timings
 
 
+class SlicesResponse(BaseModel):
+    """Cross-sections through the hole axis of every state: bytes q = round((sdf + 1) * 127.5)."""
+
+    encoding: Literal["base64"] = "base64"
+    dtype: Literal["u1"] = "u1"
+    shape: list[int] = Field(description="(n_states, 2, D, W); channel 0 = mask, 1 = si; depth = z + 1")
+    voxel_nm: float
+    d_max_nm: float
+    data: str
+
+
 class ControlInfo(BaseModel):
     name: str
     unit: str
@@ -424,6 +471,9 @@ class ControlInfo(BaseModel):
     max: float | None = Field(description="physically admissible maximum (null: unbounded)")
     train_min: float
     train_max: float
+    label: str = Field("", description="symbol")
+    description: str = Field("", description="what the control means (one line)")
+    default: float | None = Field(None, description="the documented default (centre of the design range)")
 
 
 class ModelInfo(BaseModel):

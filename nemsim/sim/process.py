@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,6 +109,7 @@ def run_trajectory(
     *,
     tables: EventTables | None = None,
     n_transitions: int | None = None,
+    on_transition: Callable[[int, int], None] | None = None,
 ) -> TrajectoryResult:
     """Simulate one trajectory (module docstring).
 
@@ -117,6 +119,7 @@ def run_trajectory(
       rng: generator the per-macro-step kernel seeds are drawn from. config: simulator constants.
       tables: prebuilt ``build_event_tables(rules, config)`` (saves a few ms per call).
       n_transitions: stop after this many transitions (default: the scene's horizon, 100).
+      on_transition: called as ``on_transition(done, total)`` after each transition (progress reports).
     Returns: ``TrajectoryResult`` with states (n + 1, 2, D, H, W) float32.
     """
     t0 = time.perf_counter()
@@ -166,6 +169,8 @@ def run_trajectory(
                 cfg.excess_probability_yield,
             )  # fmt: skip
         states[t + 1] = psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
+        if on_transition is not None:
+            on_transition(t + 1, n_tr)
     wall = time.perf_counter() - t0
     result = TrajectoryResult(
         states=states,

@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 
 from nemsim.controls import CONTROL_SPECS
 from service.deps import SettingsDep, SurrogateDep
-from service.schemas import ControlInfo, Health, ModelInfo, jsonable
+from service.schemas import ControlInfo, Health, ModelInfo, default_controls_raw, jsonable
 
 router = APIRouter(tags=["health"])
 
@@ -72,8 +72,11 @@ async def get_model(surrogate: SurrogateDep, settings: SettingsDep) -> ModelInfo
             max=s.phys_max if math.isfinite(s.phys_max) else None,
             train_min=surrogate.train_range[s.name][0],
             train_max=surrogate.train_range[s.name][1],
+            label=s.label,
+            description=s.description,
+            default=float(default),
         )
-        for s in CONTROL_SPECS
+        for s, default in zip(CONTROL_SPECS, default_controls_raw(), strict=True)
     ]
     scene = jsonable(vars(surrogate.scene))
     scene["state_shape"] = list(surrogate.scene.state_shape)

@@ -1,0 +1,344 @@
+"""Background jobs (simulator runs) with progress, cancellation, a bounded queue and bounded retention.
+
+`JobQueue` runs submitted work on `workers` threads (default one: a simulation takes a core), keeps at
+most `max_queue` jobs waiting (more: `ServiceBusy`, answered 503 + Retry-After) and forgets finished jobs
+after `keep_s` seconds or beyond the newest `keep_max`. A job's work is a function `work(job)` that
+reports `job.progress` and checks `job.cancelled`; it returns the JSON result.
+
+The simulator job (`simulate_and_compare`) runs the Monte Carlo simulator in a child process (spawned,
+not forked: the server holds threads and torch), so cancelling terminates it at once and a crash of the
+numerical code cannot take the server down. The child reports transitions done through a shared counter
+(the simulator's `on_transition` hook). The comparison uses the helpers of `nemsim.evaluation.truth`
+(per-step RMSE in normalized SDF units) and the profile metrics of both trajectories.
+
+Choices: one seed per job (given, default 1), not the seed pair of the benchmarks: a job answers "how far
+is the surrogate from one simulator run", the page shows the per-step RMSE and the metric differences
+beside it. The error mesh is the simulator's surface coloured by the surrogate's SDF sampled on it (the
+surrogate's signed distance from the simulated surface, in nm): blue where the surrogate's surface lies
+outside, red inside, white on it.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import secrets
+import tempfile
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.surrogate import ServiceBusy
+
+log = logging.getLogger(__name__)
+
+STATUSES = ("pending", "running", "done", "failed", "cancelled")
+KEEP_ARTIFACTS = 4  # finished jobs whose trajectories are kept for GET /jobs/{id}/mesh
+
+
+class JobCancelled(Exception):
+    """The job was cancelled while running."""
+
+
+class UnknownJob(KeyError):
+    """No job has this id (never created, or forgotten)."""
+
+
+@dataclass
+class Job:
+    id: str
+    kind: str
+    work: Callable[[Job], dict[str, Any]] = field(repr=False)
+    created: float = field(default_factory=time.time)
+    status: str = "pending"
+    progress: float = 0.0
+    result: dict[str, Any] | None = None
+    message: str | None = None
+    finished: float | None = None
+    cancel_event: threading.Event = field(default_factory=threading.Event, repr=False)
+    artifacts: dict[str, Any] = field(default_factory=dict, repr=False)  # e.g. trajectories for meshes
+
+    @property
+    def cancelled(self) -> bool:
+        return self.cancel_event.is_set()
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "kind": self.kind,
+            "status": self.status,
+            "progress": round(float(self.progress), 4),
+            "created": self.created,
+            "result": self.result if self.status == "done" else None,
+            "message": self.message,
+        }
+
+
+class JobQueue:
+    """Thread-safe job store and runner (module docstring)."""
+
+    def __init__(self, workers: int = 1, max_queue: int = 4, keep_s: float = 3600.0, keep_max: int = 16):
+        if workers < 1 or max_queue < 0 or keep_s <= 0 or keep_max < 1:
+            raise ValueError(
+                f"need workers >= 1, max_queue >= 0, keep_s > 0, keep_max >= 1; got {workers}, "
+                f"{max_queue}, {keep_s}, {keep_max}"
+            )
+        self.workers, self.max_queue, self.keep_s, self.keep_max = workers, max_queue, keep_s, keep_max
+        self._jobs: OrderedDict[str, Job] = OrderedDict()
+        self._pending: list[Job] = []
+        self._lock = threading.Condition()
+        self._threads: list[threading.Thread] = []
+        self._closed = False
+
+    def submit(self, kind: str, work: Callable[[Job], dict[str, Any]]) -> Job:
+        """Queue `work`; ServiceBusy when `max_queue` jobs are already waiting."""
+        with self._lock:
+            self._prune()
+            running = sum(j.status == "running" for j in self._jobs.values())
+            if len(self._pending) >= self.max_queue and running + len(self._pending) >= self.workers:
+                raise ServiceBusy(
+                    f"{len(self._pending)} {kind} jobs are waiting (the limit is {self.max_queue}): "
+                    "retry later"
+                )
+            job = Job(id=secrets.token_hex(8), kind=kind, work=work)
+            self._jobs[job.id] = job
+            self._pending.append(job)
+            self._start_workers()
+            self._lock.notify()
+            return job
+
+    def get(self, job_id: str) -> Job:
+        with self._lock:
+            self._prune()
+            try:
+                return self._jobs[job_id]
+            except KeyError:
+                raise UnknownJob(job_id) from None
+
+    def cancel(self, job_id: str) -> Job:
+        """Cancel a pending or running job (a finished one is left as it is)."""
+        with self._lock:
+            job = self.get(job_id)
+            if job.status == "pending":
+                self._pending.remove(job)
+                self._finish(job, "cancelled", message="cancelled before it started")
+            elif job.status == "running":
+                job.cancel_event.set()  # the work stops at its next check; the worker marks it cancelled
+            return job
+
+    def close(self) -> None:
+        """Cancel everything and stop the workers (tests, shutdown)."""
+        with self._lock:
+            self._closed = True
+            for job in list(self._pending):
+                self._finish(job, "cancelled", message="the server stopped")
+            self._pending.clear()
+            for job in self._jobs.values():
+                job.cancel_event.set()
+            self._lock.notify_all()
+
+    # --- internals --------------------------------------------------------------------------------
+    def _start_workers(self) -> None:
+        self._threads = [t for t in self._threads if t.is_alive()]
+        while len(self._threads) < self.workers:
+            t = threading.Thread(target=self._worker, name=f"nemsim-job-{len(self._threads)}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def _worker(self) -> None:
+        while True:
+            with self._lock:
+                while not self._pending and not self._closed:
+                    self._lock.wait()
+                if self._closed:
+                    return
+                job = self._pending.pop(0)
+                job.status = "running"
+            try:
+                result = job.work(job)
+            except JobCancelled:
+                with self._lock:
+                    self._finish(job, "cancelled", message="cancelled while running")
+            except Exception as exc:  # noqa: BLE001 -- reported on the job (one line), logged in full
+                log.exception("job %s (%s) failed", job.id, job.kind)
+                with self._lock:
+                    self._finish(job, "failed", message=str(exc) or type(exc).__name__)
+            else:
+                with self._lock:
+                    if job.cancelled:
+                        self._finish(job, "cancelled", message="cancelled while running")
+                    else:
+                        job.result, job.progress = result, 1.0
+                        self._finish(job, "done")
+
+    def _finish(self, job: Job, status: str, message: str | None = None) -> None:
+        job.status, job.message, job.finished = status, message, time.time()
+        if status != "done":
+            job.artifacts.clear()
+
+    def _prune(self) -> None:
+        now = time.time()
+        done = [j for j in self._jobs.values() if j.finished is not None]
+        for j in done:
+            if now - j.finished > self.keep_s:  # type: ignore[operator]
+                del self._jobs[j.id]
+        done = [j for j in self._jobs.values() if j.finished is not None]
+        for j in done[: max(0, len(done) - self.keep_max)]:  # oldest first (insertion order)
+            del self._jobs[j.id]
+        # trajectories are big (two float16 trajectories: ~40 MB per 100-step job on `small`): only the
+        # newest KEEP_ARTIFACTS finished jobs keep them (for their meshes); results stay
+        done = [j for j in self._jobs.values() if j.finished is not None]
+        for j in done[: max(0, len(done) - KEEP_ARTIFACTS)]:
+            j.artifacts.clear()
+
+
+# --- the simulator job ---------------------------------------------------------------------------------
+
+
+def _simulate_child(scene: Any, config: Any, schedule: np.ndarray, seed: int, out: str, done: Any) -> None:
+    """Child process body: simulate, save the states to `out`, count transitions in `done`."""
+    import os
+
+    for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+    from nemsim.sim import run_trajectory
+
+    def report(k: int, _total: int) -> None:
+        done.value = k
+
+    try:
+        rules = compile_rules(load_rules())
+        # the simulator takes a full-horizon recipe; transitions past `steps` are never run
+        full = np.concatenate([schedule, np.repeat(schedule[-1:], scene.n_transitions - len(schedule), 0)])
+        res = run_trajectory(
+            scene, rules, full, np.random.default_rng(seed), config,
+            n_transitions=len(schedule), on_transition=report,
+        )  # fmt: skip
+    except Exception as exc:  # noqa: BLE001 -- the parent reports it on the job
+        Path(out + ".error").write_text(f"{type(exc).__name__}: {exc}")
+        raise
+    np.save(out, res.states.astype(np.float16))
+
+
+def run_simulator(
+    job: Job,
+    scene: Any,
+    config: Any,
+    schedule: np.ndarray,
+    seed: int,
+    share: float = 0.9,
+    poll_s: float = 0.05,
+) -> np.ndarray:
+    """Simulate `schedule` (T, 14) in a child process; progress 0..`share`. Returns (T+1, 2, D, H, W) f16."""
+    ctx = mp.get_context("spawn")
+    done = ctx.Value("i", 0)
+    steps = len(schedule)
+    with tempfile.TemporaryDirectory(prefix="nemsim-job-") as tmp:
+        out = str(Path(tmp) / "states.npy")
+        proc = ctx.Process(
+            target=_simulate_child, args=(scene, config, schedule, seed, out, done), daemon=True
+        )
+        proc.start()
+        try:
+            while proc.is_alive():
+                if job.cancelled:
+                    raise JobCancelled
+                job.progress = share * done.value / steps
+                proc.join(poll_s)
+        finally:
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(5)
+        if job.cancelled:
+            raise JobCancelled
+        if proc.exitcode != 0:
+            err = Path(out + ".error")
+            why = err.read_text() if err.is_file() else f"exit code {proc.exitcode}"
+            raise RuntimeError(f"the simulator failed: {why}")
+        return np.load(out)
+
+
+def compare(sim: np.ndarray, pred: np.ndarray, scene: Any) -> dict[str, Any]:
+    """Surrogate trajectory `pred` against the simulator's `sim` (both (T+1, 2, D, H, W)); JSON-ready."""
+    from nemsim.evaluation.truth import step_rmse
+    from nemsim.geometry.profile import profile_metrics_batch
+
+    sim32, pred32 = sim.astype(np.float32), pred.astype(np.float32)
+    rmse = step_rmse(pred32, sim32)  # (T+1,)
+    m_sim = profile_metrics_batch(sim32, scene)
+    m_pred = profile_metrics_batch(pred32, scene)
+
+    def clean(values: Any) -> list[float | None]:
+        return [float(v) if np.isfinite(v) else None for v in np.asarray(values, dtype=np.float64)]
+
+    diff = {k: clean(np.asarray(m_pred[k]) - np.asarray(m_sim[k])) for k in m_sim}
+    return {
+        "rmse_per_step": clean(rmse),
+        "avg_rmse": float(rmse[1:].mean()) if len(rmse) > 1 else 0.0,
+        "simulator_metrics": {k: clean(v) for k, v in m_sim.items()},
+        "surrogate_metrics": {k: clean(v) for k, v in m_pred.items()},
+        "metric_differences": diff,  # surrogate - simulator, nm, per state
+        "final_differences": {k: v[-1] for k, v in diff.items()},
+        "rmse_units": "normalized SDF (SDF / d_max)",
+        "metric_units": "nm",
+    }
+
+
+def error_mesh(sim_field: np.ndarray, pred_field: np.ndarray, scene: Any, fmt: str, meta: dict) -> bytes:
+    """The simulator's zero surface of one channel coloured by the surrogate's signed distance from it.
+
+    sim_field, pred_field: (D, H, W) normalized SDF. Vertex colours: white at 0, red where the surrogate
+    says "inside material" (negative), blue "outside", saturated at one voxel."""
+    from scipy.ndimage import map_coordinates
+
+    from nemsim.geometry.mesh import export_mesh, surface_mesh
+
+    mesh = surface_mesh(sim_field.astype(np.float32), scene, meta)
+    if len(mesh.vertices):
+        zyx = (np.asarray(mesh.vertices)[:, ::-1] / scene.voxel_nm + 0.5).T  # (3, V) padded voxel index
+        err = map_coordinates(pred_field.astype(np.float32), zyx, order=1, mode="nearest")  # (V,)
+        err_nm = err * float(scene.d_max_nm)
+        t = np.clip(err_nm / scene.voxel_nm, -1.0, 1.0)  # (V,)
+        rgb = np.ones((len(t), 3))
+        rgb[:, 0] -= np.clip(t, 0, 1)  # outside: less red
+        rgb[:, 1] -= np.abs(t)
+        rgb[:, 2] -= np.clip(-t, 0, 1)  # inside: less blue
+        colours = np.concatenate([rgb, np.ones((len(t), 1))], axis=1)
+        mesh.visual.vertex_colors = (255 * colours).astype(np.uint8)
+        mesh.metadata["max_abs_error_nm"] = float(np.abs(err_nm).max())
+    return export_mesh(mesh, fmt)
+
+
+def simulate_and_compare(job: Job, surrogate: Any, schedule: np.ndarray, seed: int) -> dict[str, Any]:
+    """The work of a simulator job: simulate, roll the surrogate out on the same schedule, compare."""
+    from service.surrogate import checkpoint_sim_config
+
+    config, _ = checkpoint_sim_config(surrogate.loaded.raw or {})
+    t0 = time.perf_counter()
+    sim = run_simulator(job, surrogate.scene, config, schedule, seed)
+    sim_s = time.perf_counter() - t0
+    result, _ = surrogate.rollout(schedule)
+    if job.cancelled:
+        raise JobCancelled
+    job.progress = 0.95
+    out = compare(sim, result.states, surrogate.scene)
+    job.artifacts.update(sim=sim, pred=result.states)
+    steps = len(schedule)
+    out.update(
+        model_id=surrogate.model_id,
+        rollout_id=result.id,
+        seed=int(seed),
+        steps=steps,
+        times_s=result.times_s,
+        simulator_s=round(sim_s, 3),
+        mesh=f"/jobs/{job.id}/mesh?step={steps}&channel=si&format=glb",
+    )
+    return out

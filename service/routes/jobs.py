@@ -1,0 +1,146 @@
+"""Simulator jobs: `POST /simulations` (202 + Location), `GET /jobs/{id}`, `DELETE /jobs/{id}`, and the
+surrogate-error mesh of a finished simulator job."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import anyio.to_thread
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
+from fastapi.responses import JSONResponse, Response
+
+from nemsim.evaluation.truth import particle_work
+from nemsim.geometry.mesh import MEDIA_TYPES
+from service import extrapolation
+from service.deps import SettingsDep, SurrogateDep, busy, reject, single_valued_query
+from service.jobs import Job, JobQueue, UnknownJob, error_mesh, simulate_and_compare
+from service.openapi import ErrorBody
+from service.schemas import Channel, JobCreated, JobStatus, MeshFormat, SimulationRequest
+from service.surrogate import ServiceBusy
+
+router = APIRouter(tags=["jobs"])
+
+JobId = Annotated[str, Path(max_length=64)]
+
+
+def get_jobs(request: Request) -> JobQueue:
+    return request.app.state.jobs
+
+
+def _job(jobs: JobQueue, job_id: str) -> Job:
+    try:
+        return jobs.get(job_id)
+    except UnknownJob:
+        raise HTTPException(
+            status_code=404,
+            detail=f"unknown job id {job_id!r} (never created here, or finished long enough ago to be "
+            "forgotten)",
+        ) from None
+
+
+@router.post(
+    "/simulations",
+    status_code=202,
+    response_model=JobCreated,
+    responses={503: {"model": ErrorBody, "description": "the simulator queue is full (Retry-After)"}},
+)
+async def post_simulation(
+    body: SimulationRequest,
+    surrogate: SurrogateDep,
+    settings: SettingsDep,
+    jobs: Annotated[JobQueue, Depends(get_jobs)],
+) -> JSONResponse:
+    """Run the simulator on the checkpoint's scene for these controls and compare the surrogate with it."""
+    assert body.steps is not None  # resolved by the validator
+    horizon = surrogate.horizon_steps
+    if body.steps > horizon:
+        reject(("body", "steps"), f"steps = {body.steps} exceeds the simulator's horizon of {horizon}")
+    source = next(n for n in ("controls", "controls_normalized", "recipe") if getattr(body, n) is not None)
+    try:
+        schedule, _, _, _ = extrapolation.apply(
+            body.schedule_raw(), surrogate.train_range, settings.extrapolation
+        )  # (T, 14) physical units
+    except extrapolation.Refused as exc:
+        reject(("body", source), str(exc))
+    if body.steps > settings.max_steps:
+        reject(
+            ("body", "steps"), f"steps = {body.steps} exceeds this server's ceiling of {settings.max_steps}"
+        )
+    # simulated particles scale with the total flux: bound the work one job may ask for
+    work = particle_work([(row, 0) for row in schedule]) / horizon
+    if work > settings.sim_max_work:
+        reject(
+            ("body", source),
+            f"this simulation is {work:.3g}x the work of a design-centre run; this server simulates at most "
+            f"{settings.sim_max_work:g}x (lower the fluxes or the steps)",
+        )
+    seed = body.seed
+    try:
+        job = jobs.submit("simulation", lambda j: simulate_and_compare(j, surrogate, schedule, seed))
+    except ServiceBusy as exc:
+        busy(exc)
+    location = f"/jobs/{job.id}"
+    created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location)
+    return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})
+
+
+@router.get("/jobs/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
+async def get_job(job_id: JobId, jobs: Annotated[JobQueue, Depends(get_jobs)]) -> JobStatus:
+    """Status, progress in [0, 1] and, when done, the result."""
+    return JobStatus(**_job(jobs, job_id).as_dict())
+
+
+@router.delete("/jobs/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
+async def delete_job(job_id: JobId, jobs: Annotated[JobQueue, Depends(get_jobs)]) -> JobStatus:
+    """Cancel a pending or running job (its status becomes `cancelled` once it stopped)."""
+    _job(jobs, job_id)
+    return JobStatus(**jobs.cancel(job_id).as_dict())
+
+
+@router.get(
+    "/jobs/{job_id}/mesh",
+    response_class=Response,
+    responses={
+        200: {"content": {t: {} for t in sorted(set(MEDIA_TYPES.values()))}, "description": "the mesh file"},
+        404: {"model": ErrorBody},
+        409: {"model": ErrorBody, "description": "the job is not done"},
+        410: {"model": ErrorBody, "description": "the job's trajectories are no longer kept"},
+    },
+    dependencies=[Depends(single_valued_query)],
+)
+async def get_job_mesh(
+    job_id: JobId,
+    jobs: Annotated[JobQueue, Depends(get_jobs)],
+    surrogate: SurrogateDep,
+    step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
+    channel: Annotated[Channel, Query(description="mask or si")] = "si",
+    format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
+) -> Response:
+    """The simulator's surface coloured by the surrogate's signed distance from it (nm; glb/ply carry the
+    colours)."""
+    job = _job(jobs, job_id)
+    sim, pred = job.artifacts.get("sim"), job.artifacts.get("pred")
+    if job.status != "done":
+        raise HTTPException(status_code=409, detail=f"job {job_id!r} is {job.status}: no mesh yet")
+    if sim is None or pred is None:
+        raise HTTPException(
+            status_code=410,
+            detail=f"the trajectories of job {job_id!r} are no longer kept (only the newest finished jobs' "
+            "are): submit the simulation again",
+        )
+    last = len(sim) - 1
+    step = last if step is None else step
+    if step > last:
+        reject(("query", "step"), f"step = {step} is beyond this job's last state ({last})")
+    ch = 0 if channel == "mask" else 1
+    meta = {"job_id": job_id, "step": step, "channel": channel, "colour": "surrogate signed distance, nm"}
+    data = await anyio.to_thread.run_sync(
+        error_mesh, sim[step, ch], pred[step, ch], surrogate.scene, format, meta
+    )
+    return Response(
+        content=data,
+        media_type=MEDIA_TYPES[format],
+        headers={
+            "Content-Disposition": f'attachment; filename="nemsim_job_{job_id}_step{step}_{channel}.{format}"'
+        },
+    )
