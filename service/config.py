@@ -26,9 +26,15 @@ def checkpoint_dirs() -> list[Path]:
     return list(dict.fromkeys(d.resolve() for d in dirs))
 
 
+SHIPPED_CHECKPOINT = "nemsim-small.pt"  # the served model (checkpoints/README.md); other .pt files are references
+
+
 def default_checkpoint() -> Path | None:
-    """The single (or, sorted by name, the first) `*.pt` under the checkpoint directories, or None."""
+    """`nemsim-small.pt` under the checkpoint directories, else the single (or, sorted by name, the first)
+    `*.pt` there, or None."""
     for directory in checkpoint_dirs():
+        if (directory / SHIPPED_CHECKPOINT).is_file():
+            return directory / SHIPPED_CHECKPOINT
         found = sorted(directory.glob("*.pt")) if directory.is_dir() else []
         if found:
             return found[0]

@@ -76,6 +76,16 @@ def test_default_checkpoint_is_first_pt(monkeypatch, tmp_path):
     assert default_checkpoint() is None
 
 
+def test_default_checkpoint_is_the_shipped_one_beside_references(monkeypatch, tmp_path):
+    import service.config as config
+
+    # "nemsim-small-k1.pt" sorts before "nemsim-small.pt": the served name wins, not the sort order
+    (tmp_path / "nemsim-small-k1.pt").write_bytes(b"")
+    (tmp_path / config.SHIPPED_CHECKPOINT).write_bytes(b"")
+    monkeypatch.setattr(config, "checkpoint_dirs", lambda: [tmp_path])
+    assert default_checkpoint() == tmp_path / config.SHIPPED_CHECKPOINT
+
+
 def test_openapi_docs(client):
     assert client.get("/docs").status_code == 200
     schema = client.get("/openapi.json").json()
