@@ -276,7 +276,7 @@ def test_file_in_use_is_one_line(tmp_path, data_file):
                              timeout=120)  # fmt: skip
     assert res.returncode == 2, res.stderr
     lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and "file in use" in lines[0] and "Traceback" not in res.stderr
+    assert len(lines) == 1 and "in use" in lines[0] and "Traceback" not in res.stderr
 
 
 # ---- item 8: defaults never write into committed folders ---------------------------------------------------
