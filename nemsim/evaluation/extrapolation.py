@@ -24,7 +24,6 @@ against the distance (points beyond ``PLOT_CLIP`` drawn at it).
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -44,7 +43,7 @@ from nemsim.controls import (
 )
 from nemsim.evaluation.invariants import ION_FLUXES, centre_raw
 from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS, box_corners, round_int_controls
-from nemsim.evaluation.truth import SimTruth, compare_case, predict
+from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
 ANGLES = tuple(s.name for s in CONTROL_SPECS if s.name.startswith("angle_"))
 ION_ANGLES = ("angle_cl_plus", "angle_cl2_plus", "angle_ar_plus")
@@ -231,9 +230,5 @@ def plot_extrapolation(rep: dict[str, Any], path: str | Path) -> Path:
 
 
 def write_outputs(rep: dict[str, Any], out_dir: str | Path) -> dict[str, str]:
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "extrapolation.md").write_text(format_markdown(rep))
-    (out / "extrapolation.json").write_text(json.dumps(rep, indent=2))
-    plot_extrapolation(rep, out / "extrapolation.png")
-    return {k: str(out / f"extrapolation.{k}") for k in ("md", "json", "png")}
+    """extrapolation.md, extrapolation.json and extrapolation.png in ``out_dir``."""
+    return write_report(rep, out_dir, "extrapolation", format_markdown, plot_extrapolation)

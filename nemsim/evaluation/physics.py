@@ -36,7 +36,7 @@ import numpy as np
 
 from nemsim.controls import HIGH, INT_INDICES, LOW, N_CONTROLS, from_unit, lhs_unit
 from nemsim.evaluation.invariants import ION_ENERGIES, centre_raw, set_axis
-from nemsim.evaluation.truth import SimTruth, compare_case, predict
+from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
 SWEEP_GROUPS: dict[str, tuple[str, ...]] = {
     "flux_cl_plus": ("flux_cl_plus",),
@@ -289,14 +289,7 @@ def plot_physics(rep: dict[str, Any], path: str | Path) -> Path:
 
 def write_outputs(rep: dict[str, Any], out_dir: str | Path) -> dict[str, str]:
     """physics.md, physics.json and physics.png in ``out_dir``."""
-    import json
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "physics.md").write_text(format_markdown(rep))
-    (out / "physics.json").write_text(json.dumps(rep, indent=2))
-    plot_physics(rep, out / "physics.png")
-    return {k: str(out / f"physics.{k}") for k in ("md", "json", "png")}
+    return write_report(rep, out_dir, "physics", format_markdown, plot_physics)
 
 
 def heldout_from_data(path: str | Path, manifest: dict | None, split: str, limit: int | None = None

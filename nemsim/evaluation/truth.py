@@ -24,7 +24,7 @@ import json
 import os
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -270,3 +270,15 @@ def compare_case(truth: SimTruth, raw: np.ndarray, pred: np.ndarray, seeds: tupl
         "error": {k: fm[k] - sim[k] for k in fm},
         "seed_diff": {k: abs(fa[k] - fb[k]) for k in fa},
     }
+
+
+def write_report(rep: dict[str, Any], out_dir: str | Path, name: str,
+                 markdown: Callable[[dict[str, Any]], str],
+                 plot: Callable[[dict[str, Any], Path], Any]) -> dict[str, str]:
+    """``name``.md, .json and .png of a benchmark report in ``out_dir``; returns their paths by kind."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.md").write_text(markdown(rep))
+    (out / f"{name}.json").write_text(json.dumps(rep, indent=2))
+    plot(rep, out / f"{name}.png")
+    return {k: str(out / f"{name}.{k}") for k in ("md", "json", "png")}
