@@ -71,7 +71,7 @@ def bench_service(
         ]
         cached = [_post(client, first) for _ in range(n_cached)]
     return {
-        "checkpoint": str(checkpoint),
+        "checkpoint": Path(checkpoint).name,  # the file name: reports carry no machine paths
         "model_id": model_id,
         "steps": steps,
         "uncached": _percentiles(uncached),
