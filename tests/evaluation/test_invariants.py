@@ -143,3 +143,12 @@ def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stu
     assert cli.main(args + ["--noise", str(tmp_path / "noise.json")]) == 1
     assert cli.main(args + ["--seeds", "1,1"]) == 2
     assert cli.main(args + ["--levels", "1"]) == 2
+
+
+def test_monotone_pair_is_held_to_the_truth_where_the_simulator_itself_falls():
+    from nemsim.evaluation.invariants import pair_ok
+
+    tol = 2.23  # nm, seed-to-seed depth difference
+    assert pair_ok(-2.0, +5.0, tol) and not pair_ok(-2.5, +5.0, tol)  # the law holds in the truth: -tol
+    assert pair_ok(-2.48, -2.5, tol)  # the simulator's own pair falls as much: not the model's violation
+    assert not pair_ok(-6.0, -2.5, tol)  # falls by more than the truth plus the tolerance
