@@ -186,6 +186,11 @@ def _run_process_pool(scene, rules, config, tasks, workers, stop: _StopRequest) 
             for proc in procs:
                 if proc.is_alive():
                     proc.terminate()
+            for proc in procs:  # a worker inside compiled code (numba's first compile) can defer SIGTERM
+                proc.join(timeout=2.0)
+                if proc.is_alive():
+                    proc.kill()
+                    proc.join(timeout=2.0)
 
 
 def _run_ray(scene, rules, config, tasks, workers) -> Iterator[tuple]:
