@@ -10,14 +10,14 @@ from pathlib import Path as FsPath
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, FastAPI, HTTPException, Path
+from fastapi import APIRouter, FastAPI, Path
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from service.deps import SurrogateDep
 from service.openapi import ErrorBody
+from service.routes.rollouts import cached_rollout
 from service.schemas import SlicesResponse
-from service.surrogate import UnknownRollout
 
 STATIC_DIR = FsPath(__file__).resolve().parent.parent / "static"
 
@@ -46,14 +46,7 @@ async def get_slices(
 ) -> SlicesResponse:
     """Cross-sections through the hole axis (the x-z plane at the opening's y) of every state of a cached
     rollout, for the explorer page: normalized SDF quantized to bytes, round((sdf + 1) * 127.5)."""
-    try:
-        result = surrogate.get_rollout(rollout_id)
-    except UnknownRollout:
-        raise HTTPException(
-            status_code=404,
-            detail=f"unknown rollout id {rollout_id!r} (never computed here, or evicted from the cache): "
-            "POST /rollout again, it returns the same id",
-        ) from None
+    result = cached_rollout(surrogate, rollout_id)
     y = int(round(surrogate.scene.opening_centre[1])) + 1  # +1: the field is padded by one voxel
     planes = np.asarray(result.states[:, :, :, y, :], dtype=np.float32)  # (T+1, 2, D, W)
     q = np.round((np.clip(planes, -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)

@@ -52,6 +52,18 @@ async def _mesh_bytes(
         reject(("query", "step"), f"no {channel} mesh at step {step}: {exc}")
 
 
+def cached_rollout(surrogate: Surrogate, rollout_id: str) -> RolloutResult:
+    """A rollout of the surrogate's cache by id; 404 when it was never computed here or was evicted."""
+    try:
+        return surrogate.get_rollout(rollout_id)
+    except UnknownRollout:
+        raise HTTPException(
+            status_code=404,
+            detail=f"unknown rollout id {rollout_id!r} (never computed here, or evicted from "
+            "the cache): POST /rollout again, it returns the same id",
+        ) from None
+
+
 @router.post("/rollout", response_model=RolloutResponse)
 async def post_rollout(
     request: Request, body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep, gates: GatesDep
@@ -164,14 +176,7 @@ async def get_mesh(
     format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
 ) -> Response:
     """The zero-level surface of one channel at one step of a cached rollout, in nm, with provenance."""
-    try:
-        result = surrogate.get_rollout(rollout_id)
-    except UnknownRollout:
-        raise HTTPException(
-            status_code=404,
-            detail=f"unknown rollout id {rollout_id!r} (never computed here, or evicted from "
-            "the cache): POST /rollout again, it returns the same id",
-        ) from None
+    result = cached_rollout(surrogate, rollout_id)
     step = result.steps if step is None else step
     if step > result.steps:
         reject(("query", "step"), f"step = {step} is beyond this rollout's last state ({result.steps})")

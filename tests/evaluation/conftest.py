@@ -61,3 +61,21 @@ class Unetches(torch.nn.Module):
 def stubs():
     return SimpleNamespace(Plausible=Plausible, NoChange=NoChange, EtchesWithoutFlux=EtchesWithoutFlux,
                            Unetches=Unetches, ION=ION, ENERGY=ENERGY)
+
+
+@pytest.fixture(scope="module")
+def truth(request, tiny_scene, tmp_path_factory):
+    """A simulator on tiny with its own run cache; the test module's ``STEPS`` sets the transitions."""
+    from nemsim.evaluation.truth import SimTruth
+    from nemsim.rules import compile_rules, load_rules
+
+    with SimTruth(tiny_scene, compile_rules(load_rules()), steps=request.module.STEPS,
+                  cache_dir=tmp_path_factory.mktemp("sims")) as t:
+        yield t
+
+
+@pytest.fixture(scope="module")
+def x0(tiny_scene):
+    from nemsim.sim import initial_state
+
+    return initial_state(tiny_scene)

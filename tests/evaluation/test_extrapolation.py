@@ -43,16 +43,13 @@ def test_recipes_leave_the_box_one_control_at_a_time():
         ExtrapolationConfig(distances=(0.5,))
 
 
-@pytest.fixture(scope="module")
-def report(tiny_scene, tmp_path_factory, stubs):
-    from nemsim.evaluation.truth import SimTruth
-    from nemsim.rules import compile_rules, load_rules
-    from nemsim.sim import initial_state
+STEPS = 2  # simulated transitions of the shared `truth` fixture (conftest.py)
 
+
+@pytest.fixture(scope="module")
+def report(truth, x0, stubs):
     cfg = ExtrapolationConfig(distances=(2.0,), corners=1, in_box=1)
-    with SimTruth(tiny_scene, compile_rules(load_rules()), steps=2,
-                  cache_dir=tmp_path_factory.mktemp("sims")) as truth:
-        return run_extrapolation(stubs.NoChange(), truth, initial_state(tiny_scene), cfg)
+    return run_extrapolation(stubs.NoChange(), truth, x0, cfg)
 
 
 def test_report_groups_and_reference(report):

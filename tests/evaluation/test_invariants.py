@@ -23,21 +23,6 @@ from nemsim.evaluation.invariants import (
 
 torch.set_num_threads(1)
 STEPS = 5  # simulated transitions: enough for the ion fluxes to move the depth beyond the seed noise
-@pytest.fixture(scope="module")
-def truth(tiny_scene, tmp_path_factory):
-    from nemsim.evaluation.truth import SimTruth
-    from nemsim.rules import compile_rules, load_rules
-
-    with SimTruth(tiny_scene, compile_rules(load_rules()), steps=STEPS,
-                  cache_dir=tmp_path_factory.mktemp("sims")) as t:
-        yield t
-
-
-@pytest.fixture(scope="module")
-def x0(tiny_scene):
-    from nemsim.sim import initial_state
-
-    return initial_state(tiny_scene)
 
 
 CFG = InvariantConfig(pair_bases=0, levels=3)

@@ -25,22 +25,6 @@ torch.set_num_threads(1)
 STEPS = 4
 
 
-@pytest.fixture(scope="module")
-def truth(tiny_scene, tmp_path_factory):
-    from nemsim.rules import compile_rules, load_rules
-
-    with SimTruth(tiny_scene, compile_rules(load_rules()), steps=STEPS,
-                  cache_dir=tmp_path_factory.mktemp("sims")) as t:
-        yield t
-
-
-@pytest.fixture(scope="module")
-def x0(tiny_scene):
-    from nemsim.sim import initial_state
-
-    return initial_state(tiny_scene)
-
-
 CFG = PhysicsConfig(levels=3, heldout=1, corners=2)
 
 
