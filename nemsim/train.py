@@ -51,6 +51,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fraction", type=float,
                    help="train on this data-efficiency fraction of the train split: 0.1, 0.2, 0.5 or 1 "
                         "(default 1)")
+    p.add_argument("--extra-data", type=Path, action="append", default=[], metavar="FILE.h5",
+                   help="also train on every complete case of this trajectory file (repeatable): a larger "
+                        "design of the same scene, simulator configuration and rules, e.g. `nemsim "
+                        "design --n 1500 --seed 43` simulated with `nemsim generate --controls`; validation "
+                        "and test stay those of --data's split, so the paper protocol's cases are unchanged")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init-from", type=Path,
                    help="start from this checkpoint's weights (same model, rules and scene); parameters it "
@@ -122,6 +127,26 @@ def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> Non
              sorted(missing))
 
 
+def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
+    """Every complete case of an extra trajectory file as training items, after checking that it was made
+    by the same scene, simulator configuration and rules as the main data file (``--extra-data``)."""
+    from nemsim.data.dataset import TransitionDataset
+    from nemsim.data.hdf5 import open_trajectories
+
+    if not Path(path).is_file():
+        raise TrainInputError(f"--extra-data {path} does not exist")
+    with open_trajectories(path) as extra:
+        checks = (("scene", extra.scene, tf.scene), ("rules", extra.rules_sha256, tf.rules_sha256),
+                  ("simulator configuration", extra.generator.get("config"), tf.generator.get("config")),
+                  ("states per case", extra.n_states, tf.n_states))
+        for what, theirs, ours in checks:
+            if theirs != ours:
+                raise TrainInputError(f"--extra-data {path}: its {what} differs from {tf.path}'s")
+        if not extra.complete.any():
+            raise TrainInputError(f"--extra-data {path} has no complete case")
+    return TransitionDataset(path, None, "train", visible_transitions=visible, unroll=unroll)
+
+
 def _steps_per_call(model_overrides: dict[str, Any]) -> int:
     """k of the model being trained: the ``steps_per_call`` model override (NEMSim), else 1."""
     k = model_overrides.get("steps_per_call", 1)
@@ -138,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
     import torch.distributed as dist
 
-    from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
+    from nemsim.data.dataset import TrajectoryDataset, TransitionDataset, TransitionSets
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.data.splits import resolve_manifest
     from nemsim.model.registry import available_models, build_model, model_config
@@ -200,12 +225,16 @@ def run(args: argparse.Namespace) -> int:
             if limit is not None and split in manifest:
                 manifest = {**manifest, split: list(manifest[split])[:limit]}
         visible = manifest.get("visible_transitions")
-        data = TrainData(
-            # a training item spans unroll_steps network calls of steps_per_call states each
-            train=TransitionDataset(args.data, manifest, "train", visible_transitions=visible,
-                                    unroll=cfg.unroll_steps * _steps_per_call(model_overrides)),
-            val=TrajectoryDataset(args.data, manifest, "val"),
-        )
+        # a training item spans unroll_steps network calls of steps_per_call states each
+        unroll = cfg.unroll_steps * _steps_per_call(model_overrides)
+        train_set: Any = TransitionDataset(args.data, manifest, "train", visible_transitions=visible,
+                                           unroll=unroll)
+        extra_sets = [_extra_train_set(path, tf, visible, unroll) for path in args.extra_data]
+        if extra_sets:
+            log.info("extra training data: %s",
+                     ", ".join(f"{e.path} ({len(e.rows)} cases)" for e in extra_sets))
+            train_set = TransitionSets([train_set, *extra_sets])
+        data = TrainData(train=train_set, val=TrajectoryDataset(args.data, manifest, "val"))
 
         # ---- rules (optionally perturbed) and model ----
         rules = compile_rules(load_rules())

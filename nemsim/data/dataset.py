@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import ConcatDataset, Dataset
 
 SPLITS = ("train", "val", "test", "unused")
 
@@ -152,6 +152,18 @@ class TransitionDataset(_H5Backed):
         if n == 1:
             return run[0], torch.from_numpy(np.array(self.u[k, t])), run[1]
         return run[0], torch.from_numpy(np.array(self.u[k, t : t + n])), run[1:]
+
+
+class TransitionSets(ConcatDataset):
+    """Several ``TransitionDataset`` s trained on as one (``nemsim train --extra-data``): items of the first,
+    then of the next, ...; all must have the same ``unroll``."""
+
+    def __init__(self, sets: list[TransitionDataset]) -> None:
+        unrolls = {s.unroll for s in sets}
+        if len(unrolls) != 1:
+            raise ValueError(f"transition sets with different unroll {sorted(unrolls)}")
+        super().__init__(sets)
+        self.unroll = unrolls.pop()
 
 
 class TrajectoryDataset(_H5Backed):

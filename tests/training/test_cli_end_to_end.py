@@ -116,3 +116,24 @@ def test_fraction_uses_data_efficiency_subset(tmp_path, tiny_data):
     log = (out / "train.log").read_text()
     assert "train / 1 val" in log and "3 train /" not in log  # fewer than the 3 training cases
     assert main([*args[:-2], "--fraction", "0.3"]) == 2  # not one of the subsets
+
+
+def test_extra_data_adds_training_cases(tmp_path, tiny_data, capsys):
+    import shutil
+
+    extra = tmp_path / "extra.h5"
+    shutil.copy(tiny_data, extra)  # same scene, rules and generator: all 6 complete cases are added
+    out = tmp_path / "extra-run"
+    args = _train_args(tiny_data, out, "--no-test", "--extra-data", str(extra))
+    args[args.index("--epochs") + 1] = "1"
+    assert main(args) == 0
+    log = (out / "train.log").read_text()
+    assert f"{extra} (6 cases)" in log
+    assert "training test-standin: 45 transitions" in log  # (3 train + 6 extra cases) x 5 visible
+
+    with h5py.File(extra, "r+") as f:  # another simulator configuration is refused, in one line
+        f.attrs["generator"] = json.dumps({"config": {"voxel_nm": 2.0}})
+    assert main(_train_args(tiny_data, tmp_path / "bad", "--no-test", "--extra-data", str(extra))) == 2
+    assert "simulator configuration differs" in capsys.readouterr().err
+    assert main(_train_args(tiny_data, tmp_path / "bad", "--extra-data", str(tmp_path / "none.h5"))) == 2
+    assert "does not exist" in capsys.readouterr().err
