@@ -367,6 +367,23 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     _add_sim_overrides(p)
     p.set_defaults(handler=_cmd_bench_yields)
     p = bench_sub.add_parser(
+        "allocator",
+        help="CPU seconds per training step with glibc's default allocator vs the tuned one",
+        description=(
+            "Time optimizer steps of a checkpoint's model (random states, bf16 autocast, one thread) in "
+            "fresh processes, alternating glibc's default allocator and the settings `nemsim` runs with "
+            "(nemsim/allocator.py), and print wall, user and system seconds per step. System time is the "
+            "page-fault cost the settings remove; compare CPU seconds when the machine is busy. "
+            "Example: nemsim bench allocator --checkpoint checkpoints/nemsim-small.pt"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt whose model is stepped")
+    p.add_argument("--batch", type=int, default=24, help="batch size (default 24, the training recipe's)")
+    p.add_argument("--steps", type=int, default=4, help="timed steps per process (default 4)")
+    p.add_argument("--rounds", type=int, default=2, help="processes per allocator, alternated (default 2)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the rows to this JSON file")
+    p.set_defaults(handler=_cmd_bench_allocator)
+    p = bench_sub.add_parser(
         "bowing",
         help="bowing map over ion angular exponent x ion energy x flux ratio (final time)",
         description=(
@@ -438,6 +455,31 @@ def _cmd_bench_bowing(args: argparse.Namespace) -> int:
     with open(md_path, "w") as fh:
         fh.write(f"Command: {cmd}\n\n" + to_markdown(rows))
     _write_json(json_path, {"command": cmd, "rows": rows})
+    return 0
+
+
+def _cmd_bench_allocator(args: argparse.Namespace) -> int:
+    import platform
+
+    from nemsim.allocator import bench
+
+    for name in ("batch", "steps", "rounds"):
+        if getattr(args, name) < 1:
+            raise UserError(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if not Path(args.checkpoint).is_file():
+        raise UserError(f"checkpoint {args.checkpoint} does not exist")
+    rows = bench(args.checkpoint, batch=args.batch, steps=args.steps, rounds=args.rounds)
+    print(f"{Path(args.checkpoint).name}, batch {args.batch}, {args.steps} steps per process, "  # noqa: T201
+          f"one thread, {platform.processor() or platform.machine()}")
+    print("| allocator | round | wall s/step | user s/step | sys s/step | CPU s/step |")  # noqa: T201
+    print("|---|---:|---:|---:|---:|---:|")  # noqa: T201
+    for r in rows:
+        cpu = float(r["user_s"]) + float(r["sys_s"])  # type: ignore[arg-type]
+        print(f"| {r['allocator']} | {r['round']} | {r['wall_s']:.2f} | {r['user_s']:.2f} | "  # noqa: T201
+              f"{r['sys_s']:.2f} | {cpu:.2f} |")
+    if args.json_out:
+        _write_json(args.json_out, {"checkpoint": Path(args.checkpoint).name, "batch": args.batch,
+                                    "steps": args.steps, "rows": rows})
     return 0
 
 
@@ -1731,6 +1773,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         code, line = _error_report(exc, args)
         print(f"{_command_name(args)}: {line}", file=sys.stderr)  # noqa: T201
         return code
+
+
+def entry() -> int:
+    """The `nemsim` console script: ``main()`` in a process with the tuned allocator (``nemsim.allocator``:
+    re-executes once with its environment when it is not set yet)."""
+    from nemsim.allocator import reexec_tuned
+
+    reexec_tuned()
+    return main()
 
 
 if __name__ == "__main__":
