@@ -588,9 +588,9 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
 
 def _cmd_bench_noise(args: argparse.Namespace) -> int:
     from nemsim.controls import lhs_design
+    from nemsim.evaluation.noise import bench_noise
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
-    from nemsim.sim.bench import bench_noise
 
     try:
         seeds = tuple(int(s) for s in args.seeds.split(","))
@@ -724,9 +724,9 @@ def _load_for_eval(args: argparse.Namespace):
     """(loaded model, trajectory file, manifest) with the data file's scene checked against the checkpoint."""
     from pathlib import Path
 
+    from nemsim.checkpoint import load_checkpoint
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.data.splits import resolve_manifest
-    from nemsim.training.checkpoint import load_checkpoint
 
     for path in (args.checkpoint, args.data):
         if not Path(path).is_file():
@@ -782,7 +782,7 @@ def _cmd_models(args: argparse.Namespace) -> int:
     import json
 
     from nemsim.evaluation.metrics import count_params
-    from nemsim.model.registry import available_models, build_model
+    from nemsim.registry import available_models, build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
     from nemsim.scenes import get_scene
@@ -1230,7 +1230,7 @@ def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
 
 
 def _load_truth_checkpoint(path: str):
-    from nemsim.training.checkpoint import load_checkpoint
+    from nemsim.checkpoint import load_checkpoint
 
     try:
         return load_checkpoint(path)
@@ -1281,8 +1281,8 @@ def _cmd_bench_physics(args: argparse.Namespace) -> int:
 
 
 def _cmd_stress(args: argparse.Namespace) -> int:
+    from nemsim.checkpoint import load_checkpoint
     from nemsim.evaluation.stress import StressConfig, format_table, initial_state, run_stress
-    from nemsim.training.checkpoint import load_checkpoint
 
     if args.steps < 1 or args.batch_size < 1 or args.noise_cases < 0:
         raise UserError("--steps and --batch-size must be >= 1, --noise-cases >= 0")
@@ -1411,7 +1411,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.checkpoint:
-        from nemsim.training.checkpoint import load_checkpoint
+        from nemsim.checkpoint import load_checkpoint
 
         try:
             loaded = load_checkpoint(args.checkpoint)
@@ -1419,7 +1419,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from exc
         model, scene = loaded.model, loaded.scene
     else:
-        from nemsim.model.registry import build_model
+        from nemsim.registry import build_model
         from nemsim.rules.compile import compile_rules
         from nemsim.rules.schema import load_rules
         from nemsim.scenes import get_scene

@@ -101,7 +101,7 @@ def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
 def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> None:
     """Load a checkpoint's weights into the fresh ``model`` (warm start); parameters the checkpoint lacks keep
     their initialization. Refuses another model, rules library or scene, and parameters the model lacks."""
-    from nemsim.training.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
+    from nemsim.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
 
     try:
         ckpt = read_checkpoint(path)
@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.data.splits import resolve_manifest
-    from nemsim.model.registry import available_models, build_model, model_config
+    from nemsim.registry import available_models, build_model, model_config
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
     from nemsim.training.config import TrainConfig, read_config_file
@@ -236,8 +236,8 @@ def run(args: argparse.Namespace) -> int:
         if dist.is_initialized():
             dist.barrier()
         if rank == 0 and not args.no_test and (out / "best.pt").is_file() and manifest.get("test"):
+            from nemsim.checkpoint import load_checkpoint, update_metrics
             from nemsim.evaluation.evaluate import evaluate, write_json
-            from nemsim.training.checkpoint import load_checkpoint, update_metrics
 
             loaded = load_checkpoint(out / "best.pt")
             result = evaluate(loaded.model, TrajectoryDataset(args.data, manifest, "test"), scene,

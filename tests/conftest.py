@@ -23,10 +23,10 @@ def tiny_checkpoint(tmp_path_factory, tiny_scene):
     """An untrained NEMSim checkpoint on `tiny`, written with the real save_checkpoint."""
     import torch
 
-    from nemsim.model.registry import build_model
+    from nemsim.checkpoint import save_checkpoint
+    from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
-    from nemsim.training.checkpoint import save_checkpoint
 
     rules = compile_rules(load_rules())
     torch.manual_seed(0)

@@ -33,7 +33,7 @@ def _run_info(run_dir: Path) -> tuple[str, dict[str, Any]]:
     """(model name, training summary) from the run's best.pt; (directory name, {}) without one."""
     ckpt = run_dir / "best.pt"
     if ckpt.is_file():
-        from nemsim.training.checkpoint import read_checkpoint
+        from nemsim.checkpoint import read_checkpoint
 
         c = read_checkpoint(ckpt)
         return str(c.get("model_name") or run_dir.name), dict(c.get("summary") or {})

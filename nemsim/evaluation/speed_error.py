@@ -171,6 +171,7 @@ def run_speed_error(
     """
     import torch
 
+    from nemsim.checkpoint import load_checkpoint
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.evaluation.rollout import rollout
     from nemsim.evaluation.runtime import compile_model
@@ -178,7 +179,6 @@ def run_speed_error(
     from nemsim.rules.schema import load_rules
     from nemsim.sim import SimConfig, run_trajectory
     from nemsim.sim.events import build_event_tables
-    from nemsim.training.checkpoint import load_checkpoint
 
     runtimes = [REFERENCE_RUNTIME] + [r for r in dict.fromkeys(config.runtimes) if r != REFERENCE_RUNTIME]
     for r in runtimes:

@@ -15,13 +15,13 @@ from nemsim.analysis.counterfactual import (
     response_batch,
     write_outputs,
 )
-from nemsim.training.checkpoint import LoadedModel
+from nemsim.checkpoint import LoadedModel
 
 
 @pytest.fixture(scope="module")
 def setup(tiny_scene):
     from nemsim.controls import CONTROL_NAMES, lhs_design
-    from nemsim.model.registry import build_model
+    from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
 

@@ -95,8 +95,8 @@ def test_windowed_rollout_holds_the_voxels_below_and_reports_the_fraction(rules)
 
 @pytest.mark.skipif(not SHIPPED.is_file(), reason="needs the shipped small checkpoint")
 def test_windowed_rollout_agrees_with_the_full_one_on_the_shipped_model():
+    from nemsim.checkpoint import load_checkpoint
     from nemsim.sim import initial_state
-    from nemsim.training.checkpoint import load_checkpoint
 
     torch.set_num_threads(1)
     loaded = load_checkpoint(SHIPPED)

@@ -32,7 +32,7 @@ STEPS = 6
 def trained(tiny_scene):
     """(model, x0 (2, 2, D, H, W), u (2, STEPS, 14)): NEMSim after 5 Adam steps; a recipe per case."""
     from nemsim.evaluation.stress import initial_state
-    from nemsim.model.registry import build_model
+    from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
 

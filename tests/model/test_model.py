@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from nemsim.model import NEMSim, NEMSimConfig, available_models, build_model, model_config
+from nemsim.model import NEMSim, NEMSimConfig
+from nemsim.registry import available_models, build_model, model_config
 from nemsim.rules import kinetics
 from nemsim.scenes import PAPER, SMALL, TINY
 

@@ -44,7 +44,7 @@ def _build_standin(scene, rules, cfg: StandInConfig) -> nn.Module:
 
 @pytest.fixture(scope="session", autouse=True)
 def standin_registered():
-    from nemsim.model.registry import register_model
+    from nemsim.registry import register_model
 
     register_model("test-standin", _build_standin, StandInConfig)
     return "test-standin"

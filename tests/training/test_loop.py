@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import csv
-import math
 import dataclasses
+import math
 
 import pytest
 import torch
 
-from nemsim.model.registry import build_model, model_config
-from nemsim.training.checkpoint import load_checkpoint, read_checkpoint
+from nemsim.checkpoint import load_checkpoint, read_checkpoint
+from nemsim.registry import build_model, model_config
 from nemsim.training.config import TrainConfig
 from nemsim.training.loop import ModelMeta, TrainData, seed_everything, train
 

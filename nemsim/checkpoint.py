@@ -192,7 +192,7 @@ def load_checkpoint(
         scene: optional Scene; refused (CheckpointMismatch naming "scene") unless equal to the stored one.
         device: where to put the model.
     """
-    from nemsim.model.registry import build_model
+    from nemsim.registry import build_model
 
     ckpt = read_checkpoint(path)
     check_compatible(ckpt, rules=rules, scene=scene)
