@@ -164,15 +164,16 @@ def check_compatible(ckpt: dict[str, Any], *, rules: Any = None, scene: Scene | 
     """Raise CheckpointMismatch naming "rules" or "scene" if the caller's differ from the checkpoint's."""
     if rules is not None and str(rules.sha256) != ckpt["rules_sha256"]:
         raise CheckpointMismatch(
-            f"rules library mismatch: checkpoint was trained with rules sha256 {ckpt['rules_sha256'][:12]}..., "
-            f"the supplied rules have sha256 {str(rules.sha256)[:12]}..."
+            f"rules library mismatch: checkpoint was trained with rules sha256 "
+            f"{ckpt['rules_sha256'][:12]}..., the supplied rules have sha256 {str(rules.sha256)[:12]}..."
         )
     if scene is not None:
         stored = Scene.from_json(ckpt["scene"])
         if stored != scene:
             raise CheckpointMismatch(
                 f"scene mismatch: checkpoint was trained on scene {stored.name!r} "
-                f"(state {stored.state_shape}), the supplied scene is {scene.name!r} (state {scene.state_shape})"
+                f"(state {stored.state_shape}), the supplied scene is {scene.name!r} "
+                f"(state {scene.state_shape})"
             )
 
 

@@ -4,9 +4,9 @@ Static checks of the source tree (nothing is imported or run but the linters), s
 package cycle, a 200-line function or a lint finding fails the test suite, and so CI, like a failing test.
 
 Units of the dependency graph: each subpackage of ``nemsim`` (``nemsim.sim``, ``nemsim.evaluation``, ...),
-each top-level module (``nemsim.cli``, ``nemsim.registry``, ...) and the ``service`` package. Every import counts: module level,
-inside functions, under ``TYPE_CHECKING``, and ``importlib.import_module`` with a literal name; an import
-whose target is computed at run time fails the test, since it could hide any edge.
+each top-level module (``nemsim.cli``, ``nemsim.registry``, ...) and the ``service`` package. Every import
+counts: module level, inside functions, under ``TYPE_CHECKING``, and ``importlib.import_module`` with a
+literal name; an import whose target is computed at run time fails the test, since it could hide any edge.
 """
 
 from __future__ import annotations
@@ -191,7 +191,8 @@ def _tool(name: str) -> str:
 
 
 def test_ruff_clean():
-    res = subprocess.run([_tool("ruff"), "check", "--no-cache", "."], cwd=ROOT, capture_output=True, text=True)
+    res = subprocess.run([_tool("ruff"), "check", "--no-cache", "."], cwd=ROOT, capture_output=True,
+                         text=True)
     assert res.returncode == 0, res.stdout + res.stderr
 
 

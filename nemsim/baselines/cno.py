@@ -132,7 +132,8 @@ class CNO3d(nn.Module):
         c_in = 2 + cfg.control_channels + 3
         self.rulefeat: RuleFeat | None = None
         if cfg.rulefeat:
-            self.rulefeat, self.rule_proj = prior_projection(rules, cfg.rulefeat_hidden, cfg.rulefeat_channels, "CNO")
+            hidden, channels = cfg.rulefeat_hidden, cfg.rulefeat_channels
+            self.rulefeat, self.rule_proj = prior_projection(rules, hidden, channels, "CNO")
             c_in += cfg.rulefeat_channels
         self.lift = LiftProject(c_in, w[0], cfg.lift_latent)
         self.encoder = nn.ModuleList(CNOBlock(w[i], w[i + 1], cfg.oversampling) for i in range(n_levels))

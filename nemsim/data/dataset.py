@@ -67,7 +67,8 @@ class _H5Backed(Dataset):
                 self.u = to_normalized(tf.controls_raw_schedule[self.rows]).astype(np.float32)
             else:
                 const = tf.controls_normalized[self.rows].astype(np.float32)  # (n, 14)
-                self.u = np.broadcast_to(const[:, None, :], (len(self.rows), self.n_states - 1, const.shape[1]))
+                shape = (len(self.rows), self.n_states - 1, const.shape[1])  # (n, T-1, 14)
+                self.u = np.broadcast_to(const[:, None, :], shape)
         self._file = None
         self._states = None
         self._pid = None

@@ -102,8 +102,9 @@ def collect_results(run_dirs: Sequence[str | Path], speed_error: str | Path | di
     return out
 
 
-SPEED_KEYS = ("simulator_s", "simulator_cpu_s", "nemsim_s", "nemsim_cpu_s", "nemsim_runtime", "nemsim_precision",
-              "speedup", "equal_accuracy")  # copied from a speed-error report into results.json
+# copied from a speed-error report into results.json
+SPEED_KEYS = ("simulator_s", "simulator_cpu_s", "nemsim_s", "nemsim_cpu_s", "nemsim_runtime",
+              "nemsim_precision", "speedup", "equal_accuracy")
 
 
 def _f(v: Any, spec: str) -> str:

@@ -42,7 +42,9 @@ __all__ = [
 ]
 
 PerturbationKind = Literal["none", "structure-only", "mechanism-shuffle", "event-drop", "rate-noise"]
-PERTURBATION_KINDS: tuple[str, ...] = ("none", "structure-only", "mechanism-shuffle", "event-drop", "rate-noise")
+PERTURBATION_KINDS: tuple[str, ...] = (
+    "none", "structure-only", "mechanism-shuffle", "event-drop", "rate-noise"
+)
 
 _PROB_KEYS = ("p_const", "E_th", "E_ref", "p0", "n")
 _YIELD_KEYS = ("Y_const", "E_th", "theta_max", "Y_max", "Y0")

@@ -263,10 +263,12 @@ def _validate_event(ev: EventRule, i: int, controls: tuple[str, ...]) -> None:
         if err := _choice(prod.species, PROJECTILES, "species"):
             raise _fail(n, i, f"{field}.species", err)
         if prod.species in seen:
-            raise _fail(n, i, f"{field}.species", f"bad product relation: species {prod.species!r} listed twice")
+            raise _fail(n, i, f"{field}.species",
+                        f"bad product relation: species {prod.species!r} listed twice")
         seen.add(prod.species)
         if isinstance(prod.coeff, float) and not (math.isfinite(prod.coeff) and prod.coeff >= 0):
-            raise _fail(n, i, f"{field}.coeff", f"bad product relation: coefficient {prod.coeff} must be >= 0")
+            raise _fail(n, i, f"{field}.coeff",
+                        f"bad product relation: coefficient {prod.coeff} must be >= 0")
 
 
 def _check_library(events: list[EventRule]) -> None:
@@ -313,7 +315,8 @@ def spec_from_data(data: Any) -> RulesSpec:
         raise RulesError("rules file: 'events' must be a non-empty list")
     unknown = sorted(set(data) - {"version", "name", "events"})
     if unknown:
-        raise RulesError(f"rules file: unknown top-level field {unknown[0]!r}; expected version, name, events")
+        raise RulesError(f"rules file: unknown top-level field {unknown[0]!r}; "
+                         "expected version, name, events")
     events = [_event_from_raw(raw, i) for i, raw in enumerate(raw_events)]
     controls = _control_names()
     for i, ev in enumerate(events):

@@ -94,7 +94,7 @@ def simulate_case(scene: Scene, rules: RuleTensors, config: SimConfig, task: Cas
         "wall_s": round(res.wall_s, 3),
         "cpu_s": round(time.process_time() - t0, 3),
         "counters": res.counters,
-        "event_counts": {str(n): int(v) for n, v in zip(rules.names, res.event_counts) if v},
+        "event_counts": {str(n): int(v) for n, v in zip(rules.names, res.event_counts, strict=True) if v},
         "initial_totals": res.initial_totals.tolist(),
         "final_totals": res.final_totals.tolist(),
     }

@@ -63,7 +63,7 @@ class TrainConfig:
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
     warmup_steps: int | None = None  # warm-up length in steps; overrides warmup_epochs when set
-    checkpoint_every: int | None = None  # also write last.pt every N steps (resume mid-epoch); None = per epoch
+    checkpoint_every: int | None = None  # also write last.pt every N steps (mid-epoch resume); None: epochs
     # --- validation / model selection ([supp_evaluation]) ---
     val_every: int = 10  # epochs between validation rollouts
     patience: int = 20  # validation rounds without improvement before early stop
@@ -90,8 +90,9 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("max_steps", "warmup_steps", "checkpoint_every", "val_cases", "test_cases"):
             value = getattr(self, name)
-            if value is not None and value < (0 if name == "warmup_steps" else 1):
-                raise ValueError(f"{name} must be None or >= {0 if name == 'warmup_steps' else 1}, got {value}")
+            low = 0 if name == "warmup_steps" else 1
+            if value is not None and value < low:
+                raise ValueError(f"{name} must be None or >= {low}, got {value}")
         if self.warmup_epochs < 0:
             raise ValueError(f"warmup_epochs must be >= 0, got {self.warmup_epochs}")
         if self.rollout_steps is not None and self.rollout_steps < 1:

@@ -1,5 +1,6 @@
 """Depth-windowed rollout (nemsim.model.window): exact on the recorded state, held voxels, stats, and
-agreement with the full rollout on the shipped checkpoint within the tolerance stated in the module docstring."""
+agreement with the full rollout on the shipped checkpoint within the tolerance stated in the module
+docstring."""
 
 from __future__ import annotations
 

@@ -87,7 +87,7 @@ def _batch_loss(model, tiny_data, manifest, k=K):
 
     ds = TransitionDataset(tiny_data, manifest, "train", visible_transitions=VISIBLE, unroll=k)
     items = [ds[i] for i in range(len(ds))]
-    x, u, y = (torch.stack(v) for v in zip(*items))
+    x, u, y = (torch.stack(v) for v in zip(*items, strict=True))
     with torch.no_grad():
         return multistep_loss(model, x, u, y, k, nullcontext()).item()
 
