@@ -148,8 +148,6 @@ def rules_from_checkpoint(ckpt: dict[str, Any]) -> Any:
         from nemsim.rules.perturb import perturb
 
         rules = perturb(rules, pert["kind"], int(pert["seed"]))
-        if not hasattr(rules, "sha256"):  # a perturbation returning a spec: compile it
-            rules = compile_rules(rules)
     elif pert and rules.perturbation == "none":  # spec-level perturbation (rate noise): text already noisy
         rules = rules.replace(perturbation=f"{pert['kind']}(seed={pert['seed']})")
     if rules.sha256 != ckpt["rules_sha256"]:

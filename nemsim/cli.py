@@ -485,7 +485,7 @@ def _sim_config(overrides: list[str]):
             raise UserError(f"--set {item!r}: value must be a number") from None
         kwargs[key] = value
     try:
-        return SimConfig(**kwargs)
+        return SimConfig(**kwargs)  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:
         raise UserError(f"--set: {exc}") from exc
 
@@ -540,7 +540,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     rules = compile_rules(load_rules())
     try:
         report = generate_dataset(
-            args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,
+            args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,  # type: ignore[arg-type]
             workers=args.workers, executor=args.executor, progress=not args.no_progress,
             state_dtype=args.state_dtype,
         )  # fmt: skip
@@ -755,7 +755,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     cases = TrajectoryDataset(args.data, manifest, args.split)
     if len(cases) == 0:
         raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
-    result = evaluate(loaded.model, cases, loaded.scene, steps=args.steps, batch_size=args.batch_size,
+    result = evaluate(loaded.model, cases, loaded.scene, steps=args.steps, batch_size=args.batch_size,  # type: ignore[arg-type]
                       device=args.device, chamfer=not args.no_cd, rollout_path=args.save_rollouts,
                       rollout_attrs={"checkpoint": str(args.checkpoint), "setting": args.setting,
                                      "model": loaded.name})

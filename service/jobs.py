@@ -312,7 +312,7 @@ def error_mesh(sim_field: np.ndarray, pred_field: np.ndarray, scene: Any, fmt: s
         rgb[:, 1] -= np.abs(t)
         rgb[:, 2] -= np.clip(-t, 0, 1)  # inside: less blue
         colours = np.concatenate([rgb, np.ones((len(t), 1))], axis=1)
-        mesh.visual.vertex_colors = (255 * colours).astype(np.uint8)
+        mesh.visual.vertex_colors = (255 * colours).astype(np.uint8)  # type: ignore[union-attr]
         mesh.metadata["max_abs_error_nm"] = float(np.abs(err_nm).max())
     return export_mesh(mesh, fmt)
 

@@ -137,7 +137,7 @@ def mechanism_response(
     out = response_batch(model, x, np.asarray(controls_raw, dtype=np.float64)[None], tuple(factors))
     fams = list(FAMILIES)[: out["M"].shape[-1]]
 
-    def fam(v: np.ndarray) -> dict[str, float]:
+    def fam(v: np.ndarray) -> dict[str, float | None]:
         return {f: _num(v[k]) for k, f in enumerate(fams)}
 
     names = getattr(getattr(loaded, "rules", None), "names", None)
@@ -198,7 +198,7 @@ def analyze(
     from nemsim.rules.vocab import FAMILIES
 
     interventions = tuple(interventions)
-    dM_all, dR_all, ids = [], [], []
+    dM_all, dR_all, ids = [], [], []  # type: ignore[var-annotated]
     for start in range(0, len(cases), batch_size):
         chunk = cases[start : start + batch_size]
         x0 = torch.stack([torch.as_tensor(np.asarray(c[1]), dtype=torch.float32) for c in chunk])

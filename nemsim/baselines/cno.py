@@ -60,7 +60,8 @@ class CNOConfig:
 def _level_sizes(size: tuple[int, int, int], n: int) -> list[tuple[int, int, int]]:
     sizes = [size]
     for _ in range(n):
-        sizes.append(tuple(math.ceil(s / 2) for s in sizes[-1]))  # type: ignore[misc]
+        d, h, w = sizes[-1]
+        sizes.append((math.ceil(d / 2), math.ceil(h / 2), math.ceil(w / 2)))
     return sizes
 
 

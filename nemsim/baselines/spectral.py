@@ -180,7 +180,8 @@ class NativeUNO(nn.Module):
             if i == len(self.blocks) - 1:
                 shape = (D, H, W)
             else:
-                shape = tuple(int(round(s * self.scalings[i])) for s in h.shape[-3:])
+                d, hh, w = (int(round(s * self.scalings[i])) for s in h.shape[-3:])
+                shape = (d, hh, w)
             h = block(h, shape, activate=False)
             if str(i) in self.hskips:
                 saved[i] = self.hskips[str(i)](h)

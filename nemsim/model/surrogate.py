@@ -196,7 +196,7 @@ class NEMSim(nn.Module):
             raise ValueError(f"u must be (B, {N_CONTROLS}) normalized controls, got {tuple(u.shape)}")
         return {
             "u": u,
-            "eic": self.eic.precompute(u, self.rules),
+            "eic": self.eic.precompute(u, self.rules),  # type: ignore[operator]
             "mac": self.mac.precompute(self.rules),
             "mrc": self.mrc.precompute(self.rules, fused=fused),
             # flux_gate: g (B, 1, 1, 1, 1) scaling the update (nemsim.model.gate)

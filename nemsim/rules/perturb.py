@@ -24,7 +24,7 @@ Tensor-level perturbations keep ``source_text`` (the unperturbed library) and se
 from __future__ import annotations
 
 import hashlib
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -60,7 +60,7 @@ def rate_yield_noise(spec: RulesSpec, seed: int, low: float = 0.7, high: float =
     """Multiply the continuous rate/yield parameters by U(low, high), clipped to valid ranges."""
     rng = np.random.default_rng(seed)
 
-    def noisy(key: str, value: float) -> float:
+    def noisy(key: str, value: Any) -> float:
         v = float(value) * float(rng.uniform(low, high))
         if key in _UNIT_INTERVAL:
             v = min(max(v, 0.0), 1.0)
@@ -72,7 +72,7 @@ def rate_yield_noise(spec: RulesSpec, seed: int, low: float = 0.7, high: float =
     for ev in spec.events:
         upd: dict = {}
         if ev.prob_params is not None:
-            pp = dict(ev.prob_params)
+            pp: dict[str, Any] = dict(ev.prob_params)
             for key in _PROB_KEYS:
                 if key in pp:
                     pp[key] = noisy(key, pp[key])

@@ -212,7 +212,7 @@ def _validate_event(ev: EventRule, i: int, controls: tuple[str, ...]) -> None:
         raise _fail(n, i, "yield_model", f"unsupported model: {err}")
 
     pp = _check_params(
-        ev.prob_params, PROB_PARAM_KEYS[ev.prob_model], n, i, "prob_params", optional=("angle",)
+        ev.prob_params, PROB_PARAM_KEYS[str(ev.prob_model)], n, i, "prob_params", optional=("angle",)
     )
     if ev.prob_model == "const":
         p = _number(pp["p_const"], "p_const", n, i, "prob_params")
@@ -238,7 +238,7 @@ def _validate_event(ev: EventRule, i: int, controls: tuple[str, ...]) -> None:
         if ev.E_mean_key is None:
             raise _fail(n, i, "E_mean_key", "missing field (probModel needs an energy control)")
 
-    yp = _check_params(ev.yield_params, YIELD_PARAM_KEYS[ev.yield_model], n, i, "yield_params")
+    yp = _check_params(ev.yield_params, YIELD_PARAM_KEYS[str(ev.yield_model)], n, i, "yield_params")
     if ev.yield_model == "const":
         y = _number(yp["Y_const"], "Y_const", n, i, "yield_params")
         if y < 0:
@@ -280,7 +280,7 @@ def _check_library(events: list[EventRule]) -> None:
         first[ev.name] = i
     sources = {p.species for ev in events if ev.is_primary for p in ev.products}
     for i, ev in enumerate(events):
-        if not ev.is_primary and ev.dep_params["species"] not in sources:  # type: ignore[index]
+        if not ev.is_primary and str(ev.dep_params["species"]) not in sources:  # type: ignore[index]
             raise _fail(
                 ev.name, i, "dep_params.species",
                 f"bad product relation: no primary event generates {ev.dep_params['species']!r}",  # type: ignore[index]

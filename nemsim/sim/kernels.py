@@ -113,8 +113,9 @@ class TransportParams(NamedTuple):
 
 def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportParams:
     """The transport settings of ``config``; ``cap``/``rcap``: the resolved voxel capacities."""
+    cos_full, cos_zero = config.reflection_cosines
     return TransportParams(float(cap), float(rcap), float(config.product_energy_ev), int(config.max_steps),
-                           float(config.particle_weight), *map(float, config.reflection_cosines),
+                           float(config.particle_weight), float(cos_full), float(cos_zero),
                            bool(config.excess_probability_yield))  # fmt: skip
 
 
