@@ -68,10 +68,7 @@ def test_lhs_design_properties():
 def test_lhs_matches_scipy_sampler():
     from scipy.stats import qmc
 
-    try:
-        ref = qmc.LatinHypercube(d=14, seed=42).random(500)
-    except TypeError:  # a future scipy without the legacy `seed` keyword
-        pytest.skip("scipy no longer accepts seed=")
+    ref = qmc.LatinHypercube(d=14, seed=42).random(500)
     np.testing.assert_array_equal(C.lhs_unit(500, 42), ref)
 
 

@@ -124,7 +124,7 @@ def test_sim_truth_cache(tiny_scene, tmp_path):
         SimTruth(tiny_scene, rules, steps=tiny_scene.n_transitions + 1)
 
 
-@pytest.mark.slow  # ~30 s: two spawned workers import torch and numba
+@pytest.mark.slow  # two spawned workers import torch and numba
 def test_sim_truth_workers_match_serial(tiny_scene, tmp_path):
     from nemsim.rules import compile_rules, load_rules
 

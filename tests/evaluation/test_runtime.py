@@ -173,7 +173,7 @@ def test_bad_options_name_the_choices(kwargs, match):
 @pytest.mark.slow
 @needs_openvino
 def test_bench_rollout_has_openvino_variants(trained):
-    from nemsim.evaluation.bench import bench_rollout
+    from nemsim.evaluation.rollout_speed import bench_rollout
 
     model, x0, _ = trained
     rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-f32"])

@@ -50,13 +50,6 @@ def standin_registered():
     return "test-standin"
 
 
-@pytest.fixture(scope="session")
-def rules():
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-
-    return compile_rules(load_rules())
-
 
 def _synthetic_states(scene, controls_norm: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """(T, 2, D, H, W) float32: mask fixed, Si SDF plane rising at a rate set by the controls."""
