@@ -77,7 +77,7 @@ def _add_sim_overrides(p: argparse.ArgumentParser) -> None:
 # library, print a short report.
 # ------------------------------------------------------------------------------------------------
 
-# ==== section: rules (owner: rules) =============================================================
+# ==== section: rules =============================================================
 
 
 def _add_rules(sub: argparse._SubParsersAction) -> None:
@@ -166,7 +166,7 @@ def _cmd_rules_compile(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: controls, design, splits, data (owner: data) ====================================
+# ==== section: controls, design, splits, data ====================================
 
 
 def _add_data(sub: argparse._SubParsersAction) -> None:
@@ -278,7 +278,7 @@ def _cmd_data_check(args: argparse.Namespace) -> int:
     return 0 if report.ok else 2
 
 
-# ==== section: simulator: generate, sensitivity, bench sim/noise (owner: sim) ===================
+# ==== section: simulator: generate, sensitivity, bench sim/noise ===================
 
 
 def _add_sim(sub: argparse._SubParsersAction) -> None:
@@ -559,7 +559,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
     from nemsim.controls import lhs_design
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
-    from nemsim.sim.bench import bench_speed
+    from nemsim.sim.speed import bench_speed
 
     try:
         scenes = [get_scene(name.strip()) for name in args.scenes.split(",") if name.strip()]
@@ -614,7 +614,7 @@ def _cmd_bench_noise(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: models, train, evaluate, counterfactual (owner: model) ==========================
+# ==== section: models, train, evaluate, counterfactual ==========================
 
 
 def _add_model(sub: argparse._SubParsersAction) -> None:
@@ -735,10 +735,7 @@ def _load_for_eval(args: argparse.Namespace):
     loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
     manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
                                    tf.scene.n_transitions, args.splits)  # fmt: skip
-    if tf.rules_sha256 and tf.rules_sha256 != loaded.raw["rules_sha256"]:
-        logging.getLogger("nemsim.cli").warning(
-            "data was generated with rules %s..., the checkpoint's library is %s...",
-            str(tf.rules_sha256)[:12], loaded.raw["rules_sha256"][:12])
+    tf.warn_if_other_rules(loaded.raw["rules_sha256"], "the checkpoint's library")
     return loaded, tf, manifest
 
 
@@ -825,7 +822,7 @@ def _cmd_counterfactual(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: metrics, sensitivity (owner: metrics) ============================================
+# ==== section: metrics, sensitivity ============================================
 
 
 def _add_metrics(sub: argparse._SubParsersAction) -> None:
@@ -863,7 +860,7 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: serve (owner: service) ==========================================================
+# ==== section: serve ==========================================================
 
 
 def _add_service(sub: argparse._SubParsersAction) -> None:
@@ -1066,7 +1063,7 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: stress, bench rollout (owner: stress/speed) ======================================
+# ==== section: stress, bench rollout ======================================
 
 
 def _add_stress(sub: argparse._SubParsersAction) -> None:
@@ -1399,7 +1396,7 @@ def _print_plan(truth, runs) -> None:
 def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     import torch
 
-    from nemsim.evaluation.bench import VARIANTS, bench_rollout, format_bench
+    from nemsim.evaluation.rollout_speed import VARIANTS, bench_rollout, format_bench
     from nemsim.evaluation.stress import initial_state
 
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -1439,7 +1436,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: bench speed-error, bench collect (owner: speed-error / results) ==================
+# ==== section: bench speed-error, bench collect ==================
 
 
 def _add_speed_error(sub: argparse._SubParsersAction) -> None:

@@ -223,9 +223,7 @@ def _rules(args: argparse.Namespace, tf: Any) -> tuple[Any, dict[str, Any] | Non
     from nemsim.rules.schema import load_rules
 
     rules = compile_rules(load_rules())
-    if tf.rules_sha256 and tf.rules_sha256 != rules.sha256:
-        log.warning("data %s was generated with rules %s..., the library is %s...", args.data,
-                    str(tf.rules_sha256)[:12], rules.sha256[:12])
+    tf.warn_if_other_rules(rules.sha256)
     if args.perturb == "none":
         return rules, None
     from nemsim.rules.perturb import perturb

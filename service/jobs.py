@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from service.schemas import jsonable
 from service.surrogate import ServiceBusy
 
 log = logging.getLogger(__name__)
@@ -277,7 +278,7 @@ def compare(sim: np.ndarray, pred: np.ndarray, scene: Any) -> dict[str, Any]:
     m_pred = profile_metrics_batch(pred32, scene)
 
     def clean(values: Any) -> list[float | None]:
-        return [float(v) if np.isfinite(v) else None for v in np.asarray(values, dtype=np.float64)]
+        return jsonable(np.asarray(values, dtype=np.float64))  # non-finite -> None
 
     diff = {k: clean(np.asarray(m_pred[k]) - np.asarray(m_sim[k])) for k in m_sim}
     return {

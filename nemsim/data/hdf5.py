@@ -440,6 +440,15 @@ class TrajectoryFile:
         except KeyError:
             raise KeyError(f"case id {case_id} not in {self.path}") from None
 
+    def warn_if_other_rules(self, sha256: str, whose: str = "the library") -> bool:
+        """Log a warning (and return True) if the file was generated with another rules library than the
+        one of SHA-256 ``sha256`` (``whose`` names it in the message); files without a hash pass."""
+        if not self.rules_sha256 or self.rules_sha256 == str(sha256):
+            return False
+        log.warning("%s was generated with rules %s..., %s is %s...", self.path, self.rules_sha256[:12],
+                    whose, str(sha256)[:12])
+        return True
+
     def case_meta(self, row: int) -> dict:
         if "case_meta" not in self._f:
             return {}

@@ -53,6 +53,8 @@ from typing import Any
 
 import numpy as np
 
+from nemsim.evaluation.metrics import StepRmse, chamfer_distance, count_params
+
 log = logging.getLogger(__name__)
 
 BACKENDS = ("torch", "openvino")
@@ -119,8 +121,6 @@ class _Scores:
     """Streaming Avg/Final RMSE (vs reference and vs data), final CD and times of one method."""
 
     def __init__(self) -> None:
-        from nemsim.evaluation.metrics import StepRmse
-
         self.vs_ref = StepRmse()
         self.vs_data = StepRmse()
         self.cd: list[float] = []
@@ -129,8 +129,6 @@ class _Scores:
 
     def add(self, pred, ref, data, scene, case_id: int, steps: int, wall: float, cpu: float, cache) -> None:
         """pred, ref, data: (T+1, 2, D, H, W); step 0 (the shared x_0) is excluded from the RMSE."""
-        from nemsim.evaluation.metrics import chamfer_distance
-
         self.vs_ref.update(pred[None, 1:], ref[None, 1:])
         self.vs_data.update(pred[None, 1:], data[None, 1:])
         self.cd.append(float(chamfer_distance(pred[-1], ref[-1], scene, case_id, steps, cache=cache)))
@@ -320,9 +318,7 @@ def run_speed_error(
         test_ids, rows = _test_rows(tf, manifest, config.cases, data)
 
         rules = compile_rules(load_rules())
-        if tf.rules_sha256 and tf.rules_sha256 != rules.sha256:
-            log.warning("data %s was generated with rules %s..., the library is %s...", data,
-                        tf.rules_sha256[:12], rules.sha256[:12])  # fmt: skip
+        tf.warn_if_other_rules(rules.sha256)
         gen_cfg = tf.generator.get("config") if isinstance(tf.generator, dict) else None
         base_cfg = SimConfig.from_meta(gen_cfg) if gen_cfg else SimConfig()
         sim_cfgs = {b: replace(base_cfg, particle_budget=b).resolved(scene) for b in budgets}
@@ -380,8 +376,6 @@ def _report_rows(budgets: list[float], models: list[tuple[str, Any, Path]], runt
                  batch_times: dict[tuple[str, str], tuple[float, float]],
                  config: SpeedErrorConfig) -> tuple[list[dict[str, Any]], dict[str, str], dict[str, Any]]:
     """(rows of the report, fastest runtime keeping the error per model, full-budget simulator's scores)."""
-    from nemsim.evaluation.metrics import count_params
-
     nb = config.throughput_batch
     sim_full = scores[("sim", 1.0)].summary()
     report_rows: list[dict[str, Any]] = []
