@@ -26,6 +26,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from nemsim.data.hdf5 import open_trajectories
+
 SPLITS = ("train", "val", "test", "unused")
 
 
@@ -51,8 +53,6 @@ class _H5Backed(Dataset):
     """Shared lazy-handle logic: ``self._states`` is (re)opened per process."""
 
     def __init__(self, path: str | Path, manifest: dict | None, split: str) -> None:
-        from nemsim.data.hdf5 import open_trajectories
-
         self.path = Path(path)
         self.split = split
         with open_trajectories(self.path) as tf:

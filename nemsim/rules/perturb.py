@@ -29,7 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from nemsim.rules.compile import EPS_ALPHA, RuleTensors, build_R, compile_rules
-from nemsim.rules.schema import RulesSpec, parse_rules
+from nemsim.rules.schema import RulesSpec, canonical_text, parse_rules
 from nemsim.rules.vocab import N_FAMILIES, N_SPECIES, TARGETS
 
 __all__ = [
@@ -92,8 +92,6 @@ def rate_yield_noise(spec: RulesSpec, seed: int, low: float = 0.7, high: float =
         events.append(ev.model_copy(update=upd))
     out = spec.model_copy(update={"events": events})
     # round trip through the validator so a perturbed library is a valid library
-    from nemsim.rules.schema import canonical_text
-
     return parse_rules(canonical_text(out))
 
 

@@ -39,11 +39,8 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Literal
 
-# Measured on the 2-core development CPU (torch 2.13, 1 thread, machine shared, two runs), NEMSim on the
-# small scene, one optimizer step at batch 24:
-#   fp32 channels-first 1.61 / 1.93 s   bf16 channels-first 1.19 / 1.03 s
-#   fp32 channels-last  1.92 / 1.55 s   bf16 channels-last  1.35 / 1.22 s
-# bf16 autocast wins consistently (~1.5x); channels_last_3d does not (slower with bf16 both times).
+# The faster setting of one NEMSim training step on the small scene: bf16 autocast on, channels_last_3d off
+# (benchmarks/small/README.md, "Training-step precision and memory format").
 DEFAULT_CHANNELS_LAST = False
 DEFAULT_BF16 = True
 
