@@ -8,10 +8,16 @@ Package map (paper part -> module):
   data/        HDF5 data contract, torch datasets, split manifests
   model/       encoder, EIC, MAC, MRC, decoder                  [Method, supp_eic, supp_mac, supp_mrc]
   baselines/   ConvLSTM, FNO, U-NO, CNO, DeepONet (+RuleFeat)  [supp_baselines, supp_rulefeat]
+  registry.py  every model by name (NEMSim, ablations, baselines)
+  checkpoint.py  checkpoints with provenance (save, read, rebuild the model)
   training/    one-step training loop                          [supp_training]
   evaluation/  rollout protocol and metrics                    [supp_protocols]
   analysis/    counterfactual mechanism analysis               [supp_mechanism_alignment]
   geometry/    profile metrics and surface meshes
+
+Dependencies between these point one way (checked by tests/test_code_health.py, function-level imports
+included): baselines import model, the registry imports both, checkpoint imports the registry, evaluation
+imports checkpoint and sim, training imports evaluation; cli is on top and is the only user of service/.
 """
 
 __version__ = "0.1.0"

@@ -77,7 +77,7 @@ def _add_sim_overrides(p: argparse.ArgumentParser) -> None:
 # library, print a short report.
 # ------------------------------------------------------------------------------------------------
 
-# ==== section: rules (owner: rules) =============================================================
+# ==== section: rules =============================================================
 
 
 def _add_rules(sub: argparse._SubParsersAction) -> None:
@@ -166,7 +166,7 @@ def _cmd_rules_compile(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: controls, design, splits, data (owner: data) ====================================
+# ==== section: controls, design, splits, data ====================================
 
 
 def _add_data(sub: argparse._SubParsersAction) -> None:
@@ -278,7 +278,7 @@ def _cmd_data_check(args: argparse.Namespace) -> int:
     return 0 if report.ok else 2
 
 
-# ==== section: simulator: generate, sensitivity, bench sim/noise (owner: sim) ===================
+# ==== section: simulator: generate, sensitivity, bench sim/noise ===================
 
 
 def _add_sim(sub: argparse._SubParsersAction) -> None:
@@ -527,7 +527,7 @@ def _sim_config(overrides: list[str]):
             raise UserError(f"--set {item!r}: value must be a number") from None
         kwargs[key] = value
     try:
-        return SimConfig(**kwargs)
+        return SimConfig(**kwargs)  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:
         raise UserError(f"--set: {exc}") from exc
 
@@ -582,7 +582,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     rules = compile_rules(load_rules())
     try:
         report = generate_dataset(
-            args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,
+            args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,  # type: ignore[arg-type]
             workers=args.workers, executor=args.executor, progress=not args.no_progress,
             state_dtype=args.state_dtype,
         )  # fmt: skip
@@ -601,7 +601,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
     from nemsim.controls import lhs_design
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
-    from nemsim.sim.bench import bench_speed
+    from nemsim.sim.speed import bench_speed
 
     try:
         scenes = [get_scene(name.strip()) for name in args.scenes.split(",") if name.strip()]
@@ -630,9 +630,9 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
 
 def _cmd_bench_noise(args: argparse.Namespace) -> int:
     from nemsim.controls import lhs_design
+    from nemsim.evaluation.noise import bench_noise
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
-    from nemsim.sim.bench import bench_noise
 
     try:
         seeds = tuple(int(s) for s in args.seeds.split(","))
@@ -656,7 +656,7 @@ def _cmd_bench_noise(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: models, train, evaluate, counterfactual (owner: model) ==========================
+# ==== section: models, train, evaluate, counterfactual ==========================
 
 
 def _add_model(sub: argparse._SubParsersAction) -> None:
@@ -766,9 +766,9 @@ def _load_for_eval(args: argparse.Namespace):
     """(loaded model, trajectory file, manifest) with the data file's scene checked against the checkpoint."""
     from pathlib import Path
 
+    from nemsim.checkpoint import load_checkpoint
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.data.splits import resolve_manifest
-    from nemsim.training.checkpoint import load_checkpoint
 
     for path in (args.checkpoint, args.data):
         if not Path(path).is_file():
@@ -777,10 +777,7 @@ def _load_for_eval(args: argparse.Namespace):
     loaded = load_checkpoint(args.checkpoint, scene=tf.scene, device=getattr(args, "device", "cpu"))
     manifest, _ = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
                                    tf.scene.n_transitions, args.splits)  # fmt: skip
-    if tf.rules_sha256 and tf.rules_sha256 != loaded.raw["rules_sha256"]:
-        logging.getLogger("nemsim.cli").warning(
-            "data was generated with rules %s..., the checkpoint's library is %s...",
-            str(tf.rules_sha256)[:12], loaded.raw["rules_sha256"][:12])
+    tf.warn_if_other_rules(loaded.raw["rules_sha256"], "the checkpoint's library")
     return loaded, tf, manifest
 
 
@@ -797,7 +794,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     cases = TrajectoryDataset(args.data, manifest, args.split)
     if len(cases) == 0:
         raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
-    result = evaluate(loaded.model, cases, loaded.scene, steps=args.steps, batch_size=args.batch_size,
+    result = evaluate(loaded.model, cases, loaded.scene, steps=args.steps, batch_size=args.batch_size,  # type: ignore[arg-type]
                       device=args.device, chamfer=not args.no_cd, rollout_path=args.save_rollouts,
                       rollout_attrs={"checkpoint": str(args.checkpoint), "setting": args.setting,
                                      "model": loaded.name})
@@ -824,7 +821,7 @@ def _cmd_models(args: argparse.Namespace) -> int:
     import json
 
     from nemsim.evaluation.metrics import count_params
-    from nemsim.model.registry import available_models, build_model
+    from nemsim.registry import available_models, build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
     from nemsim.scenes import get_scene
@@ -867,7 +864,7 @@ def _cmd_counterfactual(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: metrics, sensitivity (owner: metrics) ============================================
+# ==== section: metrics, sensitivity ============================================
 
 
 def _add_metrics(sub: argparse._SubParsersAction) -> None:
@@ -905,7 +902,7 @@ def _cmd_sensitivity(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: serve (owner: service) ==========================================================
+# ==== section: serve ==========================================================
 
 
 def _add_service(sub: argparse._SubParsersAction) -> None:
@@ -1108,7 +1105,7 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: stress, bench rollout (owner: stress/speed) ======================================
+# ==== section: stress, bench rollout ======================================
 
 
 def _add_stress(sub: argparse._SubParsersAction) -> None:
@@ -1272,7 +1269,7 @@ def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
 
 
 def _load_truth_checkpoint(path: str):
-    from nemsim.training.checkpoint import load_checkpoint
+    from nemsim.checkpoint import load_checkpoint
 
     try:
         return load_checkpoint(path)
@@ -1323,8 +1320,8 @@ def _cmd_bench_physics(args: argparse.Namespace) -> int:
 
 
 def _cmd_stress(args: argparse.Namespace) -> int:
+    from nemsim.checkpoint import load_checkpoint
     from nemsim.evaluation.stress import StressConfig, format_table, initial_state, run_stress
-    from nemsim.training.checkpoint import load_checkpoint
 
     if args.steps < 1 or args.batch_size < 1 or args.noise_cases < 0:
         raise UserError("--steps and --batch-size must be >= 1, --noise-cases >= 0")
@@ -1441,7 +1438,7 @@ def _print_plan(truth, runs) -> None:
 def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     import torch
 
-    from nemsim.evaluation.bench import VARIANTS, bench_rollout, format_bench
+    from nemsim.evaluation.rollout_speed import VARIANTS, bench_rollout, format_bench
     from nemsim.evaluation.stress import initial_state
 
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -1453,7 +1450,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.checkpoint:
-        from nemsim.training.checkpoint import load_checkpoint
+        from nemsim.checkpoint import load_checkpoint
 
         try:
             loaded = load_checkpoint(args.checkpoint)
@@ -1461,7 +1458,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from exc
         model, scene = loaded.model, loaded.scene
     else:
-        from nemsim.model.registry import build_model
+        from nemsim.registry import build_model
         from nemsim.rules.compile import compile_rules
         from nemsim.rules.schema import load_rules
         from nemsim.scenes import get_scene
@@ -1481,7 +1478,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     return 0
 
 
-# ==== section: bench speed-error, bench collect (owner: speed-error / results) ==================
+# ==== section: bench speed-error, bench collect ==================
 
 
 def _add_speed_error(sub: argparse._SubParsersAction) -> None:

@@ -13,6 +13,10 @@ Choices where the paper is silent:
   * ``--fraction F`` (data efficiency, [supp_data_efficiency]) keeps the training subset of
     ``nemsim.data.splits.data_efficiency_subsets`` for F; validation and test are unchanged;
   * the model's scene is the data file's scene.
+
+This module is the process entry point (the ``nemsim train`` command and ``python -m nemsim.train`` under
+torchrun), a peer of ``nemsim.cli``; the loop, its config and checkpoints live in ``nemsim.training`` and
+``nemsim.checkpoint``. What the model trains on is decided in one function, ``_load_data``.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 log = logging.getLogger("nemsim.train")
 
@@ -106,7 +110,7 @@ def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
 def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> None:
     """Load a checkpoint's weights into the fresh ``model`` (warm start); parameters the checkpoint lacks keep
     their initialization. Refuses another model, rules library or scene, and parameters the model lacks."""
-    from nemsim.training.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
+    from nemsim.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
 
     try:
         ckpt = read_checkpoint(path)
@@ -125,6 +129,63 @@ def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> Non
         raise TrainInputError(f"--init-from {path}: parameters the model lacks: {sorted(unexpected)[:5]}")
     log.info("initialized from %s; kept the initialization of %d tensors: %s", path, len(missing),
              sorted(missing))
+
+
+def _steps_per_call(model_overrides: dict[str, Any]) -> int:
+    """k of the model being trained: the ``steps_per_call`` model override (NEMSim), else 1."""
+    k = model_overrides.get("steps_per_call", 1)
+    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
+        raise TrainInputError(f"model steps_per_call must be an integer >= 1, got {k!r}")
+    return k
+
+
+def _config_dict(cfg: Any) -> dict:
+    return asdict(cfg) if is_dataclass(cfg) and not isinstance(cfg, type) else dict(cfg)
+
+
+def _init_process_group() -> int:
+    """Under torchrun (WORLD_SIZE > 1) join the process group (gloo on CPU, NCCL on CUDA); the rank."""
+    import torch
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend=backend)
+        if torch.cuda.is_available():
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+    return dist.get_rank() if dist.is_initialized() else 0
+
+
+def _train_config(args: argparse.Namespace, rank: int) -> tuple[Any, dict[str, Any]]:
+    """(TrainConfig, model overrides) from --config and the flags that override its fields."""
+    from nemsim.training.config import TrainConfig, read_config_file
+
+    try:
+        cfg, model_overrides = read_config_file(args.config) if args.config else (TrainConfig(), {})
+    except (OSError, ValueError) as exc:
+        raise TrainInputError(f"--config {args.config}: {exc}") from None
+    changes: dict[str, Any] = {}
+    for arg, key in (("epochs", "max_epochs"), ("max_steps", "max_steps"), ("seed", "seed"), ("bf16", "bf16"),
+                     ("channels_last", "channels_last"), ("device", "device"),
+                     ("rollout_steps", "rollout_steps")):
+        if getattr(args, arg, None) is not None:
+            changes[key] = getattr(args, arg)
+    if args.no_progress or rank != 0:
+        changes["progress"] = False
+    try:
+        return (cfg.replace(**changes) if changes else cfg), model_overrides
+    except ValueError as exc:
+        raise TrainInputError(str(exc)) from None
+
+
+def _log_to_file(out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(out / "train.log")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.getLogger().addHandler(handler)
+    if logging.getLogger().level > logging.INFO or logging.getLogger().level == logging.NOTSET:
+        logging.getLogger().setLevel(logging.INFO)
 
 
 def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
@@ -147,108 +208,91 @@ def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int) -> A
     return TransitionDataset(path, None, "train", visible_transitions=visible, unroll=unroll)
 
 
-def _steps_per_call(model_overrides: dict[str, Any]) -> int:
-    """k of the model being trained: the ``steps_per_call`` model override (NEMSim), else 1."""
-    k = model_overrides.get("steps_per_call", 1)
-    if not isinstance(k, int) or isinstance(k, bool) or k < 1:
-        raise TrainInputError(f"model steps_per_call must be an integer >= 1, got {k!r}")
-    return k
+def _load_data(args: argparse.Namespace, cfg: Any, model_overrides: dict[str, Any]) -> tuple[Any, dict, Any]:
+    """(trajectory file, split manifest, TrainData) of --data, --setting, --splits and --fraction.
 
-
-def _config_dict(cfg: Any) -> dict:
-    return asdict(cfg) if is_dataclass(cfg) else dict(cfg)
-
-
-def run(args: argparse.Namespace) -> int:
-    import torch
-    import torch.distributed as dist
-
+    The one place that decides what the model trains and validates on: every training item spans
+    unroll_steps network calls of steps_per_call states each.
+    """
     from nemsim.data.dataset import TrajectoryDataset, TransitionDataset, TransitionSets
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.data.splits import resolve_manifest
-    from nemsim.model.registry import available_models, build_model, model_config
+    from nemsim.training.loop import TrainData
+
+    tf = open_trajectories(args.data)
+    try:
+        manifest, source = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
+                                            tf.scene.n_transitions, args.splits)
+    except ValueError as exc:
+        raise TrainInputError(str(exc)) from None
+    log.info("split manifest: %s", source)
+    if args.fraction is not None:
+        manifest = _apply_fraction(manifest, args.fraction, tf)
+    for split, limit in (("val", cfg.val_cases), ("test", cfg.test_cases)):
+        if limit is not None and split in manifest:
+            manifest = {**manifest, split: list(manifest[split])[:limit]}
+    visible = manifest.get("visible_transitions")
+    unroll = cfg.unroll_steps * _steps_per_call(model_overrides)
+    train_set: Any = TransitionDataset(args.data, manifest, "train", visible_transitions=visible,
+                                       unroll=unroll)
+    extra_sets = [_extra_train_set(path, tf, visible, unroll) for path in args.extra_data]
+    if extra_sets:
+        log.info("extra training data: %s", ", ".join(f"{e.path} ({len(e.rows)} cases)" for e in extra_sets))
+        train_set = TransitionSets([train_set, *extra_sets])
+    data = TrainData(train=train_set, val=TrajectoryDataset(args.data, manifest, "val"))
+    log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", args.setting,
+             len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)
+    return tf, manifest, data
+
+
+def _rules(args: argparse.Namespace, tf: Any) -> tuple[Any, dict[str, Any] | None]:
+    """(compiled rules, perturbation record or None): the library, optionally perturbed (--perturb)."""
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
-    from nemsim.training.config import TrainConfig, read_config_file
-    from nemsim.training.loop import ModelMeta, TrainData, seed_everything, train
 
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world > 1 and not dist.is_initialized():
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
-        dist.init_process_group(backend=backend)
-        if torch.cuda.is_available():
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
-    rank = dist.get_rank() if dist.is_initialized() else 0
+    rules = compile_rules(load_rules())
+    tf.warn_if_other_rules(rules.sha256)
+    if args.perturb == "none":
+        return rules, None
+    from nemsim.rules.perturb import perturb
+
+    return perturb(rules, args.perturb, args.perturb_seed), {"kind": args.perturb, "seed": args.perturb_seed}
+
+
+def _test_best(args: argparse.Namespace, out: Path, manifest: dict, scene: Any, steps: int | None) -> None:
+    """Evaluate best.pt on the test split: into best.pt's metrics and OUT/test_metrics.json."""
+    from nemsim.checkpoint import load_checkpoint, update_metrics
+    from nemsim.data.dataset import TrajectoryDataset
+    from nemsim.evaluation.evaluate import evaluate, write_json
+
+    loaded = load_checkpoint(out / "best.pt")
+    test_set = cast(Sequence[Any], TrajectoryDataset(args.data, manifest, "test"))  # (case_id, states, u)
+    result = evaluate(loaded.model, test_set, scene, steps=steps)
+    update_metrics(out / "best.pt", {args.setting: result.to_json_dict()})
+    write_json(result, out / "test_metrics.json", {"setting": args.setting})
+    log.info("test: Avg RMSE %.5f, Final RMSE %.5f, CD %s", result.avg_rmse, result.final_rmse,
+             f"{result.cd:.4f}" if result.cd is not None else "n/a")
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch.distributed as dist
+
+    from nemsim.registry import available_models, build_model, model_config
+    from nemsim.training.loop import ModelMeta, seed_everything, train
+
+    rank = _init_process_group()
     try:
         if args.model not in available_models():
             raise TrainInputError(f"unknown model {args.model!r}; expected one of {available_models()}")
         if not Path(args.data).is_file():
             raise TrainInputError(f"data file {args.data} does not exist")
-        try:
-            cfg, model_overrides = read_config_file(args.config) if args.config else (TrainConfig(), {})
-        except (OSError, ValueError) as exc:
-            raise TrainInputError(f"--config {args.config}: {exc}") from None
-        changes: dict[str, Any] = {}
-        for arg, key in (("epochs", "max_epochs"), ("max_steps", "max_steps"), ("seed", "seed"), ("bf16", "bf16"),
-                         ("channels_last", "channels_last"), ("device", "device"),
-                         ("rollout_steps", "rollout_steps")):
-            if getattr(args, arg, None) is not None:
-                changes[key] = getattr(args, arg)
-        if args.no_progress or rank != 0:
-            changes["progress"] = False
-        try:
-            cfg = cfg.replace(**changes) if changes else cfg
-        except ValueError as exc:
-            raise TrainInputError(str(exc)) from None
-
+        cfg, model_overrides = _train_config(args, rank)
         out = Path(args.out)
         if rank == 0:
-            out.mkdir(parents=True, exist_ok=True)
-            handler = logging.FileHandler(out / "train.log")
-            handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-            logging.getLogger().addHandler(handler)
-            if logging.getLogger().level > logging.INFO or logging.getLogger().level == logging.NOTSET:
-                logging.getLogger().setLevel(logging.INFO)
-
-        # ---- data ----
-        tf = open_trajectories(args.data)
+            _log_to_file(out)
+        tf, manifest, data = _load_data(args, cfg, model_overrides)
         scene = tf.scene
-        try:
-            manifest, source = resolve_manifest(args.setting, args.data, tf.case_ids, tf.controls_raw,
-                                                tf.scene.n_transitions, args.splits)
-        except ValueError as exc:
-            raise TrainInputError(str(exc)) from None
-        log.info("split manifest: %s", source)
-        if args.fraction is not None:
-            manifest = _apply_fraction(manifest, args.fraction, tf)
-        for split, limit in (("val", cfg.val_cases), ("test", cfg.test_cases)):
-            if limit is not None and split in manifest:
-                manifest = {**manifest, split: list(manifest[split])[:limit]}
-        visible = manifest.get("visible_transitions")
-        # a training item spans unroll_steps network calls of steps_per_call states each
-        unroll = cfg.unroll_steps * _steps_per_call(model_overrides)
-        train_set: Any = TransitionDataset(args.data, manifest, "train", visible_transitions=visible,
-                                           unroll=unroll)
-        extra_sets = [_extra_train_set(path, tf, visible, unroll) for path in args.extra_data]
-        if extra_sets:
-            log.info("extra training data: %s",
-                     ", ".join(f"{e.path} ({len(e.rows)} cases)" for e in extra_sets))
-            train_set = TransitionSets([train_set, *extra_sets])
-        data = TrainData(train=train_set, val=TrajectoryDataset(args.data, manifest, "val"))
-
-        # ---- rules (optionally perturbed) and model ----
-        rules = compile_rules(load_rules())
-        if tf.rules_sha256 and tf.rules_sha256 != rules.sha256:
-            log.warning("data %s was generated with rules %s..., the library is %s...", args.data,
-                        str(tf.rules_sha256)[:12], rules.sha256[:12])
-        perturbation = None
-        if args.perturb != "none":
-            from nemsim.rules.perturb import perturb
-
-            rules = perturb(rules, args.perturb, args.perturb_seed)
-            if not hasattr(rules, "sha256"):
-                rules = compile_rules(rules)
-            perturbation = {"kind": args.perturb, "seed": args.perturb_seed}
+        rules, perturbation = _rules(args, tf)
         seed_everything(cfg.seed)
         model = build_model(args.model, scene, rules, model_overrides or None)
         if args.init_from is not None and not (args.resume and (out / "last.pt").is_file()):
@@ -256,25 +300,13 @@ def run(args: argparse.Namespace) -> int:
         mcfg = _config_dict(model_config(args.model, scene, model_overrides or None))
         meta = ModelMeta(name=args.model, config=mcfg, scene=scene, rules=rules,
                          rules_perturbation=perturbation, sim_config=tf.generator or None)
-        log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", args.setting,
-                 len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)
         summary = train(cfg, model, data, out, meta, resume=args.resume)
         log.info("training done: best %s %.5g at epoch %d", summary["select_metric"], summary["best_val"],
                  summary["best_epoch"])
-
         if dist.is_initialized():
             dist.barrier()
         if rank == 0 and not args.no_test and (out / "best.pt").is_file() and manifest.get("test"):
-            from nemsim.evaluation.evaluate import evaluate, write_json
-            from nemsim.training.checkpoint import load_checkpoint, update_metrics
-
-            loaded = load_checkpoint(out / "best.pt")
-            result = evaluate(loaded.model, TrajectoryDataset(args.data, manifest, "test"), scene,
-                              steps=cfg.rollout_steps)
-            update_metrics(out / "best.pt", {args.setting: result.to_json_dict()})
-            write_json(result, out / "test_metrics.json", {"setting": args.setting})
-            log.info("test: Avg RMSE %.5f, Final RMSE %.5f, CD %s", result.avg_rmse, result.final_rmse,
-                     f"{result.cd:.4f}" if result.cd is not None else "n/a")
+            _test_best(args, out, manifest, scene, cfg.rollout_steps)
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()

@@ -14,6 +14,9 @@ rollouts per second; the server's RSS, peak RSS and CPU seconds.
 from __future__ import annotations
 
 import os
+import socket
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -125,29 +128,9 @@ def _pctl(samples: list[float]) -> dict[str, float]:
     }
 
 
-def bench_load(
-    checkpoint: str | Path,
-    *,
-    clients: int = 8,
-    seconds: float = 60.0,
-    steps: int = 100,
-    seed: int = 0,
-    port: int | None = None,
-    env: dict[str, str] | None = None,
-) -> dict[str, Any]:
-    """Start `nemsim serve` on a loopback port, drive it with `clients` concurrent HTTP clients for
-    `seconds` (request mix `ROUTE_MIX`), and report per route p50/p95/p99, status counts and errors
-    (any 5xx other than 503, any transport failure), plus the server's RSS and CPU seconds."""
-    import random
-    import socket
-    import subprocess
-    import sys
-    import threading
-
-    import httpx
-
-    from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized
-
+def _start_server(checkpoint: str | Path, port: int | None,
+                  env: dict[str, str] | None) -> tuple[subprocess.Popen, str]:
+    """`nemsim serve` on a loopback port (a free one if None); (process, base URL)."""
     if port is None:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
@@ -164,7 +147,30 @@ def bench_load(
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    base = f"http://127.0.0.1:{port}"
+    return proc, f"http://127.0.0.1:{port}"
+
+
+def bench_load(
+    checkpoint: str | Path,
+    *,
+    clients: int = 8,
+    seconds: float = 60.0,
+    steps: int = 100,
+    seed: int = 0,
+    port: int | None = None,
+    env: dict[str, str] | None = None,
+) -> dict[str, Any]:
+    """Start `nemsim serve` on a loopback port, drive it with `clients` concurrent HTTP clients for
+    `seconds` (request mix `ROUTE_MIX`), and report per route p50/p95/p99, status counts and errors
+    (any 5xx other than 503, any transport failure), plus the server's RSS and CPU seconds."""
+    import random
+    import threading
+
+    import httpx
+
+    from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized
+
+    proc, base = _start_server(checkpoint, port, env)
     rng = np.random.default_rng(seed)
 
     def body(u: np.ndarray) -> dict[str, Any]:
@@ -211,7 +217,7 @@ def bench_load(
                         elif route == "POST /rollout cached":
                             r = http.post("/rollout", json=pick.choice(warm))
                         elif route == "GET /rollouts/{id}/mesh":
-                            params = {
+                            params: dict[str, Any] = {
                                 "step": pick.randrange(steps + 1),
                                 "format": pick.choice(["glb", "stl"]),
                             }

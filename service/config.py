@@ -26,7 +26,7 @@ def checkpoint_dirs() -> list[Path]:
     return list(dict.fromkeys(d.resolve() for d in dirs))
 
 
-SHIPPED_CHECKPOINT = "nemsim-small.pt"  # the served model (checkpoints/README.md); other .pt files are references
+SHIPPED_CHECKPOINT = "nemsim-small.pt"  # the served model (checkpoints/README.md); other .pt: references
 
 
 def default_checkpoint() -> Path | None:

@@ -87,7 +87,7 @@ def excursions(raw: np.ndarray, box: dict[str, tuple[float, float]]) -> list[Exc
             ("below", k_lo, below[k_lo]) if below[k_lo] >= above[k_hi] else ("above", k_hi, above[k_hi])
         )
         dist = float(d / half) if half > 0 else math.inf
-        out.append(Excursion(spec.name, spec.unit, float(rows[k, i]), lo, hi, side, dist))
+        out.append(Excursion(spec.name, spec.unit, float(rows[k, i]), lo, hi, side, dist))  # type: ignore[arg-type]
     return out
 
 

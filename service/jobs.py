@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from service.schemas import jsonable
 from service.surrogate import ServiceBusy
 
 log = logging.getLogger(__name__)
@@ -277,7 +278,7 @@ def compare(sim: np.ndarray, pred: np.ndarray, scene: Any) -> dict[str, Any]:
     m_pred = profile_metrics_batch(pred32, scene)
 
     def clean(values: Any) -> list[float | None]:
-        return [float(v) if np.isfinite(v) else None for v in np.asarray(values, dtype=np.float64)]
+        return jsonable(np.asarray(values, dtype=np.float64))  # non-finite -> None
 
     diff = {k: clean(np.asarray(m_pred[k]) - np.asarray(m_sim[k])) for k in m_sim}
     return {
@@ -312,7 +313,7 @@ def error_mesh(sim_field: np.ndarray, pred_field: np.ndarray, scene: Any, fmt: s
         rgb[:, 1] -= np.abs(t)
         rgb[:, 2] -= np.clip(-t, 0, 1)  # inside: less blue
         colours = np.concatenate([rgb, np.ones((len(t), 1))], axis=1)
-        mesh.visual.vertex_colors = (255 * colours).astype(np.uint8)
+        mesh.visual.vertex_colors = (255 * colours).astype(np.uint8)  # type: ignore[union-attr]
         mesh.metadata["max_abs_error_nm"] = float(np.abs(err_nm).max())
     return export_mesh(mesh, fmt)
 

@@ -21,7 +21,7 @@ from service.errors import error_body
 log = logging.getLogger(__name__)
 
 
-async def send_error(send: Send, status: int, message: str, headers: list[tuple[bytes, bytes]] = ()) -> None:
+async def send_error(send: Send, status: int, message: str, headers: list[tuple[bytes, bytes]] = ()) -> None:  # type: ignore[assignment]
     """A complete JSON error response in the service's error shape."""
     body = json.dumps(error_body(message, message)).encode()
     await send(

@@ -146,7 +146,7 @@ def _control_field(spec: Any, default: float | None, *, strict: bool = True) -> 
     return (typ, field)
 
 
-Controls = create_model(
+Controls = create_model(  # type: ignore[call-overload]
     "Controls",
     __config__=_STRICT,
     __doc__="The 14 process controls by name, in physical units (all required).",
@@ -174,7 +174,7 @@ def _split_commas(value: Any) -> Any:
     return value
 
 
-MechanismsQuery = create_model(
+MechanismsQuery = create_model(  # type: ignore[call-overload]
     "MechanismsQuery",
     __base__=_MechanismsBase,
     __doc__="A base control vector by name in physical units; missing controls take the documented default "

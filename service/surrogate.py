@@ -144,7 +144,7 @@ def checkpoint_sim_config(raw: dict[str, Any]) -> tuple[Any, str]:
         return None, "simulator defaults (the checkpoint records no simulator configuration)"
     meta = recorded.get("config") if isinstance(recorded.get("config"), dict) else recorded
     try:
-        return SimConfig.from_meta(meta), "the checkpoint's simulator configuration (sim_config)"
+        return SimConfig.from_meta(meta), "the checkpoint's simulator configuration (sim_config)"  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:
         log.warning("checkpoint sim_config unreadable (%s): initial state from the simulator defaults", exc)
         return None, "simulator defaults (the checkpoint's simulator configuration could not be read)"
@@ -178,7 +178,7 @@ class Surrogate:
 
         self.loaded = loaded
         # rollouts run through the fast CPU runtime (PyTorch eager when openvino is missing, logged)
-        self.predictor = compile_model(loaded.model, runtime_backend, runtime_precision, runtime_threads)
+        self.predictor = compile_model(loaded.model, runtime_backend, runtime_precision, runtime_threads)  # type: ignore[arg-type]
         self.model_id = model_id
         self.scene = loaded.scene
         self.x0 = initial_state(loaded) if x0 is None else np.asarray(x0, dtype=np.float32)
@@ -279,7 +279,7 @@ class Surrogate:
         u = torch.from_numpy(u_norm)[None]  # (1, T, 14)
         t0 = time.perf_counter()
         with torch.inference_mode():
-            traj = rollout(self.predictor, x0, u, steps)[0].float().numpy()  # (T+1, 2, D, H, W)
+            traj = rollout(self.predictor, x0, u, steps)[0].float().numpy()  # type: ignore[arg-type]  # (T+1, 2, D, H, W)
         t1 = time.perf_counter()
         metrics = {k: [float(v) for v in vals] for k, vals in profile_metrics_batch(traj, self.scene).items()}
         t2 = time.perf_counter()
@@ -308,7 +308,7 @@ class Surrogate:
 
         u = torch.zeros(1, steps, len(CONTROL_NAMES))
         with torch.inference_mode():
-            rollout(self.predictor, torch.from_numpy(self.x0)[None], u, steps, keep=False)
+            rollout(self.predictor, torch.from_numpy(self.x0)[None], u, steps, keep=False)  # type: ignore[arg-type]
 
     # --- meshes -------------------------------------------------------------------------------------
     def warm_up_meshes(self, formats: tuple[str, ...] = ("glb", "ply", "obj", "stl")) -> None:

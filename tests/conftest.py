@@ -19,16 +19,25 @@ def tiny_scene():
 
 
 @pytest.fixture(scope="session")
-def tiny_checkpoint(tmp_path_factory, tiny_scene):
-    """An untrained NEMSim checkpoint on `tiny`, written with the real save_checkpoint."""
-    import torch
-
-    from nemsim.model.registry import build_model
+def rules():
+    """The compiled Event Rules Library (rules/cl_si.yaml), shared by every test."""
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
-    from nemsim.training.checkpoint import save_checkpoint
 
-    rules = compile_rules(load_rules())
+    return compile_rules(load_rules())
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory, tiny_scene, rules):
+    """An untrained NEMSim checkpoint on `tiny`, written with the real save_checkpoint (full model config,
+    as ``nemsim train`` stores it)."""
+    import dataclasses
+
+    import torch
+
+    from nemsim.checkpoint import save_checkpoint
+    from nemsim.registry import build_model, model_config
+
     torch.manual_seed(0)
     model = build_model("nemsim", tiny_scene, rules)
     path = tmp_path_factory.mktemp("ckpt") / "tiny_nemsim.pt"
@@ -36,7 +45,7 @@ def tiny_checkpoint(tmp_path_factory, tiny_scene):
         path,
         model,
         model_name="nemsim",
-        model_config={},
+        model_config=dataclasses.asdict(model_config("nemsim", tiny_scene)),
         scene=tiny_scene,
         rules=rules,
         summary={"note": "untrained, for tests"},

@@ -1,4 +1,4 @@
-"""The console script's allocator settings (nemsim.allocator): when the process re-executes, and that it does."""
+"""The console script's allocator settings (nemsim.allocator): when it re-executes, and that it does."""
 
 from __future__ import annotations
 

@@ -44,13 +44,15 @@ INTERVENTIONS: tuple[tuple[float, float], ...] = tuple(
 CL_PLUS, CL_NEUTRAL = "flux_cl_plus", "flux_cl"
 
 
-def intervention_controls(controls_raw: np.ndarray, interventions: Sequence[tuple[float, float]]) -> np.ndarray:
+def intervention_controls(controls_raw: np.ndarray,
+                          interventions: Sequence[tuple[float, float]]) -> np.ndarray:
     """Raw controls (14,) -> (1 + K, 14): the base vector first, then one row per (s_+, s_n)."""
     from nemsim.controls import CONTROL_NAMES
 
     raw = np.asarray(controls_raw, dtype=np.float64)
     if raw.shape != (len(CONTROL_NAMES),):
-        raise ValueError(f"controls_raw must be ({len(CONTROL_NAMES)},) raw physical controls, got {raw.shape}")
+        raise ValueError(f"controls_raw must be ({len(CONTROL_NAMES)},) raw physical controls, "
+                         f"got {raw.shape}")
     i_plus, i_neutral = CONTROL_NAMES.index(CL_PLUS), CONTROL_NAMES.index(CL_NEUTRAL)
     rows = [raw]
     for s_plus, s_neutral in interventions:
@@ -82,7 +84,7 @@ def response_batch(
 
     N = x0.shape[0]
     K1 = 1 + len(interventions)
-    raw = np.stack([intervention_controls(c, interventions) for c in np.asarray(controls_raw)])  # (N, 1+K, 14)
+    raw = np.stack([intervention_controls(c, interventions) for c in np.asarray(controls_raw)])  # (N,1+K,14)
     p = next(model.parameters(), None)
     device = p.device if p is not None else torch.device("cpu")
     u = torch.as_tensor(to_normalized(raw), dtype=torch.float32, device=device).reshape(N * K1, -1)
@@ -91,7 +93,8 @@ def response_batch(
     x1, aux = model(xb, u, return_aux=True)
     T = aux["T"].float().reshape(N, K1, *aux["T"].shape[1:])  # (N, 1+K, E, M)
     M = T.sum(dim=2)  # (N, 1+K, M)  eq. mechanism_response_strength
-    removal = (x1[:, 1] - xb[:, 1]).clamp_min(0).reshape(N, K1, -1).sum(-1)  # (N, 1+K)  eq. material_removal_proxy
+    # (N, 1+K)  eq. material_removal_proxy
+    removal = (x1[:, 1] - xb[:, 1]).clamp_min(0).reshape(N, K1, -1).sum(-1)
     M_np, R_np = M.double().cpu().numpy(), removal.double().cpu().numpy()
     lam = aux["lambda"].float().reshape(N, K1, -1)[:, 0].cpu().numpy()
     alpha = aux["alpha"].float().reshape(N, K1, *aux["alpha"].shape[1:])[:, 0].cpu().numpy()
@@ -112,7 +115,7 @@ def mechanism_response(
     """Counterfactual mechanism response for one control vector (the service calls this).
 
     Args:
-        loaded: a ``LoadedModel`` (``nemsim.training.checkpoint.load_checkpoint``) or anything with
+        loaded: a ``LoadedModel`` (``nemsim.checkpoint.load_checkpoint``) or anything with
             ``.model`` (NEMSim, supports return_aux) and ``.scene``.
         controls_raw: (14,) raw physical controls, CONTROL_NAMES order.
         factors: the (s_+, s_n) flux multipliers of Cl+ and neutral Cl; default the paper's eight.
@@ -134,7 +137,7 @@ def mechanism_response(
     out = response_batch(model, x, np.asarray(controls_raw, dtype=np.float64)[None], tuple(factors))
     fams = list(FAMILIES)[: out["M"].shape[-1]]
 
-    def fam(v: np.ndarray) -> dict[str, float]:
+    def fam(v: np.ndarray) -> dict[str, float | None]:
         return {f: _num(v[k]) for k, f in enumerate(fams)}
 
     names = getattr(getattr(loaded, "rules", None), "names", None)
@@ -195,7 +198,7 @@ def analyze(
     from nemsim.rules.vocab import FAMILIES
 
     interventions = tuple(interventions)
-    dM_all, dR_all, ids = [], [], []
+    dM_all, dR_all, ids = [], [], []  # type: ignore[var-annotated]
     for start in range(0, len(cases), batch_size):
         chunk = cases[start : start + batch_size]
         x0 = torch.stack([torch.as_tensor(np.asarray(c[1]), dtype=torch.float32) for c in chunk])
@@ -224,13 +227,15 @@ def analyze(
             continue
         j = fams.index(family)
         r, n = _pearson(dM[:, ks, j].ravel(), dR[:, ks].ravel())
-        correlations[name] = {"family": family, "r": r, "n": n, "interventions": [list(interventions[k]) for k in ks]}
+        correlations[name] = {"family": family, "r": r, "n": n,
+                              "interventions": [list(interventions[k]) for k in ks]}
     pairs = [
         {"case_id": cid, "s_cl_plus": sp, "s_cl": sn,
          "delta_M_pct": {f: _num(dM[i, k, j]) for j, f in enumerate(fams)}, "delta_R_pct": _num(dR[i, k])}
         for i, cid in enumerate(ids) for k, (sp, sn) in enumerate(interventions)
     ]
-    return {"families": fams, "n_cases": len(ids), "table": table, "correlations": correlations, "pairs": pairs}
+    return {"families": fams, "n_cases": len(ids), "table": table, "correlations": correlations,
+            "pairs": pairs}
 
 
 def format_table(result: dict[str, Any]) -> str:
@@ -271,7 +276,8 @@ def write_outputs(result: dict[str, Any], out_dir: str | Path) -> dict[str, Path
         w = csv.writer(f)
         w.writerow(["s_cl_plus", "s_cl", *[f"delta_M_{m}_pct" for m in fams], "delta_R_pct"])
         for row in result["table"]:
-            w.writerow([row["s_cl_plus"], row["s_cl"], *[row["delta_M_pct"][m] for m in fams], row["delta_R_pct"]])
+            deltas = [row["delta_M_pct"][m] for m in fams]
+            w.writerow([row["s_cl_plus"], row["s_cl"], *deltas, row["delta_R_pct"]])
 
     fig, (ax_a, ax_b) = plt.subplots(1, 2, figsize=(13, 4.8))
     labels = [f"({r['s_cl_plus']:g}, {r['s_cl']:g})" for r in result["table"]]

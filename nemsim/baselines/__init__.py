@@ -2,8 +2,8 @@
 tab:supp_baseline_impl; [supp_rulefeat], eq:rulefeat).
 
 Every model keeps the shared contract ``forward(x (B, 2, D, H, W), u (B, 14) normalized) -> x_next`` and has a
-frozen config dataclass whose defaults are the paper's configuration. Registered with
-``nemsim.model.registry`` under:
+frozen config dataclass whose defaults are the paper's configuration. Registered (by ``nemsim.registry``,
+which sits above this package) under:
 
   name            class        config           trainable params at any scene (paper)
   convlstm        ConvLSTM3d   ConvLSTMConfig     634,098   (0.634 M)
@@ -14,8 +14,8 @@ frozen config dataclass whose defaults are the paper's configuration. Registered
   cno-prior       CNO3d        rulefeat=True    1,750,876   (1,750,876)
   deeponet-prior  DeepONet3d   rulefeat=True    1,736,914   (1,735,874; delta +15,712 as the paper)
 
-Complex Fourier weights count as two reals (``nemsim.evaluation.metrics.count_params``). None of the counts depends on the
-scene: every layer is convolutional, spectral with fixed modes, or follows an adaptive pooling.
+Complex Fourier weights count as two reals (``nemsim.evaluation.metrics.count_params``). None of the counts
+depends on the scene: every layer is convolutional, spectral with fixed modes, or follows an adaptive pooling.
 """
 
 from __future__ import annotations
@@ -33,18 +33,3 @@ __all__ = [
     "RuleFeat", "UNO3d", "UNOConfig",
 ]
 
-
-def _register() -> None:
-    from nemsim.model.registry import register_model
-
-    register_model("convlstm", lambda scene, rules, cfg: ConvLSTM3d(cfg), ConvLSTMConfig)
-    register_model("fno", lambda scene, rules, cfg: FNO3d(cfg), FNOConfig)
-    register_model("uno", lambda scene, rules, cfg: UNO3d(cfg), UNOConfig)
-    register_model("cno", lambda scene, rules, cfg: CNO3d(cfg, rules), CNOConfig)
-    register_model("deeponet", lambda scene, rules, cfg: DeepONet3d(cfg, rules), DeepONetConfig)
-    register_model("cno-prior", lambda scene, rules, cfg: CNO3d(cfg, rules), CNOConfig, {"rulefeat": True})
-    register_model("deeponet-prior", lambda scene, rules, cfg: DeepONet3d(cfg, rules), DeepONetConfig,
-                   {"rulefeat": True})
-
-
-_register()

@@ -60,7 +60,8 @@ class CNOConfig:
 def _level_sizes(size: tuple[int, int, int], n: int) -> list[tuple[int, int, int]]:
     sizes = [size]
     for _ in range(n):
-        sizes.append(tuple(math.ceil(s / 2) for s in sizes[-1]))  # type: ignore[misc]
+        d, h, w = sizes[-1]
+        sizes.append((math.ceil(d / 2), math.ceil(h / 2), math.ceil(w / 2)))
     return sizes
 
 
@@ -132,7 +133,8 @@ class CNO3d(nn.Module):
         c_in = 2 + cfg.control_channels + 3
         self.rulefeat: RuleFeat | None = None
         if cfg.rulefeat:
-            self.rulefeat, self.rule_proj = prior_projection(rules, cfg.rulefeat_hidden, cfg.rulefeat_channels, "CNO")
+            hidden, channels = cfg.rulefeat_hidden, cfg.rulefeat_channels
+            self.rulefeat, self.rule_proj = prior_projection(rules, hidden, channels, "CNO")
             c_in += cfg.rulefeat_channels
         self.lift = LiftProject(c_in, w[0], cfg.lift_latent)
         self.encoder = nn.ModuleList(CNOBlock(w[i], w[i + 1], cfg.oversampling) for i in range(n_levels))

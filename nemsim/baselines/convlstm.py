@@ -78,10 +78,8 @@ class ConvLSTM3d(nn.Module):
         if self.cfg.use_coords:
             parts.append(coordinate_grid((D, H, W), x.device, x.dtype).expand(B, 3, D, H, W))
         inp = torch.cat(parts, dim=1)  # (B, 13, D, H, W)
-        states = [
-            (x.new_zeros(B, cell.c_hidden, D, H, W), x.new_zeros(B, cell.c_hidden, D, H, W))
-            for cell in self.cells
-        ]
+        hidden = [int(cell.c_hidden) for cell in self.cells]  # type: ignore[arg-type]
+        states = [(x.new_zeros(B, c, D, H, W), x.new_zeros(B, c, D, H, W)) for c in hidden]
         for _ in range(self.cfg.recurrent_steps):
             h = inp
             for k, cell in enumerate(self.cells):

@@ -60,7 +60,8 @@ class DeepONet3d(nn.Module):
         n_cond_in = 14
         self.rulefeat: RuleFeat | None = None
         if cfg.rulefeat:
-            self.rulefeat, self.rule_proj = prior_projection(rules, cfg.rulefeat_hidden, cfg.rulefeat_dim, "DeepONet")
+            self.rulefeat, self.rule_proj = prior_projection(rules, cfg.rulefeat_hidden, cfg.rulefeat_dim,
+                                                             "DeepONet")
             n_cond_in += cfg.rulefeat_dim
         self.cond = nn.Sequential(
             nn.Linear(n_cond_in, cfg.cond_hidden), nn.GELU(), nn.Linear(cfg.cond_hidden, cfg.cond_channels)

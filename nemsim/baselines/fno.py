@@ -70,7 +70,7 @@ class FNO3d(nn.Module):
         else:
             from nemsim.baselines.spectral import NativeFNO
 
-            self.op = NativeFNO(c_in, 2, cfg.width, tuple(cfg.n_modes), cfg.n_layers)
+            self.op = NativeFNO(c_in, 2, cfg.width, (*cfg.n_modes,), cfg.n_layers)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         check_inputs(x, u)

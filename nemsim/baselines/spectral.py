@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nemsim.baselines.common import coordinate_grid
+
 
 def _centre(n_fft: int, kept: int) -> slice:
     """Indices of ``kept`` frequencies centred on zero in an fftshifted axis of length n_fft."""
@@ -132,8 +134,6 @@ class NativeFNO(nn.Module):
         self.projection = ChannelMLP(width, c_out, round(projection_ratio * width))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        from nemsim.baselines.common import coordinate_grid
-
         B, _, D, H, W = x.shape
         grid = coordinate_grid((D, H, W), x.device, x.dtype).expand(B, 3, D, H, W)
         h = self.lifting(torch.cat([x, grid], dim=1))  # (B, width, D, H, W)
@@ -168,8 +168,6 @@ class NativeUNO(nn.Module):
         self.projection = ChannelMLP(prev, c_out, projection_channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        from nemsim.baselines.common import coordinate_grid
-
         B, _, D, H, W = x.shape
         grid = coordinate_grid((D, H, W), x.device, x.dtype).expand(B, 3, D, H, W)
         h = self.lifting(torch.cat([x, grid], dim=1))  # (B, hidden, D, H, W)
@@ -180,7 +178,8 @@ class NativeUNO(nn.Module):
             if i == len(self.blocks) - 1:
                 shape = (D, H, W)
             else:
-                shape = tuple(int(round(s * self.scalings[i])) for s in h.shape[-3:])
+                d, hh, w = (int(round(s * self.scalings[i])) for s in h.shape[-3:])
+                shape = (d, hh, w)
             h = block(h, shape, activate=False)
             if str(i) in self.hskips:
                 saved[i] = self.hskips[str(i)](h)

@@ -79,7 +79,7 @@ class UNO3d(nn.Module):
         else:
             from nemsim.baselines.spectral import NativeUNO
 
-            self.op = NativeUNO(c_in, 2, cfg.hidden, tuple(cfg.out_channels), tuple(cfg.n_modes),
+            self.op = NativeUNO(c_in, 2, cfg.hidden, tuple(cfg.out_channels), (*cfg.n_modes,),
                                 tuple(cfg.scalings), skips, cfg.lifting_channels, cfg.projection_channels)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

@@ -26,6 +26,8 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, Dataset
 
+from nemsim.data.hdf5 import open_trajectories
+
 SPLITS = ("train", "val", "test", "unused")
 
 
@@ -51,8 +53,6 @@ class _H5Backed(Dataset):
     """Shared lazy-handle logic: ``self._states`` is (re)opened per process."""
 
     def __init__(self, path: str | Path, manifest: dict | None, split: str) -> None:
-        from nemsim.data.hdf5 import open_trajectories
-
         self.path = Path(path)
         self.split = split
         with open_trajectories(self.path) as tf:
@@ -67,7 +67,8 @@ class _H5Backed(Dataset):
                 self.u = to_normalized(tf.controls_raw_schedule[self.rows]).astype(np.float32)
             else:
                 const = tf.controls_normalized[self.rows].astype(np.float32)  # (n, 14)
-                self.u = np.broadcast_to(const[:, None, :], (len(self.rows), self.n_states - 1, const.shape[1]))
+                shape = (len(self.rows), self.n_states - 1, const.shape[1])  # (n, T-1, 14)
+                self.u = np.broadcast_to(const[:, None, :], shape)
         self._file = None
         self._states = None
         self._pid = None

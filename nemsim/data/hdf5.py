@@ -1,4 +1,5 @@
-"""Trajectory files: the HDF5 contract of DESIGN.md "Data contracts", writer (resumable), reader, integrity check.
+"""Trajectory files: the HDF5 contract of DESIGN.md "Data contracts", writer (resumable), reader, integrity
+check.
 
 Layout (one file per dataset, N cases, T = scene.n_states states, state (2, D, H, W)):
   datasets
@@ -10,7 +11,8 @@ Layout (one file per dataset, N cases, T = scene.n_states states, state (2, D, H
     case_ids               (N,) int64, control-configuration identifiers
     seeds                  (N,) int64, per-case simulator seed (-1 until written)
     complete               (N,) uint8, per-case completion flag, set only after the case's states are flushed
-    case_meta              (N,) JSON strings, per-case metadata given to ``write`` (timings, particle counts, ...)
+    case_meta              (N,) JSON strings, per-case metadata given to ``write`` (timings, particle
+                           counts, ...)
     controls_raw_schedule  (N, T-1, 14) float64, optional: recipe controls, one vector per transition
   root attributes
     format_version, scene (JSON), control_names, channel_names ["mask", "si"], d_max (nm), d_max_vox,
@@ -78,8 +80,10 @@ STATE_DTYPES = ("float32", "float16")  # storage of the states; both read back a
 _PER_CASE = ("complete", "seeds", "controls_raw", "controls_transformed", "case_meta",
              "controls_raw_schedule", "states", "case_ids")
 
-_REQUIRED_DATASETS = ("states", "controls_raw", "controls_transformed", "times", "case_ids", "seeds", "complete")
-_REQUIRED_ATTRS = ("format_version", "scene", "control_names", "channel_names", "d_max", "rules_sha256", "generator")
+_REQUIRED_DATASETS = ("states", "controls_raw", "controls_transformed", "times", "case_ids", "seeds",
+                      "complete")
+_REQUIRED_ATTRS = ("format_version", "scene", "control_names", "channel_names", "d_max", "rules_sha256",
+                   "generator")
 
 
 def _json_default(o: Any) -> Any:
@@ -132,7 +136,8 @@ def validate_states(states: np.ndarray, scene: Scene) -> list[str]:
     """Problems of one case's states (T, 2, D, H, W) (empty list if valid)."""
     expect = (scene.n_states, *scene.state_shape)
     if tuple(states.shape) != expect:
-        return [f"states shape {tuple(states.shape)} != expected {expect} (T, 2, D, H, W) for scene {scene.name!r}"]
+        return [f"states shape {tuple(states.shape)} != expected {expect} (T, 2, D, H, W) "
+                f"for scene {scene.name!r}"]
     out = []
     finite = np.isfinite(states)
     if not finite.all():
@@ -188,7 +193,8 @@ class TrajectoryWriter:
         controls_raw = np.asarray(controls_raw, dtype=np.float64)
         n = case_ids.shape[0]
         if controls_raw.shape != (n, N_CONTROLS):
-            raise ValueError(f"controls_raw shape {controls_raw.shape} != ({n}, {N_CONTROLS}) for {n} case ids")
+            raise ValueError(f"controls_raw shape {controls_raw.shape} != ({n}, {N_CONTROLS}) "
+                             f"for {n} case ids")
         if len(np.unique(case_ids)) != n:
             raise ValueError("case_ids are not unique")
         schedule = None
@@ -257,15 +263,16 @@ class TrajectoryWriter:
     def _check_compatible(self, case_ids, controls_raw, schedule, gen_json, rules_sha256) -> None:
         f = self._f
         where = f"cannot resume {self.path}"
-        missing = [k for k in _REQUIRED_DATASETS if k not in f] + [a for a in _REQUIRED_ATTRS if a not in f.attrs]
+        missing = [k for k in _REQUIRED_DATASETS if k not in f]
+        missing += [a for a in _REQUIRED_ATTRS if a not in f.attrs]
         if missing:
-            raise ValueError(f"{where}: not a NEMSim trajectory file (missing {missing}); remove it or choose "
-                             "another --out")
+            raise ValueError(f"{where}: not a NEMSim trajectory file (missing {missing}); "
+                             "remove it or choose another --out")
         if int(f.attrs["format_version"]) != FORMAT_VERSION:
             raise ValueError(f"{where}: format_version {f.attrs['format_version']} != {FORMAT_VERSION}")
         if Scene.from_json(str(f.attrs["scene"])) != self.scene:
-            raise ValueError(f"{where}: scene mismatch (file {Scene.from_json(str(f.attrs['scene'])).name!r}, "
-                             f"requested {self.scene.name!r})")
+            stored = Scene.from_json(str(f.attrs["scene"])).name
+            raise ValueError(f"{where}: scene mismatch (file {stored!r}, requested {self.scene.name!r})")
         stored = str(f["states"].dtype)
         if stored != self.state_dtype:
             raise ValueError(f"{where}: the file stores {stored} states, {self.state_dtype} were requested "
@@ -284,7 +291,8 @@ class TrajectoryWriter:
             )
         if not np.array_equal(f["controls_raw"][:m], controls_raw[:m]):  # [:m]: after an interrupted grow
             raise ValueError(f"{where}: controls_raw mismatch: the file's cases were simulated with other "
-                             "controls (another design or --controls file); choose another --out")  # fmt: skip
+                             "controls (another design or --controls file); "
+                             "choose another --out")  # fmt: skip
         if has and not np.array_equal(f["controls_raw_schedule"][:m], schedule[:m]):
             raise ValueError(f"{where}: controls_schedule mismatch: the file's cases have other recipes; "
                              "choose another --out")  # fmt: skip
@@ -292,7 +300,8 @@ class TrajectoryWriter:
             raise ValueError(f"{where}: rules_sha256 mismatch (file {str(f.attrs['rules_sha256'])[:12]}..., "
                              f"requested {str(rules_sha256)[:12]}...)")
         if str(f.attrs["generator"]) != gen_json:
-            raise ValueError(f"{where}: generator mismatch (file {f.attrs['generator']}, requested {gen_json})")
+            raise ValueError(f"{where}: generator mismatch (file {f.attrs['generator']}, "
+                             f"requested {gen_json})")
         if len(case_ids) > m:
             self._grow(m, case_ids, controls_raw, schedule)
 
@@ -396,7 +405,8 @@ class TrajectoryFile:
         # lazy (N, T, 2, D, H, W) float32: the dataset itself, or a converting view of float16 storage
         self.states = raw if raw.dtype == np.float32 else raw.astype(np.float32)
         self.seeds = f["seeds"][()] if "seeds" in f else np.full(len(self.case_ids), -1, dtype=np.int64)
-        self.complete = (f["complete"][()] > 0) if "complete" in f else np.ones(len(self.case_ids), dtype=bool)
+        n_cases = len(self.case_ids)
+        self.complete = (f["complete"][()] > 0) if "complete" in f else np.ones(n_cases, dtype=bool)
         self.controls_raw_schedule = f["controls_raw_schedule"][()] if "controls_raw_schedule" in f else None
         self._row_of = {int(c): r for r, c in enumerate(self.case_ids)}
 
@@ -418,7 +428,7 @@ class TrajectoryFile:
         return to_normalized(self.controls_raw)
 
     def controls_normalized_schedule(self, row: int) -> np.ndarray:
-        """(T-1, 14) normalized per-transition controls of one row (constant rows repeat the case's vector)."""
+        """(T-1, 14) normalized per-transition controls of one row (constant rows repeat their vector)."""
         if self.controls_raw_schedule is not None:
             return to_normalized(self.controls_raw_schedule[row])
         return np.repeat(to_normalized(self.controls_raw[row])[None], self.n_states - 1, axis=0)
@@ -429,6 +439,15 @@ class TrajectoryFile:
             return self._row_of[int(case_id)]
         except KeyError:
             raise KeyError(f"case id {case_id} not in {self.path}") from None
+
+    def warn_if_other_rules(self, sha256: str, whose: str = "the library") -> bool:
+        """Log a warning (and return True) if the file was generated with another rules library than the
+        one of SHA-256 ``sha256`` (``whose`` names it in the message); files without a hash pass."""
+        if not self.rules_sha256 or self.rules_sha256 == str(sha256):
+            return False
+        log.warning("%s was generated with rules %s..., %s is %s...", self.path, self.rules_sha256[:12],
+                    whose, str(sha256)[:12])
+        return True
 
     def case_meta(self, row: int) -> dict:
         if "case_meta" not in self._f:
@@ -491,7 +510,8 @@ class CheckReport:
         return self.text
 
 
-def check_dataset(path: str | Path, *, read_states: bool = True, require_complete: bool = True) -> CheckReport:
+def check_dataset(path: str | Path, *, read_states: bool = True,
+                  require_complete: bool = True) -> CheckReport:
     """Run the integrity checks of [supp_dataset_statistics] on a trajectory file.
 
     Args:
@@ -508,12 +528,15 @@ def check_dataset(path: str | Path, *, read_states: bool = True, require_complet
         rep.add("open", False, str(exc))
         return rep
     with f:
-        missing = [k for k in _REQUIRED_DATASETS if k not in f] + [f"@{a}" for a in _REQUIRED_ATTRS if a not in f.attrs]
-        rep.add("layout", not missing, f"missing {missing}" if missing else "all datasets and attributes present")
+        missing = [k for k in _REQUIRED_DATASETS if k not in f]
+        missing += [f"@{a}" for a in _REQUIRED_ATTRS if a not in f.attrs]
+        rep.add("layout", not missing,
+                f"missing {missing}" if missing else "all datasets and attributes present")
         if missing:
             return rep
         ok = int(f.attrs["format_version"]) == FORMAT_VERSION
-        rep.add("format_version", ok, f"{f.attrs['format_version']}" + ("" if ok else f" != {FORMAT_VERSION}"))
+        rep.add("format_version", ok,
+                f"{f.attrs['format_version']}" + ("" if ok else f" != {FORMAT_VERSION}"))
         try:
             scene = Scene.from_json(str(f.attrs["scene"]))
         except (TypeError, ValueError) as exc:
@@ -567,7 +590,8 @@ def check_dataset(path: str | Path, *, read_states: bool = True, require_complet
         rep.add("control ranges", *_check_ranges(raw, "controls_raw"))
         tr = f["controls_transformed"][()]
         ok = tr.shape == raw.shape and bool(np.allclose(tr, transform(raw), rtol=1e-12, atol=1e-12))
-        rep.add("controls_transformed", ok, "= transform(controls_raw)" if ok else "inconsistent with controls_raw")
+        rep.add("controls_transformed", ok,
+                "= transform(controls_raw)" if ok else "inconsistent with controls_raw")
         if "controls_raw_schedule" in f:
             sch = f["controls_raw_schedule"][()]
             shp_ok = sch.shape == (n, T - 1, N_CONTROLS)
@@ -583,8 +607,8 @@ def check_dataset(path: str | Path, *, read_states: bool = True, require_complet
                 problems = validate_states(st[r].astype(np.float32, copy=False), scene)
                 if problems:
                     bad_cases.append(f"case {int(ids[r])}: {'; '.join(problems)}")
-            detail = (f"{int(complete.sum())} complete cases finite and within |SDF| <= {SDF_BOUND}" if not bad_cases
-                      else f"{len(bad_cases)} bad cases: " + " | ".join(bad_cases[:5]))
+            detail = (f"{int(complete.sum())} complete cases finite and within |SDF| <= {SDF_BOUND}"
+                      if not bad_cases else f"{len(bad_cases)} bad cases: " + " | ".join(bad_cases[:5]))
             rep.add("state values", not bad_cases, detail)
     return rep
 

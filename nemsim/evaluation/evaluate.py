@@ -28,6 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from nemsim.evaluation import metrics
+from nemsim.evaluation.metrics import case_step_mse, chamfer_distance, count_params
 from nemsim.evaluation.rollout import rollout
 from nemsim.scenes import Scene
 
@@ -81,8 +83,6 @@ def _stack(batch: Sequence[Trajectory], steps: int | None, device: torch.device)
 def step_sq_error_sum(pred: torch.Tensor, true: torch.Tensor) -> np.ndarray:
     """Σ_i e_{i,t} over the batch for t = 1..T (pred/true (B, T+1, 2, D, H, W), step 0 excluded),
     computed through metrics.case_step_mse so the metric definition lives in one place."""
-    from nemsim.evaluation.metrics import case_step_mse
-
     p = pred[:, 1:].detach().float().cpu().numpy()
     t = true[:, 1:].detach().float().cpu().numpy()
     return case_step_mse(p, t).sum(axis=0)  # (T,) float64
@@ -113,8 +113,6 @@ def rollout_errors(
 
 def rmse_summary(sq_error_sum: np.ndarray, n: int) -> dict[str, Any]:
     """Avg/Final RMSE from Σ_i e_{i,t}: RMSE_t = sqrt(MSE_t), Avg = mean_t RMSE_t, Final = RMSE_H."""
-    from nemsim.evaluation import metrics
-
     rmse_t = np.sqrt(np.asarray(sq_error_sum, dtype=np.float64) / n)
     return {
         "avg_rmse": float(metrics.avg_rmse(rmse_t)),
@@ -184,8 +182,6 @@ def evaluate(
         chamfer: compute the final-step Chamfer distance (the slowest metric).
         rollout_path: if given, stream predictions to this HDF5 file (``pred``, ``case_ids``).
     """
-    from nemsim.evaluation.metrics import chamfer_distance, count_params
-
     device = torch.device(device)
     model = model.to(device).eval()
     n_total = len(trajectories)

@@ -231,7 +231,7 @@ def _zero_flux_rows(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantC
     """The model's largest change from x_0 under zero flux, beside the simulator's own (0) plus the noise."""
     recipes = zero_flux_recipes()
     raws = np.stack(list(recipes.values()))
-    state, depth, mask = [], [], []
+    state, depth, mask = [], [], []  # type: ignore[var-annotated]
     for i, traj in predict(model, x0, raws, long_steps, cfg.batch_size):
         name = list(recipes)[i]
         sim = truth.states(raws[i], cfg.seeds[0])
@@ -264,7 +264,7 @@ def _ions_off_rows(model: Any, truth: SimTruth, x0: np.ndarray, cfg: InvariantCo
     """The model's distance from the simulator's neutral-only trajectory, step by step."""
     recipes = ions_off_recipes()
     raws = np.stack(list(recipes.values()))
-    state, depth, mask = [], [], []
+    state, depth, mask = [], [], []  # type: ignore[var-annotated]
     for i, traj in predict(model, x0, raws, truth.steps, cfg.batch_size):
         name = list(recipes)[i]
         sim = truth.states(raws[i], cfg.seeds[0])

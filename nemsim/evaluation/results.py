@@ -33,7 +33,7 @@ def _run_info(run_dir: Path) -> tuple[str, dict[str, Any]]:
     """(model name, training summary) from the run's best.pt; (directory name, {}) without one."""
     ckpt = run_dir / "best.pt"
     if ckpt.is_file():
-        from nemsim.training.checkpoint import read_checkpoint
+        from nemsim.checkpoint import read_checkpoint
 
         c = read_checkpoint(ckpt)
         return str(c.get("model_name") or run_dir.name), dict(c.get("summary") or {})
@@ -102,8 +102,9 @@ def collect_results(run_dirs: Sequence[str | Path], speed_error: str | Path | di
     return out
 
 
-SPEED_KEYS = ("simulator_s", "simulator_cpu_s", "nemsim_s", "nemsim_cpu_s", "nemsim_runtime", "nemsim_precision",
-              "speedup", "equal_accuracy")  # copied from a speed-error report into results.json
+# copied from a speed-error report into results.json
+SPEED_KEYS = ("simulator_s", "simulator_cpu_s", "nemsim_s", "nemsim_cpu_s", "nemsim_runtime",
+              "nemsim_precision", "speedup", "equal_accuracy")
 
 
 def _f(v: Any, spec: str) -> str:

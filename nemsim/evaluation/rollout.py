@@ -98,26 +98,26 @@ def rollout(
             chunk = model(x, u[:, t])[:, None]  # (B, 1, 2, D, H, W)
         else:
             if changed[t]:
-                cache = model.precompute(u[:, t])
+                cache = model.precompute(u[:, t])  # type: ignore[operator]
             if depth_window is not None:
                 n = _chunk_length(changed, t, k, T)
-                chunk = depth_window.predict(x, cache)[:, :n]  # (B, n, 2, D, H, W)
+                chunk = depth_window.predict(x, cache)[:, :n]  # type: ignore[arg-type]  # (B, n, 2, D, H, W)
             elif k == 1:
-                chunk = model.step(x, cache)[:, None]  # (B, 1, 2, D, H, W)
+                chunk = model.step(x, cache)[:, None]  # type: ignore[operator]  # (B, 1, 2, D, H, W)
             else:
                 n = _chunk_length(changed, t, k, T)
-                chunk = model.predict(x, cache)[:, :n]  # (B, n, 2, D, H, W)
+                chunk = model.predict(x, cache)[:, :n]  # type: ignore[operator]  # (B, n, 2, D, H, W)
         for j in range(chunk.shape[1]):
             x = chunk[:, j]  # (B, 2, D, H, W)
             t += 1
             if keep:
-                traj.append(x)
+                traj.append(x)  # type: ignore[union-attr]
             if on_step is not None:
                 on_step(t, x)
     if stats is not None:
         stats.update(depth_window.stats() if depth_window is not None else {"calls": calls})
     if keep:
-        return torch.stack(traj, dim=1)  # (B, T+1, 2, D, H, W)
+        return torch.stack(traj, dim=1)  # type: ignore[arg-type]  # (B, T+1, 2, D, H, W)
     return x
 
 

@@ -100,7 +100,7 @@ def steps_per_call(model: nn.Module) -> int:
 def model_precompute(model: nn.Module, u: torch.Tensor) -> dict[str, Any]:
     """``model.precompute(u)``, or ``{"u": u}`` for a model without the fast path (u: (B, 14))."""
     if callable(getattr(model, "precompute", None)):
-        return model.precompute(u)
+        return model.precompute(u)  # type: ignore[operator]
     return {"u": u}
 
 
@@ -108,9 +108,9 @@ def model_predict(model: nn.Module, x: torch.Tensor, cache: dict[str, Any]) -> t
     """The next k states (B, k, 2, D, H, W) from x (B, 2, D, H, W): ``model.predict``, else the k = 1 shims
     ``step(x, cache)[:, None]`` / ``model(x, cache["u"])[:, None]``."""
     if callable(getattr(model, "predict", None)):
-        return model.predict(x, cache)
+        return model.predict(x, cache)  # type: ignore[operator]
     if callable(getattr(model, "step", None)) and callable(getattr(model, "precompute", None)):
-        return model.step(x, cache)[:, None]
+        return model.step(x, cache)[:, None]  # type: ignore[operator]
     return model(x, cache["u"])[:, None]
 
 

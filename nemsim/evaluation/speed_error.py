@@ -46,12 +46,14 @@ import math
 import statistics
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from nemsim.evaluation.metrics import StepRmse, chamfer_distance, count_params
 
 log = logging.getLogger(__name__)
 
@@ -119,8 +121,6 @@ class _Scores:
     """Streaming Avg/Final RMSE (vs reference and vs data), final CD and times of one method."""
 
     def __init__(self) -> None:
-        from nemsim.evaluation.metrics import StepRmse
-
         self.vs_ref = StepRmse()
         self.vs_data = StepRmse()
         self.cd: list[float] = []
@@ -129,8 +129,6 @@ class _Scores:
 
     def add(self, pred, ref, data, scene, case_id: int, steps: int, wall: float, cpu: float, cache) -> None:
         """pred, ref, data: (T+1, 2, D, H, W); step 0 (the shared x_0) is excluded from the RMSE."""
-        from nemsim.evaluation.metrics import chamfer_distance
-
         self.vs_ref.update(pred[None, 1:], ref[None, 1:])
         self.vs_data.update(pred[None, 1:], data[None, 1:])
         self.cd.append(float(chamfer_distance(pred[-1], ref[-1], scene, case_id, steps, cache=cache)))
@@ -149,6 +147,137 @@ class _Scores:
             "cpu_s_per_case": self.cpu,
             "cd_per_case": self.cd,
         }
+
+
+@dataclass
+class _Bench:
+    """What the measurements of one ``run_speed_error`` share: data, simulator, predictors, scores."""
+
+    tf: Any  # the open TrajectoryFile
+    scene: Any
+    rules: Any
+    tables: Any  # the simulator's event tables
+    sim_cfgs: dict[float, Any]  # particle budget -> resolved SimConfig (budget 1 first)
+    steps: int
+    variants: dict[tuple[str, str], Any]  # (model label, runtime) -> predictor
+    seed: int
+    scores: dict[Any, _Scores] = field(default_factory=dict)
+    cd_cache: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        keys = [("sim", b) for b in self.sim_cfgs] + list(self.variants)
+        self.scores = {k: _Scores() for k in keys}
+
+    def controls_of(self, row: int) -> tuple[np.ndarray, Any]:
+        """(14,) or (T, 14) raw controls; (1, T, 14) normalized tensor."""
+        import torch
+
+        sched = self.tf.controls_raw_schedule
+        raw = sched[row] if sched is not None else self.tf.controls_raw[row]
+        u = self.tf.controls_normalized_schedule(row)[: self.steps]
+        return np.asarray(raw), torch.as_tensor(u, dtype=torch.float32)[None]
+
+    def simulate(self, raw: np.ndarray, budget: float, rng_key: int | list[int], n: int | None = None) -> Any:
+        """A simulator trajectory of ``steps`` (or ``n``) transitions at particle ``budget``."""
+        from nemsim.sim import run_trajectory
+
+        rng = np.random.default_rng(rng_key)
+        return run_trajectory(self.scene, self.rules, raw, rng, self.sim_cfgs[budget], tables=self.tables,
+                              n_transitions=self.steps if n is None else n)  # fmt: skip
+
+    def warm_up(self, row: int, nb: int) -> None:
+        """JIT kernels, first-call allocations and graph compilation of every variant."""
+        import torch
+
+        from nemsim.evaluation.rollout import rollout
+
+        raw0, u0 = self.controls_of(row)
+        x00 = torch.as_tensor(np.asarray(self.tf.states[row, 0], dtype=np.float32))[None]
+        for b in self.sim_cfgs:
+            self.simulate(raw0, b, 0, n=1)
+        for pred in self.variants.values():
+            rollout(pred, x00, u0, min(2, self.steps))
+            if nb:
+                rollout(pred, x00.expand(nb, -1, -1, -1, -1), u0.expand(nb, -1, -1), 1, keep=False)
+
+    def measure_case(self, case_id: int, row: int) -> tuple[Any, Any]:
+        """Time and score every method on one case; returns its (x0 (1, 2, D, H, W), u (1, T, 14))."""
+        import torch
+
+        from nemsim.evaluation.rollout import rollout
+
+        scene, steps, cd_cache = self.scene, self.steps, self.cd_cache
+        raw, u = self.controls_of(row)
+        data_states = np.asarray(self.tf.states[row, : steps + 1], dtype=np.float32)  # (T+1, 2, D, H, W)
+        ref_res, wall, cpu = _timed(lambda: self.simulate(raw, 1.0, [self.seed, case_id, 0]))
+        ref = ref_res.states
+        if np.array_equal(ref, data_states):
+            raise ValueError(f"case {case_id}: the reference rerun equals the data file's trajectory; "
+                             "choose another --seed")  # fmt: skip
+        # budget 1: the data file's trajectory is the second full-budget seed (noise floor)
+        self.scores[("sim", 1.0)].add(data_states, ref, data_states, scene, case_id, steps, wall, cpu,
+                                      cd_cache)  # fmt: skip
+        for k, b in enumerate(list(self.sim_cfgs)[1:], start=1):
+            res, wall, cpu = _timed(lambda k=k, b=b: self.simulate(raw, b, [self.seed, case_id, k]))
+            self.scores[("sim", b)].add(res.states, ref, data_states, scene, case_id, steps, wall, cpu,
+                                        cd_cache)  # fmt: skip
+        x0 = torch.as_tensor(data_states[0])[None]  # (1, 2, D, H, W)
+        for key, pred in self.variants.items():
+            out, wall, cpu = _timed(lambda pred=pred: rollout(pred, x0, u, steps))
+            out = out[0].float().numpy()  # (T+1, 2, D, H, W)
+            self.scores[key].add(out, ref, data_states, scene, case_id, steps, wall, cpu, cd_cache)
+        log.info("case %d done", case_id)
+        return x0, u
+
+
+def _check_config(config: SpeedErrorConfig) -> tuple[list[str], list[float]]:
+    """(runtimes, budgets) to measure, the references first; ValueError on a bad config."""
+    runtimes = [REFERENCE_RUNTIME] + [r for r in dict.fromkeys(config.runtimes) if r != REFERENCE_RUNTIME]
+    for r in runtimes:
+        parse_runtime(r)  # validates the name
+    budgets = [1.0] + [float(b) for b in dict.fromkeys(config.budgets) if float(b) != 1.0]
+    if config.cases < 1:
+        raise ValueError(f"cases must be >= 1, got {config.cases}")
+    if config.threads < 1 or config.throughput_batch < 0:
+        raise ValueError(f"threads must be >= 1 and throughput_batch >= 0, got {config.threads}, "
+                         f"{config.throughput_batch}")  # fmt: skip
+    return runtimes, budgets
+
+
+def _test_rows(tf: Any, manifest: dict, cases: int, data: str | Path) -> tuple[list[int], list[int]]:
+    """(case ids, file rows) of the first ``cases`` test cases; ValueError if any is missing or unfinished."""
+    test_ids = [int(c) for c in manifest.get("test", [])][:cases]
+    if not test_ids:
+        raise ValueError(f"setting {manifest.get('setting')!r} has no test cases")
+    missing = [c for c in test_ids if c not in set(int(i) for i in tf.case_ids)]
+    if missing:
+        raise ValueError(f"test cases {missing} are not in {data}; generate them first")
+    rows = [tf.row_of(c) for c in test_ids]
+    unfinished = [c for c, r in zip(test_ids, rows, strict=True) if not tf.complete[r]]
+    if unfinished:
+        raise ValueError(f"test cases {unfinished} are unfinished in {data}; finish generation first")
+    return test_ids, rows
+
+
+def _load_models(checkpoints: Sequence[str | Path], scene: Any, runtimes: list[str],
+                 threads: int) -> tuple[list[tuple[str, Any, Path]], dict[tuple[str, str], Any]]:
+    """([(label, LoadedModel, path)], {(label, runtime): predictor}) of the checkpoints."""
+    from nemsim.checkpoint import load_checkpoint
+    from nemsim.evaluation.runtime import compile_model
+
+    models: list[tuple[str, Any, Path]] = []  # (label, LoadedModel, path)
+    for path in checkpoints:
+        loaded = load_checkpoint(path, scene=scene)
+        label = loaded.name
+        if any(label == m[0] for m in models):
+            label = f"{loaded.name} ({Path(path).stem})"
+        models.append((label, loaded, Path(path)))
+    variants: dict[tuple[str, str], Any] = {}  # (model label, runtime) -> predictor
+    for label, loaded, _ in models:
+        for rt in runtimes:
+            backend, precision = parse_runtime(rt)
+            variants[(label, rt)] = compile_model(loaded.model, backend, precision, threads)  # type: ignore[arg-type]
+    return models, variants
 
 
 def run_speed_error(
@@ -173,22 +302,12 @@ def run_speed_error(
 
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.evaluation.rollout import rollout
-    from nemsim.evaluation.runtime import compile_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
-    from nemsim.sim import SimConfig, run_trajectory
+    from nemsim.sim import SimConfig
     from nemsim.sim.events import build_event_tables
-    from nemsim.training.checkpoint import load_checkpoint
 
-    runtimes = [REFERENCE_RUNTIME] + [r for r in dict.fromkeys(config.runtimes) if r != REFERENCE_RUNTIME]
-    for r in runtimes:
-        parse_runtime(r)  # validates the name
-    budgets = [1.0] + [float(b) for b in dict.fromkeys(config.budgets) if float(b) != 1.0]
-    if config.cases < 1:
-        raise ValueError(f"cases must be >= 1, got {config.cases}")
-    if config.threads < 1 or config.throughput_batch < 0:
-        raise ValueError(f"threads must be >= 1 and throughput_batch >= 0, got {config.threads}, "
-                         f"{config.throughput_batch}")  # fmt: skip
+    runtimes, budgets = _check_config(config)
 
     tf = open_trajectories(data)
     try:
@@ -196,87 +315,22 @@ def run_speed_error(
         steps = scene.n_transitions if config.steps is None else int(config.steps)
         if not 1 <= steps <= tf.n_states - 1:
             raise ValueError(f"steps must be in [1, {tf.n_states - 1}], got {steps}")
-        test_ids = [int(c) for c in manifest.get("test", [])][: config.cases]
-        if not test_ids:
-            raise ValueError(f"setting {manifest.get('setting')!r} has no test cases")
-        missing = [c for c in test_ids if c not in set(int(i) for i in tf.case_ids)]
-        if missing:
-            raise ValueError(f"test cases {missing} are not in {data}; generate them first")
-        rows = [tf.row_of(c) for c in test_ids]
-        unfinished = [c for c, r in zip(test_ids, rows) if not tf.complete[r]]
-        if unfinished:
-            raise ValueError(f"test cases {unfinished} are unfinished in {data}; finish generation first")
+        test_ids, rows = _test_rows(tf, manifest, config.cases, data)
 
         rules = compile_rules(load_rules())
-        if tf.rules_sha256 and tf.rules_sha256 != rules.sha256:
-            log.warning("data %s was generated with rules %s..., the library is %s...", data,
-                        tf.rules_sha256[:12], rules.sha256[:12])  # fmt: skip
+        tf.warn_if_other_rules(rules.sha256)
         gen_cfg = tf.generator.get("config") if isinstance(tf.generator, dict) else None
         base_cfg = SimConfig.from_meta(gen_cfg) if gen_cfg else SimConfig()
         sim_cfgs = {b: replace(base_cfg, particle_budget=b).resolved(scene) for b in budgets}
         tables = build_event_tables(rules, base_cfg.resolved(scene))
 
-        models: list[tuple[str, Any, Path]] = []  # (label, LoadedModel, path)
-        for path in checkpoints:
-            loaded = load_checkpoint(path, scene=scene)
-            label = loaded.name
-            if any(label == m[0] for m in models):
-                label = f"{loaded.name} ({Path(path).stem})"
-            models.append((label, loaded, Path(path)))
-        variants: dict[tuple[str, str], Any] = {}  # (model label, runtime) -> predictor
-        for label, loaded, _ in models:
-            for rt in runtimes:
-                backend, precision = parse_runtime(rt)
-                variants[(label, rt)] = compile_model(loaded.model, backend, precision, config.threads)
+        models, variants = _load_models(checkpoints, scene, runtimes, config.threads)
 
-        def controls_of(row: int):
-            sched = tf.controls_raw_schedule
-            raw = sched[row] if sched is not None else tf.controls_raw[row]
-            u = torch.as_tensor(tf.controls_normalized_schedule(row)[:steps], dtype=torch.float32)[None]
-            return np.asarray(raw), u  # (14,) or (T, 14) raw; (1, T, 14) normalized
-
-        # ---- warm-up: JIT kernels, first-call allocations and graph compilation of every variant ----
-        raw0, u0 = controls_of(rows[0])
-        x00 = torch.as_tensor(np.asarray(tf.states[rows[0], 0], dtype=np.float32))[None]
+        bench = _Bench(tf, scene, rules, tables, sim_cfgs, steps, variants, config.seed)
         nb = config.throughput_batch
-        for b in budgets:
-            run_trajectory(scene, rules, raw0, np.random.default_rng(0), sim_cfgs[b], tables=tables,
-                           n_transitions=1)  # fmt: skip
-        for pred in variants.values():
-            rollout(pred, x00, u0, min(2, steps))
-            if nb:
-                rollout(pred, x00.expand(nb, -1, -1, -1, -1), u0.expand(nb, -1, -1), 1, keep=False)
-
-        keys = [("sim", b) for b in budgets] + list(variants)
-        scores = {k: _Scores() for k in keys}
-        cd_cache: dict = {}
-        inputs: list[tuple[torch.Tensor, torch.Tensor]] = []  # (x0 (1, 2, D, H, W), u (1, T, 14)) per case
-        for case_id, row in zip(test_ids, rows):
-            raw, u = controls_of(row)
-            data_states = np.asarray(tf.states[row, : steps + 1], dtype=np.float32)  # (T+1, 2, D, H, W)
-            ref_res, wall, cpu = _timed(lambda: run_trajectory(
-                scene, rules, raw, np.random.default_rng([config.seed, case_id, 0]), sim_cfgs[1.0],
-                tables=tables, n_transitions=steps))  # fmt: skip
-            ref = ref_res.states
-            if np.array_equal(ref, data_states):
-                raise ValueError(f"case {case_id}: the reference rerun equals the data file's trajectory; "
-                                 "choose another --seed")  # fmt: skip
-            # budget 1: the data file's trajectory is the second full-budget seed (noise floor)
-            scores[("sim", 1.0)].add(data_states, ref, data_states, scene, case_id, steps, wall, cpu,
-                                     cd_cache)  # fmt: skip
-            for k, b in enumerate(budgets[1:], start=1):
-                res, wall, cpu = _timed(lambda: run_trajectory(
-                    scene, rules, raw, np.random.default_rng([config.seed, case_id, k]), sim_cfgs[b],
-                    tables=tables, n_transitions=steps))  # fmt: skip
-                scores[("sim", b)].add(res.states, ref, data_states, scene, case_id, steps, wall, cpu,
-                                       cd_cache)  # fmt: skip
-            x0 = torch.as_tensor(data_states[0])[None]  # (1, 2, D, H, W)
-            inputs.append((x0, u))
-            for key, pred in variants.items():
-                out, wall, cpu = _timed(lambda pred=pred: rollout(pred, x0, u, steps))
-                out = out[0].float().numpy()  # (T+1, 2, D, H, W)
-                scores[key].add(out, ref, data_states, scene, case_id, steps, wall, cpu, cd_cache)
-            log.info("case %d done", case_id)
+        bench.warm_up(rows[0], nb)
+        inputs = [bench.measure_case(case_id, row) for case_id, row in zip(test_ids, rows, strict=True)]
+        scores = bench.scores
         data_seeds = [int(tf.seeds[r]) for r in rows]
     finally:
         tf.close()
@@ -289,8 +343,40 @@ def run_speed_error(
             _, wall, cpu = _timed(lambda pred=pred: rollout(pred, xb, ub, steps, keep=False))
             batch_times[key] = (wall / nb, cpu / nb)
 
-    from nemsim.evaluation.metrics import count_params
+    report_rows, fastest, sim_full = _report_rows(budgets, models, runtimes, variants, scores, batch_times,
+                                                  config)
+    nemsim_rows = [r for r in report_rows if r["kind"] == "model" and r["fastest"]
+                   and r["model"].split(" (")[0] == "nemsim"]  # fmt: skip
+    best = nemsim_rows[0] if nemsim_rows else None
+    return {
+        "scene": scene.name,
+        "data": str(data),
+        "setting": manifest.get("setting"),
+        "case_ids": test_ids,
+        "steps": steps,
+        "threads": config.threads,
+        "torch_threads": torch.get_num_threads(),
+        "throughput_batch": nb,
+        "config": asdict(config),
+        "reference": {
+            "what": "independent full-budget simulator run per case",
+            "rng": f"numpy default_rng([{config.seed}, case_id, 0]); budget-b reruns [seed, case_id, k]",
+            "data_seeds": data_seeds,
+            "sim_config": sim_cfgs[1.0].to_meta(scene),
+        },
+        "rows": report_rows,
+        "fastest_keeping_error": fastest,
+        "noise_floor": {k: sim_full[k] for k in ("avg_rmse", "final_rmse", "cd")},
+        "speed": _speed(sim_full, best),
+    }
 
+
+def _report_rows(budgets: list[float], models: list[tuple[str, Any, Path]], runtimes: list[str],
+                 variants: dict[tuple[str, str], Any], scores: dict[Any, _Scores],
+                 batch_times: dict[tuple[str, str], tuple[float, float]],
+                 config: SpeedErrorConfig) -> tuple[list[dict[str, Any]], dict[str, str], dict[str, Any]]:
+    """(rows of the report, fastest runtime keeping the error per model, full-budget simulator's scores)."""
+    nb = config.throughput_batch
     sim_full = scores[("sim", 1.0)].summary()
     report_rows: list[dict[str, Any]] = []
     for b in budgets:
@@ -329,53 +415,34 @@ def run_speed_error(
         r["speedup"] = sim_full["wall_s"] / max(r["wall_s"], 1e-12)
         r["speedup_cpu"] = sim_full["cpu_s"] / max(r["cpu_s"], 1e-12)
         r["batch_speedup"] = sim_full["wall_s"] / r["batch_wall_s"] if r.get("batch_wall_s") else None
-        eq = {}
+        eq: dict[str, Any] = {}
         for clock in ("wall", "cpu"):
             t, bound = equal_accuracy_time([(s["avg_rmse"], s[f"{clock}_s"]) for s in sims], r["avg_rmse"])
             eq[f"simulator_{clock}_s"] = t
             eq[f"speedup_{clock}"] = t / max(r[f"{clock}_s"], 1e-12) if t is not None else None
             eq["bound"] = bound
         r["equal_accuracy"] = eq
+    return report_rows, fastest, sim_full
 
-    nemsim_rows = [r for r in report_rows if r["kind"] == "model" and r["fastest"]
-                   and r["model"].split(" (")[0] == "nemsim"]  # fmt: skip
-    best = nemsim_rows[0] if nemsim_rows else None
+
+def _speed(sim_full: dict[str, Any], best: dict[str, Any] | None) -> dict[str, Any]:
+    """The report's ``speed`` block: the simulator against the fastest NEMSim runtime keeping the error."""
     return {
-        "scene": scene.name,
-        "data": str(data),
-        "setting": manifest.get("setting"),
-        "case_ids": test_ids,
-        "steps": steps,
-        "threads": config.threads,
-        "torch_threads": torch.get_num_threads(),
-        "throughput_batch": nb,
-        "config": asdict(config),
-        "reference": {
-            "what": "independent full-budget simulator run per case",
-            "rng": f"numpy default_rng([{config.seed}, case_id, 0]); budget-b reruns [seed, case_id, k]",
-            "data_seeds": data_seeds,
-            "sim_config": sim_cfgs[1.0].to_meta(scene),
-        },
-        "rows": report_rows,
-        "fastest_keeping_error": fastest,
-        "noise_floor": {k: sim_full[k] for k in ("avg_rmse", "final_rmse", "cd")},
-        "speed": {
-            "simulator_s": sim_full["wall_s"],
-            "simulator_cpu_s": sim_full["cpu_s"],
-            "nemsim_s": best["wall_s"] if best else None,
-            "nemsim_cpu_s": best["cpu_s"] if best else None,
-            "nemsim_runtime": best["runtime"] if best else None,
-            "nemsim_precision": best["precision"] if best else None,
-            "nemsim_avg_rmse": best["avg_rmse"] if best else None,
-            "speedup": best["speedup"] if best else None,
-            "nemsim_batch_s": best["batch_wall_s"] if best else None,
-            "batch_speedup": best["batch_speedup"] if best else None,
-            "equal_accuracy": (
-                {"simulator_s": best["equal_accuracy"]["simulator_wall_s"],
-                 "speedup": best["equal_accuracy"]["speedup_wall"],
-                 "bound": best["equal_accuracy"]["bound"]} if best else None
-            ),  # fmt: skip
-        },
+        "simulator_s": sim_full["wall_s"],
+        "simulator_cpu_s": sim_full["cpu_s"],
+        "nemsim_s": best["wall_s"] if best else None,
+        "nemsim_cpu_s": best["cpu_s"] if best else None,
+        "nemsim_runtime": best["runtime"] if best else None,
+        "nemsim_precision": best["precision"] if best else None,
+        "nemsim_avg_rmse": best["avg_rmse"] if best else None,
+        "speedup": best["speedup"] if best else None,
+        "nemsim_batch_s": best["batch_wall_s"] if best else None,
+        "batch_speedup": best["batch_speedup"] if best else None,
+        "equal_accuracy": (
+            {"simulator_s": best["equal_accuracy"]["simulator_wall_s"],
+             "speedup": best["equal_accuracy"]["speedup_wall"],
+             "bound": best["equal_accuracy"]["bound"]} if best else None
+        ),  # fmt: skip
     }
 
 
@@ -393,7 +460,7 @@ def _eq_cell(r: dict[str, Any], clock: str) -> str:
     v = eq.get(f"speedup_{clock}")
     if v is None:
         return "-"
-    return f"{_BOUND_MARK.get(eq.get('bound'), '')}{v:.3g}x"
+    return f"{_BOUND_MARK.get(str(eq.get('bound')), '')}{v:.3g}x"
 
 
 def format_markdown(report: dict[str, Any]) -> str:

@@ -72,8 +72,11 @@ class SimTruth:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.workers = workers
         self.progress = progress
-        self._tmp = None if cache_dir is not None else tempfile.TemporaryDirectory(prefix="nemsim-truth-")
-        self.dir = Path(cache_dir if cache_dir is not None else self._tmp.name)
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
+        if cache_dir is None:
+            self._tmp = tempfile.TemporaryDirectory(prefix="nemsim-truth-")
+            cache_dir = self._tmp.name
+        self.dir = Path(cache_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self._metrics: dict[str, dict[str, np.ndarray]] = {}
         # what else decides a trajectory: a cache directory shared between configurations stays correct

@@ -1,4 +1,4 @@
-"""NEMSim model: State Encoder, EIC, MAC, MRC, residual decoder, and the model registry.
+"""NEMSim model: State Encoder, EIC, MAC, MRC, residual decoder.
 
 Paper: Method section (eq:se ... eq:decoder) and [supp_eic], [supp_mac], [supp_mrc], [supp_training].
 
@@ -17,11 +17,9 @@ Shape letters (declared once for the whole package; every reshape is commented w
 
 Modules: ``encoder`` (State Encoder), ``eic`` (Event Intensity Compiler), ``mac`` (Mechanism Attribution
 Compiler), ``mrc`` (Mechanism Response Compiler), ``decoder`` (State Increment Decoder), ``surrogate``
-(``NEMSim`` composition and ``NEMSimConfig``), ``registry`` (``build_model``, ``available_models``,
-``model_config``, ``register_model``).
+(``NEMSim`` composition and ``NEMSimConfig``). Models are built by name through ``nemsim.registry``.
 """
 
-from nemsim.model.registry import available_models, build_model, model_config, register_model
 from nemsim.model.surrogate import NEMSim, NEMSimConfig
 
-__all__ = ["NEMSim", "NEMSimConfig", "available_models", "build_model", "model_config", "register_model"]
+__all__ = ["NEMSim", "NEMSimConfig"]

@@ -84,14 +84,14 @@ class ResidualDecoder(nn.Module):
         self.out = Conv3d(w2, 8 * C, 3, padding=1)
         with torch.no_grad():
             self.out.weight.mul_(cfg.out_scale)
-            self.out.bias.zero_()
+            self.out.bias.zero_()  # type: ignore[union-attr]
         if cfg.steps < 1:
             raise ValueError(f"decoder steps must be >= 1, got {cfg.steps}")
         self.steps = cfg.steps
         if cfg.steps > 1:
             self.extra = Conv3d(w2, 8 * C * (cfg.steps - 1), 1)  # extra-step corrections E (see docstring)
             nn.init.zeros_(self.extra.weight)
-            nn.init.zeros_(self.extra.bias)
+            nn.init.zeros_(self.extra.bias)  # type: ignore[arg-type]
             # (16k, 16) block column [I; 2I; ..; kI]: r_j = j r_1 + E_j (not a parameter, not saved)
             ramp = torch.arange(1, cfg.steps + 1, dtype=torch.float32)[:, None, None] * torch.eye(8 * C)
             self.register_buffer("ramp", ramp.reshape(-1, 8 * C), persistent=False)
@@ -100,7 +100,7 @@ class ResidualDecoder(nn.Module):
         """Cumulative residuals r (B, k, 2, D, H, W) from z̃ (B, C_z, d, h, w), b (B, 12, D/2, H/2, W/2),
         x (B, 2, D, H, W); r[:, 0] = Δx, the one-step residual."""
         h = self.mix_latent(self.coarse(z_next))  # (B, 16, d, h, w)
-        h = upsample2(h, tuple(b.shape[2:]))  # (B, 16, D/2, H/2, W/2)
+        h = upsample2(h, tuple(b.shape[2:]))  # type: ignore[arg-type]  # (B, 16, D/2, H/2, W/2)
         g = F.silu(h + self.mix_skip(b) + self._mix_state(x.to(b.dtype)))  # (B, 16, D/2, H/2, W/2)
         r1 = self.out(g)  # (B, 16, D/2, H/2, W/2): Δx before the voxel shuffle
         if self.steps == 1:
@@ -108,8 +108,8 @@ class ResidualDecoder(nn.Module):
         # all k residuals by one 1x1x1 convolution of [g, r_1] (no extra full-size passes): the fused
         # weight's rows for step j are [W_E_j, j I] (for j = 1: [0, I]), its bias [0; b_E]
         w = self.extra.weight.flatten(1)  # (16(k-1), 16)
-        fused = torch.cat([torch.cat([torch.zeros_like(w[: r1.shape[1]]), w]), self.ramp], dim=1)  # (16k, 32)
-        bias = torch.cat([torch.zeros_like(self.extra.bias[: r1.shape[1]]), self.extra.bias])  # (16k,)
+        fused = torch.cat([torch.cat([torch.zeros_like(w[: r1.shape[1]]), w]), self.ramp], dim=1)  # type: ignore[list-item]  # (16k, 32)
+        bias = torch.cat([torch.zeros_like(self.extra.bias[: r1.shape[1]]), self.extra.bias])  # type: ignore[index, list-item]  # (16k,)
         # channels-first, so the GEMM's output is too and the voxel shuffle below is a single copy
         x_in = torch.cat([g.to(r1.dtype), r1], dim=1).contiguous()  # (B, 32, D/2, H/2, W/2)
         r = conv3d(x_in, fused.to(r1.dtype)[:, :, None, None, None], bias.to(r1.dtype))  # (B, 16k, ..)

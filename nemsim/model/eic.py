@@ -96,7 +96,7 @@ class EventIntensityCompiler(nn.Module):
             bufs = {k: v.to(u32.device) for k, v in rules.torch_buffers(torch.float32).items()}
             f, p, Y = primary_terms(u32, bufs, self.kinetics)  # each (B, E), zero where d_e = 1 or dropped
             s, d = self._modulation(u32)  # (B, K) each
-            return {"u": u32, "Y": Y, "lam_pb": f * p * Y, "s": s, "d": d, "rules": bufs}
+            return {"u": u32, "Y": Y, "lam_pb": f * p * Y, "s": s, "d": d, "rules": bufs}  # type: ignore[dict-item]
 
     def forward(
         self, z_bar: torch.Tensor, u: torch.Tensor, rules, cache: dict | None = None
@@ -111,7 +111,7 @@ class EventIntensityCompiler(nn.Module):
         with torch.autocast(device_type=z_bar.device.type, enabled=False):
             bufs = cache["rules"]
             lam_pb = cache["lam_pb"]  # (B, E)  λ^{p,b} = (1 - d_e) λᵇ
-            dl = self._log_rate(z_bar.float(), cache["u"], cache["s"], cache["d"], bufs["psi"])  # (B, E)
+            dl = self._log_rate(z_bar.float(), cache["u"], cache["s"], cache["d"], bufs["psi"])  # type: ignore[index]  # (B, E)
             scale = torch.exp(dl)  # (B, E)
             lam_p = lam_pb * scale  # (B, E)
             pool = product_pool(lam_p, cache["Y"], bufs)  # (B, S)

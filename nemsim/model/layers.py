@@ -84,13 +84,13 @@ class Conv3d(nn.Conv3d):
 
     def _forward(self, x: torch.Tensor, padding: tuple | None = None) -> torch.Tensor:
         """The convolution, with ``padding`` instead of the module's (the depth window's own padding)."""
-        padding = self.padding if padding is None else tuple(padding)
+        padding = self.padding if padding is None else tuple(padding)  # type: ignore[assignment]
         if self.padding_mode == "zeros" and isinstance(self.padding, tuple) and self.dilation == (1, 1, 1) \
                 and self.groups == 1:
             inference = _PREPACK and not torch.is_grad_enabled() and _onednn_ok(x)
             if inference and self.kernel_size != (1, 1, 1) and self.in_channels >= 8:
-                return self._prepacked(x, padding)
-            return conv3d(x, self.weight, self.bias, self.stride, padding)
+                return self._prepacked(x, padding)  # type: ignore[arg-type]
+            return conv3d(x, self.weight, self.bias, self.stride, padding)  # type: ignore[arg-type]
         assert padding == self.padding, f"padding {padding} on the standard path of {self}"
         return super().forward(x)
 
@@ -163,6 +163,6 @@ def mlp(d_in: int, d_hidden: int, d_out: int, zero_last: bool = False) -> nn.Seq
     """Two-layer MLP with SiLU (the paper's h_sig / h_gate form); optionally zero-initialized last layer."""
     net = nn.Sequential(nn.Linear(d_in, d_hidden), nn.SiLU(), nn.Linear(d_hidden, d_out))
     if zero_last:
-        nn.init.zeros_(net[-1].weight)
-        nn.init.zeros_(net[-1].bias)
+        nn.init.zeros_(net[-1].weight)  # type: ignore[arg-type]
+        nn.init.zeros_(net[-1].bias)  # type: ignore[arg-type]
     return net

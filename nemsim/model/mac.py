@@ -83,9 +83,9 @@ class MechanismAttributionCompiler(nn.Module):
         # diagonal, so β ≈ uniform and α^anc ≈ α⁰ at step 0 (the prior sets the initial preference).
         with torch.no_grad():
             last = self.h_desc[-1]
-            last.weight.mul_(0.01)
-            last.bias.zero_()
-            last.bias[:M] = 1.0
+            last.weight.mul_(0.01)  # type: ignore[operator]
+            last.bias.zero_()  # type: ignore[operator]
+            last.bias[:M] = 1.0  # type: ignore[operator]
         self.prototypes = nn.Parameter(torch.eye(M, cfg.proto_dim))  # p_m
         self.c = nn.Parameter(torch.full((M,), cfg.c_init))  # c_phys, c_chem, c_coup
         self.rho_raw = nn.Parameter(torch.tensor(cfg.rho_raw_init))

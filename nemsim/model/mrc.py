@@ -96,7 +96,7 @@ class MechanismResponseCompiler(nn.Module):
             if fused:
                 MR, C = self.cfg.n_families * self.cfg.n_modes, self.cfg.latent_channels
                 W = self.heads.weight.float().reshape(MR, C, -1)  # (M·R, C, F)
-                b = self.heads.bias.float().reshape(MR, C)  # (M·R, C)
+                b = self.heads.bias.float().reshape(MR, C)  # type: ignore[union-attr]  # (M·R, C)
                 out.update(
                     head_w=W, head_b=b,
                     head_wtw=torch.einsum("kcf,kcg->kfg", W, W),  # (M·R, F, F)
@@ -170,8 +170,8 @@ class MechanismResponseCompiler(nn.Module):
             amp = self.amplitudes(z_bar.float(), u.float(), T.float(), rules, cache)
         Bsz = z.shape[0]
         if cache is not None and "head_w" in cache:
-            return self.fused_increment(z, amp["w"].reshape(Bsz, -1), cache), amp
+            return self.fused_increment(z, amp["w"].reshape(Bsz, -1), cache), amp  # type: ignore[union-attr]
         basis = self.modes(z)  # (B, M·R, C, d, h, w)
-        coef = amp["w"].reshape(Bsz, -1).to(basis.dtype)  # (B, M·R)
+        coef = amp["w"].reshape(Bsz, -1).to(basis.dtype)  # type: ignore[union-attr]  # (B, M·R)
         dz = torch.einsum("bk,bkcdhw->bcdhw", coef, basis)  # (B, C, d, h, w)
         return dz, amp

@@ -9,6 +9,8 @@ passed as the ``rules`` argument of ``nemsim.rules.kinetics`` (attribute access,
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
@@ -23,6 +25,10 @@ class RuleBuffers(nn.Module):
         self.names = tuple(str(n) for n in getattr(rules, "names", ()))
         self.sha256 = str(getattr(rules, "sha256", ""))
 
+    if TYPE_CHECKING:  # for the type checker: every registered attribute is a buffer
+
+        def __getattr__(self, name: str) -> torch.Tensor: ...
+
     def __getitem__(self, key: str) -> torch.Tensor:
         return getattr(self, key)
 
@@ -35,8 +41,8 @@ class RuleBuffers(nn.Module):
     def torch_buffers(self, dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
         """The buffers as a dict (floating ones cast to ``dtype`` if given), as RuleTensors.torch_buffers."""
         if dtype is None:
-            return dict(self._buffers)
-        return {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in self._buffers.items()}
+            return dict(self._buffers)  # type: ignore[arg-type]
+        return {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in self._buffers.items()}  # type: ignore[misc, union-attr]
 
     @property
     def n_events(self) -> int:

@@ -23,24 +23,21 @@ Choices where the paper is silent:
   * ``clamp_input``: the network reads clamp(x, -1, 1). Every valid state is already in [-1, 1] (SDF/d_max
     clipped), so training is unaffected; in long or out-of-range rollouts it stops a drifted value from being
     amplified by the network (``nemsim stress`` found exponential growth without it).
-  * ``clamp_output``: the next state is clamp(x + Dec(...), -1, 1), a projection onto the representation's range
-    (every state is SDF/d_max clipped to [-1, 1] by definition, so the projection can only move a prediction
-    closer to any valid target, voxel by voxel). The paper writes x_{t+1} = x_t + Dec(z_{t+1}) without it. With
-    the input clamp alone a voxel saturated at ±1 that receives a residual of the same sign keeps it step
-    after step, because the network sees the same clamped input: `nemsim stress` (300 steps) measured
-    |x| up to 3.8 (one-step-trained epoch 6) and 7.1 (after pushforward fine-tuning), growing linearly.
-    With it every stress case stays bounded; inside the trained horizon it costs 2-3 % of the rollout Avg RMSE
-    (control-id validation: 0.0321 -> 0.0326 for the shipped model, 0.0330 -> 0.0340 for its epoch-10
-    predecessor): one step gets closer to the target, but the rollout's later steps respond differently.
+  * ``clamp_output``: the next state is clamp(x + Dec(...), -1, 1), a projection onto the representation's
+    range (every state is SDF/d_max clipped to [-1, 1] by definition, so the projection can only move a
+    prediction closer to any valid target, voxel by voxel). The paper writes x_{t+1} = x_t + Dec(z_{t+1})
+    without it. With the input clamp alone a voxel saturated at ±1 that receives a residual of the same sign
+    keeps it step after step, because the network sees the same clamped input, and long rollouts grow without
+    bound; with it they stay bounded, at a small cost in rollout error inside the trained horizon (measured
+    in checkpoints/README.md and benchmarks/small/README.md).
     Default on; checkpoints written before the flag existed load with it on (set false to reproduce them).
 
 Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
 the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,
 the MRC head products) and ``step(x, cache)`` does the rest; ``forward(x, u)`` is
 ``step(x, precompute(u, fused=False))``, the same operations. ``nemsim.evaluation.rollout`` uses the pair,
-so a constant-control rollout pays for the rule side once. Measured on ``small`` (batch 1, 1 thread,
-100 steps, untrained weights): the rule side (EIC+MAC+MRC amplitudes) was ~15 % of a step, the encoder ~37 %,
-the decoder ~33 %, MRC's mode fields ~12 %; see ``nemsim bench rollout``.
+so a constant-control rollout pays for the rule side once (where a step's time goes:
+``nemsim bench rollout`` and benchmarks/small/README.md).
 
 Multi-step prediction (``steps_per_call`` = k; not in the paper, k = 1 is the paper's model and the default):
 one call predicts the next k states under one control vector, x̂_{t+j} = clamp(x_t + r_j, -1, 1) for
@@ -87,7 +84,7 @@ class NEMSimConfig:
     use_mac: bool = True  # False: w/o MAC ablation
     use_mrc: bool = True  # False: w/o MRC ablation
     clamp_input: bool = True  # the network sees clamp(x, -1, 1) (identity on valid states; see forward)
-    clamp_output: bool = True  # next state projected onto [-1, 1], the range of every valid state (see docstring)
+    clamp_output: bool = True  # next state projected onto [-1, 1], the range of any valid state (docstring)
     kinetics: Literal["paper", "physical"] = "paper"  # rule kinetics of EIC (nemsim.rules.kinetics)
     flux_gate: bool = False  # scale the update by the ion-flux gate (nemsim.model.gate): no ions, no change
     steps_per_call: int = 1  # k states predicted per call (1 = the paper's model; see "Multi-step" below)
@@ -199,7 +196,7 @@ class NEMSim(nn.Module):
             raise ValueError(f"u must be (B, {N_CONTROLS}) normalized controls, got {tuple(u.shape)}")
         return {
             "u": u,
-            "eic": self.eic.precompute(u, self.rules),
+            "eic": self.eic.precompute(u, self.rules),  # type: ignore[operator]
             "mac": self.mac.precompute(self.rules),
             "mrc": self.mrc.precompute(self.rules, fused=fused),
             # flux_gate: g (B, 1, 1, 1, 1) scaling the update (nemsim.model.gate)

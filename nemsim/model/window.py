@@ -182,7 +182,7 @@ def splice_latent(mrc: nn.Module, z: torch.Tensor, run: WindowRun) -> torch.Tens
 def attached(model: nn.Module, run: WindowRun) -> Iterator[None]:
     """Attach ``run`` to the encoder's and decoder's windowed layers for one call (not MRC: it runs on the
     full latent grid). Not thread-safe: a model must not serve other calls meanwhile."""
-    layers = [m for part in (model.encoder, model.decoder) for m in part.modules() if hasattr(m, "_window")]
+    layers = [m for part in (model.encoder, model.decoder) for m in part.modules() if hasattr(m, "_window")]  # type: ignore[union-attr]
     for m in layers:
         m._window = run
     try:
@@ -225,18 +225,18 @@ class DepthWindow:
             self.start = max(0, (lo - cfg.halo - cfg.margin) // ALIGN * ALIGN)
             self.run = WindowRun(recording=True)
             with attached(self.model, self.run):
-                out = self.model.predict(x, cache, window=self.run)  # (B, k, 2, D, H, W)
+                out = self.model.predict(x, cache, window=self.run)  # type: ignore[operator]  # (B, k, 2, D, H, W)
             self.run.recording = False
             out[:, :, :, : self.start] = x[:, None, :, : self.start]  # held below the window
             self.full_calls += 1
             share = 1.0
         elif self.start == 0:  # the window is the whole volume: the plain call, no records needed
-            out = self.model.predict(x, cache)
+            out = self.model.predict(x, cache)  # type: ignore[operator]
             share = 1.0
         else:
             with attached(self.model, self.run):
                 slab = x[:, :, self.start:]  # (B, 2, D-a, H, W)
-                part = self.model.predict(slab, cache, window=self.run)  # (B, k, 2, D-a, H, W)
+                part = self.model.predict(slab, cache, window=self.run)  # type: ignore[operator]  # (B, k, 2, D-a, H, W)
             held = x[:, None, :, : self.start].expand(B, part.shape[1], C, self.start, H, W)
             out = torch.cat([held, part], dim=3)  # (B, k, 2, D, H, W)
             share = (D - self.start) / D

@@ -128,7 +128,7 @@ class RuleTensors:
     yield_params_norm: np.ndarray  # (E, 4) E_th in normalized energy coordinates
     sha256: str
     source_text: str
-    event_mask: np.ndarray = field(default=None)  # type: ignore[assignment]  # (E,) 1 active / 0 dropped
+    event_mask: np.ndarray = field(default=None)  # type: ignore[arg-type]  # (E,) 1 active / 0 dropped
     perturbation: str = "none"
 
     def __post_init__(self) -> None:
@@ -192,7 +192,8 @@ def normalize_energy(values_ev: np.ndarray, channel: np.ndarray) -> np.ndarray:
             continue
         spec = CONTROL_SPECS[int(idx)]
         if spec.kind != "linear":
-            raise ValueError(f"control {spec.name!r} is not a linear (energy) channel; got kind {spec.kind!r}")
+            raise ValueError(f"control {spec.name!r} is not a linear (energy) channel; "
+                             f"got kind {spec.kind!r}")
         sel = channel == idx
         out[sel] = 2.0 * (values_ev[sel] - spec.t_low) / (spec.t_high - spec.t_low) - 1.0
     return out
@@ -218,8 +219,30 @@ def build_R(
     return R
 
 
-def compile_rules(spec: RulesSpec) -> RuleTensors:
-    """Compile a validated spec into ``RuleTensors`` (pure; see the module docstring for the layout)."""
+@dataclass
+class _EventColumns:
+    """Per-event arrays read from the spec (E events), before any normalization."""
+
+    names: np.ndarray  # (E,) str
+    is_primary: np.ndarray  # (E,) bool
+    group: np.ndarray  # (E,) int64 mechanism family
+    projectile: np.ndarray  # (E,) int64
+    target: np.ndarray  # (E,) int64
+    ctrl_idx: np.ndarray  # (E, 4) int64 control indices (flux, angle, E_mean, E_std), -1 none
+    prob_model: np.ndarray  # (E,) int64, -1 none
+    yield_model: np.ndarray  # (E,) int64, -1 none
+    prob_params: np.ndarray  # (E, 5) float64 physical
+    yield_params: np.ndarray  # (E, 4) float64 physical
+    angle_kind: np.ndarray  # (E,) int64
+    w_src: np.ndarray  # (E, S) products emitted
+    src_is_yield: np.ndarray  # (E, S) bool
+    w_sink: np.ndarray  # (E, S) species consumed by deposition
+    s_dep: np.ndarray  # (E,) sticking probability
+    dep_species: np.ndarray  # (E,) int64, -1 none
+
+
+def _event_columns(spec: RulesSpec) -> _EventColumns:
+    """Read every event's identity, laws, parameters, products and deposition into arrays."""
     from nemsim.controls import CONTROL_NAMES  # lazy: owned by the data module
 
     ctrl_pos = {name: i for i, name in enumerate(CONTROL_NAMES)}
@@ -274,94 +297,118 @@ def compile_rules(spec: RulesSpec) -> RuleTensors:
             dep_species[e] = q
             w_sink[e, q] = 1.0
             s_dep[e] = float(dp["p_stick"])
+    return _EventColumns(names, is_primary, group, projectile, target, ctrl_idx, prob_model, yield_model,
+                         prob_params, yield_params, angle_kind, w_src, src_is_yield, w_sink, s_dep,
+                         dep_species)  # fmt: skip
 
-    # ---- normalized energy coordinates (event's own E_mean channel) ----
-    e_chan = ctrl_idx[:, 2]
-    prob_params_norm = prob_params.copy()
-    is_pm = prob_model == 1
+
+def _normalized_energies(c: _EventColumns) -> tuple[np.ndarray, np.ndarray]:
+    """(prob_params_norm, yield_params_norm): energies in the coordinates of the event's E_mean control."""
+    e_chan = c.ctrl_idx[:, 2]
+    prob_params_norm = c.prob_params.copy()
+    is_pm = c.prob_model == 1
     for col in (0, 1):
-        prob_params_norm[is_pm, col] = normalize_energy(prob_params[is_pm, col], e_chan[is_pm])
-    yield_params_norm = yield_params.copy()
-    is_ya = yield_model == 1
-    yield_params_norm[is_ya, 0] = normalize_energy(yield_params[is_ya, 0], e_chan[is_ya])
+        prob_params_norm[is_pm, col] = normalize_energy(c.prob_params[is_pm, col], e_chan[is_pm])
+    yield_params_norm = c.yield_params.copy()
+    is_ya = c.yield_model == 1
+    yield_params_norm[is_ya, 0] = normalize_energy(c.yield_params[is_ya, 0], e_chan[is_ya])
+    return prob_params_norm, yield_params_norm
 
-    R = build_R(group, projectile, target, is_primary, ctrl_idx, prob_model, prob_params, yield_model,
-                yield_params, dep_species, s_dep)  # (E, 22)
 
-    # ---- meta flags m (E, 17) ----
+def _meta_flags(spec: RulesSpec, c: _EventColumns) -> np.ndarray:
+    """The meta flags m (E, 17), columns in META_FLAGS order."""
     effects = [ev.effect for ev in spec.events]
     proj_names = [ev.projectile for ev in spec.events]
     flags = {
-        "dep": ~is_primary,
-        "ion": np.array([p in ION_PROJECTILES for p in proj_names]) & is_primary,
-        "neutral": np.array([p in NEUTRAL_PROJECTILES for p in proj_names]) & is_primary,
-        "angle_P": angle_kind == 1,
-        "angle_C": angle_kind == 2,
-        "energy": prob_model == 1,
-        "yamamura": yield_model == 1,
+        "dep": ~c.is_primary,
+        "ion": np.array([p in ION_PROJECTILES for p in proj_names]) & c.is_primary,
+        "neutral": np.array([p in NEUTRAL_PROJECTILES for p in proj_names]) & c.is_primary,
+        "angle_P": c.angle_kind == 1,
+        "angle_C": c.angle_kind == 2,
+        "energy": c.prob_model == 1,
+        "yamamura": c.yield_model == 1,
         "react": np.array([x == "react" for x in effects]),
         "etch": np.array([x == "etch" for x in effects]),
         "sputter": np.array([x == "sputter" for x in effects]),
         "deposit": np.array([x == "deposit" for x in effects]),
-        "src": w_src.sum(1) > 0,
-        "sink": w_sink.sum(1) > 0,
+        "src": c.w_src.sum(1) > 0,
+        "sink": c.w_sink.sum(1) > 0,
         "target_resist": np.array([ev.target == "Resist" for ev in spec.events]),
         "target_chlor": np.array([ev.target in CHLORINATED_TARGETS for ev in spec.events]),
-        "group_physical": group == 0,
-        "group_both": group == 2,
+        "group_physical": c.group == 0,
+        "group_both": c.group == 2,
     }
-    meta = np.stack([np.asarray(flags[k], dtype=float) for k in META_FLAGS], axis=1)  # (E, 17)
+    return np.stack([np.asarray(flags[k], dtype=float) for k in META_FLAGS], axis=1)  # (E, 17)
 
-    # ---- normalized parameters r_bar (E, 18) ----
-    mu_p = np.where(is_primary, prob_model + 1, 0)  # 0 none, 1 const, 2 probModel
-    mu_y = np.where(is_primary, yield_model + 1, 0)  # 0 none, 1 const, 2 yamamura
+
+def _r_bar(c: _EventColumns, prob_params_norm: np.ndarray, yield_params_norm: np.ndarray, mu_p: np.ndarray,
+           mu_y: np.ndarray) -> np.ndarray:
+    """The normalized parameters r_bar (E, 18); mu_p, mu_y (E,): the law codes (0 none, 1 const, 2 law)."""
+    n_ev = len(c.names)
+    is_pm, is_ya = c.prob_model == 1, c.yield_model == 1
     r_bar = np.zeros((n_ev, 18))
-    r_bar[:, 0] = group / 2.0
-    r_bar[:, 1] = projectile / (N_SPECIES - 1)
-    r_bar[:, 2] = target / (len(TARGETS) - 1)
-    r_bar[:, 3] = (~is_primary).astype(float)
+    r_bar[:, 0] = c.group / 2.0
+    r_bar[:, 1] = c.projectile / (N_SPECIES - 1)
+    r_bar[:, 2] = c.target / (len(TARGETS) - 1)
+    r_bar[:, 3] = (~c.is_primary).astype(float)
     r_bar[:, 4] = mu_p / 2.0
-    r_bar[:, 5] = np.where(prob_model == 0, prob_params[:, 0], 0.0)
+    r_bar[:, 5] = np.where(c.prob_model == 0, c.prob_params[:, 0], 0.0)
     r_bar[:, 6] = np.where(is_pm, prob_params_norm[:, 0], 0.0)
     r_bar[:, 7] = np.where(is_pm, prob_params_norm[:, 1], 0.0)
-    r_bar[:, 8] = np.where(is_pm, prob_params[:, 2], 0.0)
-    r_bar[:, 9] = np.where(is_pm, prob_params[:, 3], 0.0)
-    r_bar[:, 10] = angle_kind / 2.0
+    r_bar[:, 8] = np.where(is_pm, c.prob_params[:, 2], 0.0)
+    r_bar[:, 9] = np.where(is_pm, c.prob_params[:, 3], 0.0)
+    r_bar[:, 10] = c.angle_kind / 2.0
     r_bar[:, 11] = mu_y / 2.0
-    r_bar[:, 12] = np.where(yield_model == 0, yield_params[:, 0], 0.0)
+    r_bar[:, 12] = np.where(c.yield_model == 0, c.yield_params[:, 0], 0.0)
     r_bar[:, 13] = np.where(is_ya, yield_params_norm[:, 0], 0.0)
-    r_bar[:, 14] = np.where(is_ya, np.cos(np.deg2rad(yield_params[:, 1])), 0.0)
+    r_bar[:, 14] = np.where(is_ya, np.cos(np.deg2rad(c.yield_params[:, 1])), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        log_ratio = np.log(yield_params[:, 2] / np.maximum(yield_params[:, 3], 1e-12))
+        log_ratio = np.log(c.yield_params[:, 2] / np.maximum(c.yield_params[:, 3], 1e-12))
     r_bar[:, 15] = np.where(is_ya, log_ratio, 0.0)
-    r_bar[:, 16] = (dep_species + 1) / N_SPECIES
-    r_bar[:, 17] = s_dep
-    phi = np.concatenate([r_bar, meta], axis=1)  # (E, 35)
+    r_bar[:, 16] = (c.dep_species + 1) / N_SPECIES
+    r_bar[:, 17] = c.s_dep
+    return r_bar
 
-    # ---- psi (E, 7) ----
-    psi = np.stack(
-        [(group + 1) / 3.0, projectile / 7.0, target / 4.0, (~is_primary).astype(float),
-         mu_p / 2.0, mu_y / 2.0, angle_kind / 2.0],
-        axis=1,
-    )  # fmt: skip
 
-    # ---- alpha0 (E, 3) and r_mech (E, 3) ----
+def _mechanisms(c: _EventColumns, meta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(alpha0 (E, 3) family prior, r_mech (E, 3) mechanism evidence) from the family and the meta flags."""
+    n_ev = len(c.names)
     alpha0 = np.full((n_ev, N_FAMILIES), EPS_ALPHA)
-    alpha0[np.arange(n_ev), group] = 1.0 - (N_FAMILIES - 1) * EPS_ALPHA
+    alpha0[np.arange(n_ev), c.group] = 1.0 - (N_FAMILIES - 1) * EPS_ALPHA
     m = {k: meta[:, i] for i, k in enumerate(META_FLAGS)}
     r_phys = np.maximum.reduce([m["angle_P"], m["yamamura"], m["sputter"], m["ion"] * m["group_physical"]])
     r_chem = np.maximum.reduce([m["angle_C"], m["react"], m["neutral"], m["dep"]])
     r_coup = np.maximum.reduce([m["group_both"], m["src"], m["sink"], m["ion"] * m["target_chlor"]])
     r_mech = np.stack([r_phys, r_chem, r_coup], axis=1)
+    return alpha0, r_mech
 
+
+def compile_rules(spec: RulesSpec) -> RuleTensors:
+    """Compile a validated spec into ``RuleTensors`` (pure; see the module docstring for the layout)."""
+    c = _event_columns(spec)
+    n_ev = len(c.names)
+    prob_params_norm, yield_params_norm = _normalized_energies(c)
+    R = build_R(c.group, c.projectile, c.target, c.is_primary, c.ctrl_idx, c.prob_model, c.prob_params,
+                c.yield_model, c.yield_params, c.dep_species, c.s_dep)  # (E, 22)
+    meta = _meta_flags(spec, c)  # (E, 17)
+    mu_p = np.where(c.is_primary, c.prob_model + 1, 0)  # 0 none, 1 const, 2 probModel
+    mu_y = np.where(c.is_primary, c.yield_model + 1, 0)  # 0 none, 1 const, 2 yamamura
+    r_bar = _r_bar(c, prob_params_norm, yield_params_norm, mu_p, mu_y)  # (E, 18)
+    phi = np.concatenate([r_bar, meta], axis=1)  # (E, 35)
+    psi = np.stack(  # (E, 7)
+        [(c.group + 1) / 3.0, c.projectile / 7.0, c.target / 4.0, (~c.is_primary).astype(float),
+         mu_p / 2.0, mu_y / 2.0, c.angle_kind / 2.0],
+        axis=1,
+    )  # fmt: skip
+    alpha0, r_mech = _mechanisms(c, meta)
     text = canonical_text(spec)
     assert all(math.isfinite(x) for x in phi.ravel()), "non-finite descriptor"
     return RuleTensors(
-        names=names, R=R, phi=phi, psi=psi, alpha0=alpha0, r_mech=r_mech, w_src=w_src, w_sink=w_sink,
-        s_dep=s_dep, src_is_yield=src_is_yield, is_primary=is_primary, ctrl_idx=ctrl_idx,
-        projectile=projectile, target=target, group=group, prob_model=prob_model, prob_params=prob_params,
-        angle_kind=angle_kind, yield_model=yield_model, yield_params=yield_params,
-        prob_params_norm=prob_params_norm, yield_params_norm=yield_params_norm,
+        names=c.names, R=R, phi=phi, psi=psi, alpha0=alpha0, r_mech=r_mech, w_src=c.w_src, w_sink=c.w_sink,
+        s_dep=c.s_dep, src_is_yield=c.src_is_yield, is_primary=c.is_primary, ctrl_idx=c.ctrl_idx,
+        projectile=c.projectile, target=c.target, group=c.group, prob_model=c.prob_model,
+        prob_params=c.prob_params, angle_kind=c.angle_kind, yield_model=c.yield_model,
+        yield_params=c.yield_params, prob_params_norm=prob_params_norm, yield_params_norm=yield_params_norm,
         sha256=hashlib.sha256(text.encode("utf-8")).hexdigest(), source_text=text,
         event_mask=np.ones(n_ev),
     )  # fmt: skip

@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import torch
 import torch.nn.functional as F
@@ -120,11 +120,11 @@ KINETICS: tuple[str, ...] = ("paper", "physical")
 SIGMA_FLOOR_EV = 1.0  # "physical": floor of the energy-gate width, sigma_g = sqrt(sigma^2 + floor^2) (eV)
 
 
-def check_kinetics(kinetics: str) -> str:
+def check_kinetics(kinetics: str) -> Kinetics:
     """``kinetics`` if it names a kinetics, else ValueError listing the choices."""
     if kinetics not in KINETICS:
         raise ValueError(f"unknown kinetics {kinetics!r}; expected one of {list(KINETICS)}")
-    return kinetics
+    return cast(Kinetics, kinetics)
 
 
 # ================================================================================================

@@ -24,12 +24,12 @@ Tensor-level perturbations keep ``source_text`` (the unperturbed library) and se
 from __future__ import annotations
 
 import hashlib
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
 from nemsim.rules.compile import EPS_ALPHA, RuleTensors, build_R, compile_rules
-from nemsim.rules.schema import RulesSpec, parse_rules
+from nemsim.rules.schema import RulesSpec, canonical_text, parse_rules
 from nemsim.rules.vocab import N_FAMILIES, N_SPECIES, TARGETS
 
 __all__ = [
@@ -42,7 +42,9 @@ __all__ = [
 ]
 
 PerturbationKind = Literal["none", "structure-only", "mechanism-shuffle", "event-drop", "rate-noise"]
-PERTURBATION_KINDS: tuple[str, ...] = ("none", "structure-only", "mechanism-shuffle", "event-drop", "rate-noise")
+PERTURBATION_KINDS: tuple[str, ...] = (
+    "none", "structure-only", "mechanism-shuffle", "event-drop", "rate-noise"
+)
 
 _PROB_KEYS = ("p_const", "E_th", "E_ref", "p0", "n")
 _YIELD_KEYS = ("Y_const", "E_th", "theta_max", "Y_max", "Y0")
@@ -58,7 +60,7 @@ def rate_yield_noise(spec: RulesSpec, seed: int, low: float = 0.7, high: float =
     """Multiply the continuous rate/yield parameters by U(low, high), clipped to valid ranges."""
     rng = np.random.default_rng(seed)
 
-    def noisy(key: str, value: float) -> float:
+    def noisy(key: str, value: Any) -> float:
         v = float(value) * float(rng.uniform(low, high))
         if key in _UNIT_INTERVAL:
             v = min(max(v, 0.0), 1.0)
@@ -70,7 +72,7 @@ def rate_yield_noise(spec: RulesSpec, seed: int, low: float = 0.7, high: float =
     for ev in spec.events:
         upd: dict = {}
         if ev.prob_params is not None:
-            pp = dict(ev.prob_params)
+            pp: dict[str, Any] = dict(ev.prob_params)
             for key in _PROB_KEYS:
                 if key in pp:
                     pp[key] = noisy(key, pp[key])
@@ -90,8 +92,6 @@ def rate_yield_noise(spec: RulesSpec, seed: int, low: float = 0.7, high: float =
         events.append(ev.model_copy(update=upd))
     out = spec.model_copy(update={"events": events})
     # round trip through the validator so a perturbed library is a valid library
-    from nemsim.rules.schema import canonical_text
-
     return parse_rules(canonical_text(out))
 
 

@@ -212,7 +212,7 @@ def _validate_event(ev: EventRule, i: int, controls: tuple[str, ...]) -> None:
         raise _fail(n, i, "yield_model", f"unsupported model: {err}")
 
     pp = _check_params(
-        ev.prob_params, PROB_PARAM_KEYS[ev.prob_model], n, i, "prob_params", optional=("angle",)
+        ev.prob_params, PROB_PARAM_KEYS[str(ev.prob_model)], n, i, "prob_params", optional=("angle",)
     )
     if ev.prob_model == "const":
         p = _number(pp["p_const"], "p_const", n, i, "prob_params")
@@ -238,7 +238,7 @@ def _validate_event(ev: EventRule, i: int, controls: tuple[str, ...]) -> None:
         if ev.E_mean_key is None:
             raise _fail(n, i, "E_mean_key", "missing field (probModel needs an energy control)")
 
-    yp = _check_params(ev.yield_params, YIELD_PARAM_KEYS[ev.yield_model], n, i, "yield_params")
+    yp = _check_params(ev.yield_params, YIELD_PARAM_KEYS[str(ev.yield_model)], n, i, "yield_params")
     if ev.yield_model == "const":
         y = _number(yp["Y_const"], "Y_const", n, i, "yield_params")
         if y < 0:
@@ -263,10 +263,12 @@ def _validate_event(ev: EventRule, i: int, controls: tuple[str, ...]) -> None:
         if err := _choice(prod.species, PROJECTILES, "species"):
             raise _fail(n, i, f"{field}.species", err)
         if prod.species in seen:
-            raise _fail(n, i, f"{field}.species", f"bad product relation: species {prod.species!r} listed twice")
+            raise _fail(n, i, f"{field}.species",
+                        f"bad product relation: species {prod.species!r} listed twice")
         seen.add(prod.species)
         if isinstance(prod.coeff, float) and not (math.isfinite(prod.coeff) and prod.coeff >= 0):
-            raise _fail(n, i, f"{field}.coeff", f"bad product relation: coefficient {prod.coeff} must be >= 0")
+            raise _fail(n, i, f"{field}.coeff",
+                        f"bad product relation: coefficient {prod.coeff} must be >= 0")
 
 
 def _check_library(events: list[EventRule]) -> None:
@@ -278,7 +280,7 @@ def _check_library(events: list[EventRule]) -> None:
         first[ev.name] = i
     sources = {p.species for ev in events if ev.is_primary for p in ev.products}
     for i, ev in enumerate(events):
-        if not ev.is_primary and ev.dep_params["species"] not in sources:  # type: ignore[index]
+        if not ev.is_primary and str(ev.dep_params["species"]) not in sources:  # type: ignore[index]
             raise _fail(
                 ev.name, i, "dep_params.species",
                 f"bad product relation: no primary event generates {ev.dep_params['species']!r}",  # type: ignore[index]
@@ -313,7 +315,8 @@ def spec_from_data(data: Any) -> RulesSpec:
         raise RulesError("rules file: 'events' must be a non-empty list")
     unknown = sorted(set(data) - {"version", "name", "events"})
     if unknown:
-        raise RulesError(f"rules file: unknown top-level field {unknown[0]!r}; expected version, name, events")
+        raise RulesError(f"rules file: unknown top-level field {unknown[0]!r}; "
+                         "expected version, name, events")
     events = [_event_from_raw(raw, i) for i, raw in enumerate(raw_events)]
     controls = _control_names()
     for i, ev in enumerate(events):

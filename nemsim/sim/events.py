@@ -22,6 +22,7 @@ their flux, angle, energy-mean and energy-std control indices are read from the 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,6 +34,28 @@ from .config import SimConfig
 ACT_NONE, ACT_REACT, ACT_REMOVE, ACT_DEPOSIT = 0, 1, 2, 3
 N_R_BAR = 18  # phi = [r_bar (18) | meta flags (17)]
 PRODUCT_SPECIES = ("SiCl", "SiCl2", "SiCl3")  # emitted/deposited species that are also surface species
+
+
+class KernelTables(NamedTuple):
+    """The per-event arrays of ``EventTables`` as the numba kernels take them: one tuple argument."""
+
+    pair_start: np.ndarray
+    pair_count: np.ndarray
+    pair_events: np.ndarray
+    action: np.ndarray
+    conv_to: np.ndarray
+    prob_model: np.ndarray
+    prob_params: np.ndarray
+    angle_kind: np.ndarray
+    yield_model: np.ndarray
+    yield_params: np.ndarray
+    s_dep: np.ndarray
+    prod_coef: np.ndarray
+    prod_is_yield: np.ndarray
+    product_species: np.ndarray
+    is_ion: np.ndarray
+    proj_mass: np.ndarray
+    target_mass: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -59,6 +82,10 @@ class EventTables:
     target_mass: np.ndarray  # (T,) float64 amu
     src_species: np.ndarray  # (K,) int64 projectile index of each incident source (K = 4)
     src_ctrl: np.ndarray  # (K, 4) int64 control indices (flux, angle, E_mean, E_std), -1 none
+
+    def kernel_tables(self) -> KernelTables:
+        """The arrays the kernels index, as one tuple (shapes as above)."""
+        return KernelTables(*(getattr(self, name) for name in KernelTables._fields))
 
 
 def build_event_tables(rules: RuleTensors, config: SimConfig) -> EventTables:

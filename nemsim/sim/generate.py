@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -94,7 +94,7 @@ def simulate_case(scene: Scene, rules: RuleTensors, config: SimConfig, task: Cas
         "wall_s": round(res.wall_s, 3),
         "cpu_s": round(time.process_time() - t0, 3),
         "counters": res.counters,
-        "event_counts": {str(n): int(v) for n, v in zip(rules.names, res.event_counts) if v},
+        "event_counts": {str(n): int(v) for n, v in zip(rules.names, res.event_counts, strict=True) if v},
         "initial_totals": res.initial_totals.tolist(),
         "final_totals": res.final_totals.tolist(),
     }
@@ -168,7 +168,7 @@ def _run_process_pool(scene, rules, config, tasks, workers, stop: _StopRequest) 
                                initargs=(os.getpid(),))  # fmt: skip
     finished = False
     try:
-        running = set()
+        running: set[Any] = set()  # futures of the cases being simulated
         while pending or running:
             while pending and len(running) < 2 * workers:  # bound memory: states return to the parent
                 running.add(pool.submit(simulate_case, scene, rules, config, pending.pop()))

@@ -65,13 +65,15 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
 from nemsim.rules.laws import EPS, prob_physical, yield_physical
 
-from .events import ACT_DEPOSIT, ACT_REACT, ACT_REMOVE
+from .config import SimConfig
+from .events import ACT_DEPOSIT, ACT_REACT, ACT_REMOVE, KernelTables
 
 # counters (int64 array) layout
 C_PRIMARY, C_IONS, C_NEUTRALS, C_PRODUCTS, C_STUCK = 0, 1, 2, 3, 4
@@ -90,6 +92,57 @@ COUNTER_NAMES = (
     f"converted_from_{i}" for i in range(5)
 ) + tuple(f"converted_to_{i}" for i in range(5)) + ("absorbed",)  # fmt: skip
 assert len(COUNTER_NAMES) == N_COUNTERS
+
+
+
+class TransportParams(NamedTuple):
+    """Scalar settings of the particle transport (one numba tuple argument of ``fly``/``run_particles``)."""
+
+    cap: float  # Si-class units per full voxel
+    rcap: float  # resist units per full voxel
+    product_energy: float  # energy of emitted SiCl_x products [eV]
+    max_steps: int  # voxel crossings + surface hits per particle
+    # 1 / particle budget: the material one surface event moves, relative to budget 1 (module docstring)
+    weight: float = 1.0
+    # cosines of the incidence angles above which a non-reacting ion always reflects / below which it never
+    # does (``reflection_probability``; 1, 1 = every non-reacting ion reflects)
+    refl_cos_full: float = 1.0
+    refl_cos_zero: float = 1.0
+    excess_yield: bool = False  # the excess-probability yield (module docstring)
+
+
+def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportParams:
+    """The transport settings of ``config``; ``cap``/``rcap``: the resolved voxel capacities."""
+    cos_full, cos_zero = config.reflection_cosines
+    return TransportParams(float(cap), float(rcap), float(config.product_energy_ev), int(config.max_steps),
+                           float(config.particle_weight), float(cos_full), float(cos_zero),
+                           bool(config.excess_probability_yield))  # fmt: skip
+
+
+class WorkBuffers(NamedTuple):
+    """Arrays the kernels write: the product queue, channel scratch and the accumulated counters."""
+
+    queue: np.ndarray  # (Q, 8) float64 ring buffer of emitted products (_Q_* columns)
+    pbuf: np.ndarray  # (max_channels,) float64 scratch
+    counters: np.ndarray  # (N_COUNTERS,) int64, accumulated
+    event_counts: np.ndarray  # (E,) int64 realized events per rule, accumulated
+
+    @classmethod
+    def new(cls, max_channels: int, n_events: int, queue_capacity: int) -> WorkBuffers:
+        """Zeroed buffers for a rule library with ``n_events`` events."""
+        return cls(np.zeros((queue_capacity, 8)), np.zeros(max_channels),
+                   np.zeros(N_COUNTERS, dtype=np.int64), np.zeros(n_events, dtype=np.int64))  # fmt: skip
+
+
+class Sources(NamedTuple):
+    """The K incident sources of one macro step (K = 4: Cl, Cl+, Cl2+, Ar+)."""
+
+    species: np.ndarray  # (K,) int64 projectile index
+    cum: np.ndarray  # (K,) float64 cumulative normalized rate
+    m: np.ndarray  # (K,) float64 cos-power exponent of the angular distribution
+    e_mean: np.ndarray  # (K,) float64 ion energy mean [eV] (ignored for neutrals)
+    e_std: np.ndarray  # (K,) float64 ion energy std [eV]
+
 
 _Q_X, _Q_Y, _Q_Z, _Q_DX, _Q_DY, _Q_DZ, _Q_SPECIES, _Q_ENERGY = 0, 1, 2, 3, 4, 5, 6, 7
 _FACE_EPS = 1e-9  # how far inside the vacuum voxel a particle restarts after a surface hit
@@ -233,25 +286,19 @@ def _push(queue: np.ndarray, tail: int, head: int, x: float, y: float, z: float,
 @numba.njit(cache=True)
 def fly(
     species: int, energy: float, x: float, y: float, z: float, dx: float, dy: float, dz: float,
-    mat: np.ndarray, fill: np.ndarray, cap: float, rcap: float,
-    pair_start: np.ndarray, pair_count: np.ndarray, pair_events: np.ndarray, action: np.ndarray,
-    conv_to: np.ndarray, prob_model: np.ndarray, prob_params: np.ndarray, angle_kind: np.ndarray,
-    yield_model: np.ndarray, yield_params: np.ndarray, s_dep: np.ndarray, prod_coef: np.ndarray,
-    prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
-    target_mass: np.ndarray, product_energy: float, max_steps: int,
-    queue: np.ndarray, head: int, tail: int, pbuf: np.ndarray, counters: np.ndarray,
-    event_counts: np.ndarray, weight: float = 1.0, refl_cos_full: float = 1.0, refl_cos_zero: float = 1.0,
-    excess_yield: bool = False,
+    mat: np.ndarray, fill: np.ndarray, tab: KernelTables, prm: TransportParams, buf: WorkBuffers,
+    head: int, tail: int,
 ) -> int:  # fmt: skip
     """Transport one particle until it reacts, escapes or runs out of steps; returns the queue tail.
 
-    Mutates ``mat``/``fill`` (surface events), ``queue`` (emitted products), ``counters``, ``event_counts``.
-    ``weight`` = 1 / particle budget: the material one surface event moves, relative to budget 1
-    (module docstring). ``refl_cos_full`` / ``refl_cos_zero``: cosines of the incidence angles above which
-    a non-reacting ion always reflects / below which it never does (``reflection_probability``; 1, 1 =
-    every non-reacting ion reflects, the behaviour before the mechanism existed). ``excess_yield``: the
-    excess-probability yield (module docstring; False = the behaviour before it existed).
+    Args: the particle (projectile index, energy eV, position in voxels, unit direction); ``mat`` (nx, ny,
+    nz, 5) and ``fill`` (nx, ny, nz), mutated by surface events; ``tab`` the rule tables; ``prm`` the
+    transport settings (``TransportParams``); ``buf`` the queue of emitted products and the counters
+    (``WorkBuffers``, mutated); ``head``, ``tail``: the product queue's ring pointers.
     """
+    cap, rcap, weight = prm.cap, prm.rcap, prm.weight
+    max_steps = prm.max_steps
+    queue, pbuf, counters, event_counts = buf.queue, buf.pbuf, buf.counters, buf.event_counts
     nx, ny, nz = fill.shape
     n_t = mat.shape[3]
     steps = 0
@@ -382,16 +429,16 @@ def fly(
                 break
         # ---------------- competing rule channels ----------------
         pi = species * n_t + tgt
-        start = pair_start[pi]
-        cnt = pair_count[pi]
+        start = tab.pair_start[pi]
+        cnt = tab.pair_count[pi]
         ptot = 0.0
         for c in range(cnt):
-            e = pair_events[start + c]
-            if action[e] == ACT_DEPOSIT:
-                p = s_dep[e]
+            e = tab.pair_events[start + c]
+            if tab.action[e] == ACT_DEPOSIT:
+                p = tab.s_dep[e]
             else:
-                p = prob_physical(prob_model[e], prob_params[e], angle_kind[e], energy, cos_inc)
-                p *= unsaturated_factor(prob_model[e], prob_params[e], energy)
+                p = prob_physical(tab.prob_model[e], tab.prob_params[e], tab.angle_kind[e], energy, cos_inc)
+                p *= unsaturated_factor(tab.prob_model[e], tab.prob_params[e], energy)
             pbuf[c] = p
             ptot += p
         chosen = -1
@@ -401,15 +448,15 @@ def fly(
             for c in range(cnt):
                 acc += pbuf[c]
                 if u < acc:
-                    chosen = pair_events[start + c]
+                    chosen = tab.pair_events[start + c]
                     break
         if chosen >= 0:
             counters[C_STEPS] += steps
             counters[C_REACTIONS] += 1
             event_counts[chosen] += 1
-            act = action[chosen]
+            act = tab.action[chosen]
             if act == ACT_DEPOSIT:
-                add = conv_to[chosen]
+                add = tab.conv_to[chosen]
                 # units stuck: 1 at full budget (no random draw there, so budget 1 keeps its stream)
                 n_add = 1 if w_event == 1.0 else stochastic_round(w_event)
                 if n_add == 0:
@@ -443,8 +490,8 @@ def fly(
                 else:
                     counters[C_DROPPED] += 1
                 return tail
-            y_val = yield_physical(yield_model[chosen], yield_params[chosen], energy, cos_inc)
-            if excess_yield and ptot > 1.0:
+            y_val = yield_physical(tab.yield_model[chosen], tab.yield_params[chosen], energy, cos_inc)
+            if prm.excess_yield and ptot > 1.0:
                 # excess-probability yield: the channels were normalized by ptot; scaling the yield by
                 # ptot keeps each channel's expected effect at p_c Y_c (module docstring)
                 y_val *= ptot
@@ -452,7 +499,7 @@ def fly(
             have = mat[wx, wy, iz, tgt]
             nrem = k if k < have else have
             if act == ACT_REACT:
-                dst = conv_to[chosen]
+                dst = tab.conv_to[chosen]
                 mat[wx, wy, iz, tgt] -= nrem
                 mat[wx, wy, iz, dst] += nrem
                 counters[C_CONV_FROM + tgt] += nrem
@@ -469,11 +516,11 @@ def fly(
                 mat[wx, wy, iz, tgt] -= nrem
                 counters[C_REMOVED + tgt] += nrem
                 _refill(mat, fill, wx, wy, iz, cap, rcap)
-                for j in range(product_species.shape[0]):
-                    coef = prod_coef[chosen, j]
+                for j in range(tab.product_species.shape[0]):
+                    coef = tab.prod_coef[chosen, j]
                     if coef <= 0.0:
                         continue
-                    if prod_is_yield[chosen, j]:
+                    if tab.prod_is_yield[chosen, j]:
                         amount = coef * nrem / weight  # emitted products carry the same weight
                     elif weight == 1.0:
                         amount = coef if nrem > 0 else 0.0
@@ -493,7 +540,7 @@ def fly(
                         if ex * fnx + ey * fny + ez * fnz <= 0.0:
                             ex, ey, ez = cosine_about(fnx, fny, fnz)
                         new_tail = _push(
-                            queue, tail, head, x, y, z, ex, ey, ez, product_species[j], product_energy
+                            queue, tail, head, x, y, z, ex, ey, ez, tab.product_species[j], prm.product_energy
                         )
                         if new_tail == tail:
                             counters[C_DROPPED] += 1
@@ -508,15 +555,15 @@ def fly(
             counters[C_STEPS] -= steps  # counted again where the particle ends
             continue
         # ---------------- no reaction: reflect (ions: or be absorbed) ----------------
-        if is_ion[species]:
-            if refl_cos_full < 1.0:
-                r_prob = reflection_probability(cos_inc, refl_cos_full, refl_cos_zero)
+        if tab.is_ion[species]:
+            if prm.refl_cos_full < 1.0:
+                r_prob = reflection_probability(cos_inc, prm.refl_cos_full, prm.refl_cos_zero)
                 if r_prob < 1.0 and np.random.random() >= r_prob:
                     counters[C_STEPS] += steps
                     counters[C_ABSORBED] += 1
                     return tail
-            m1 = proj_mass[species]
-            m2 = target_mass[tgt]
+            m1 = tab.proj_mass[species]
+            m2 = tab.target_mass[tgt]
             ratio = (m1 - m2) / (m1 + m2)
             c2 = cos_inc * cos_inc
             energy *= (1.0 - c2) + c2 * ratio * ratio
@@ -551,48 +598,35 @@ def fly(
 
 @numba.njit(cache=True)
 def run_particles(
-    mat: np.ndarray, fill: np.ndarray, cap: float, rcap: float, n_target: int, count_ions: bool,
-    src_species: np.ndarray, src_cum: np.ndarray, src_m: np.ndarray, src_emean: np.ndarray,
-    src_estd: np.ndarray,
-    pair_start: np.ndarray, pair_count: np.ndarray, pair_events: np.ndarray, action: np.ndarray,
-    conv_to: np.ndarray, prob_model: np.ndarray, prob_params: np.ndarray, angle_kind: np.ndarray,
-    yield_model: np.ndarray, yield_params: np.ndarray, s_dep: np.ndarray, prod_coef: np.ndarray,
-    prod_is_yield: np.ndarray, product_species: np.ndarray, is_ion: np.ndarray, proj_mass: np.ndarray,
-    target_mass: np.ndarray, neutral_energy: float, product_energy: float, max_steps: int,
-    queue: np.ndarray, pbuf: np.ndarray, counters: np.ndarray, event_counts: np.ndarray, seed: int,
-    weight: float = 1.0, refl_cos_full: float = 1.0, refl_cos_zero: float = 1.0, excess_yield: bool = False,
+    mat: np.ndarray, fill: np.ndarray, n_target: int, count_ions: bool, src: Sources, neutral_energy: float,
+    tab: KernelTables, prm: TransportParams, buf: WorkBuffers, seed: int,
 ) -> None:  # fmt: skip
     """Launch primaries until ``n_target`` ions (``count_ions``) or primaries have been processed.
 
     Args:
       mat: (nx, ny, nz, 5) int32 species amounts; fill: (nx, ny, nz) float64 (both mutated).
-      cap, rcap: Si-class and resist units per full voxel.
-      src_*: (K,) incident sources: projectile index, cumulative normalized rate, cos-power exponent m,
-        energy mean and std [eV] (ions; ignored for neutrals).
-      the event tables: see ``events.EventTables``.
-      queue: (Q, 8) float64 product ring buffer; pbuf: (max_channels,) scratch; counters: (N_COUNTERS,)
-        int64; event_counts: (E,) int64 (both accumulated).
+      src: the incident sources (``Sources``); neutral_energy: energy of incident neutrals [eV].
+      tab: the rule tables (``events.KernelTables``); prm: transport settings (``TransportParams``).
+      buf: product queue, scratch and counters (``WorkBuffers``; counters accumulated).
       seed: seeds numba's generator for this call.
-      weight: 1 / particle budget, the material one simulated particle moves (module docstring).
-      refl_cos_full, refl_cos_zero: the ion reflection law (``reflection_probability``; 1, 1 = off).
-      excess_yield: the excess-probability yield (module docstring).
     """
     np.random.seed(seed)
+    queue, counters = buf.queue, buf.counters
     nx, ny, nz = fill.shape
-    n_src = src_species.shape[0]
+    n_src = src.species.shape[0]
     done = 0
     while done < n_target:
         u = np.random.random()
         ks = n_src - 1
         for q in range(n_src):
-            if u < src_cum[q]:
+            if u < src.cum[q]:
                 ks = q
                 break
-        s = src_species[ks]
+        s = src.species[ks]
         counters[C_PRIMARY] += 1
-        if is_ion[s]:
+        if tab.is_ion[s]:
             counters[C_IONS] += 1
-            energy = max(src_emean[ks] + src_estd[ks] * np.random.standard_normal(), 0.0)
+            energy = max(src.e_mean[ks] + src.e_std[ks] * np.random.standard_normal(), 0.0)
             if count_ions:
                 done += 1
         else:
@@ -600,20 +634,15 @@ def run_particles(
             energy = neutral_energy
         if not count_ions:
             done += 1
-        ct = cos_power_polar(src_m[ks])
+        ct = cos_power_polar(src.m[ks])
         st = math.sqrt(max(0.0, 1.0 - ct * ct))
         ph = 2.0 * math.pi * np.random.random()
         x0 = np.random.random() * nx
         y0 = np.random.random() * ny
         z0 = nz - _FACE_EPS
         head = 0
-        tail = fly(
-            s, energy, x0, y0, z0, st * math.cos(ph), st * math.sin(ph), -ct,
-            mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
-            prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
-            product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-            queue, head, 0, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero, excess_yield,
-        )  # fmt: skip
+        tail = fly(s, energy, x0, y0, z0, st * math.cos(ph), st * math.sin(ph), -ct, mat, fill, tab, prm, buf,
+                   head, 0)
         # drain the FIFO of secondary products (they may not emit further products, but could)
         while head != tail:
             qx = queue[head, _Q_X]
@@ -625,12 +654,5 @@ def run_particles(
             qs = int(queue[head, _Q_SPECIES])
             qe = queue[head, _Q_ENERGY]
             head = (head + 1) % queue.shape[0]
-            tail = fly(
-                qs, qe, qx, qy, qz, qdx, qdy, qdz,
-                mat, fill, cap, rcap, pair_start, pair_count, pair_events, action, conv_to, prob_model,
-                prob_params, angle_kind, yield_model, yield_params, s_dep, prod_coef, prod_is_yield,
-                product_species, is_ion, proj_mass, target_mass, product_energy, max_steps,
-                queue, head, tail, pbuf, counters, event_counts, weight, refl_cos_full, refl_cos_zero,
-                excess_yield,
-            )  # fmt: skip
+            tail = fly(qs, qe, qx, qy, qz, qdx, qdy, qdz, mat, fill, tab, prm, buf, head, tail)
 

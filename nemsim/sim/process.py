@@ -34,7 +34,7 @@ from nemsim.scenes import Scene
 from .config import SimConfig
 from .domain import Domain, initial_domain
 from .events import EventTables, build_event_tables
-from .kernels import COUNTER_NAMES, N_COUNTERS, run_particles
+from .kernels import COUNTER_NAMES, Sources, WorkBuffers, run_particles, transport_params
 from .sdf import psi
 
 log = logging.getLogger(__name__)
@@ -137,10 +137,10 @@ def run_trajectory(
     states = np.empty((n_tr + 1, *scene.state_shape), dtype=np.float32)
     states[0] = psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
 
-    queue = np.zeros((cfg.queue_capacity, 8), dtype=np.float64)
-    pbuf = np.zeros(tables.max_channels, dtype=np.float64)
-    counters = np.zeros(N_COUNTERS, dtype=np.int64)
-    event_counts = np.zeros(len(rules.names), dtype=np.int64)
+    buf = WorkBuffers.new(tables.max_channels, len(rules.names), cfg.queue_capacity)
+    counters, event_counts = buf.counters, buf.event_counts
+    tab = tables.kernel_tables()
+    prm = transport_params(cfg, cfg.capacity, cfg.resist_capacity)
     carry = 0.0
     dt = scene.macro_dt_s
     for t in range(n_tr):
@@ -157,24 +157,16 @@ def run_trajectory(
             carry = expected - n_target
             if n_target == 0:
                 continue
-            run_particles(
-                dom.mat, dom.fill, float(cfg.capacity), float(cfg.resist_capacity), n_target, count_ions,
-                tables.src_species, np.cumsum(rate) / total, m, e_mean, e_std,
-                tables.pair_start, tables.pair_count, tables.pair_events, tables.action, tables.conv_to,
-                tables.prob_model, tables.prob_params, tables.angle_kind, tables.yield_model,
-                tables.yield_params, tables.s_dep, tables.prod_coef, tables.prod_is_yield,
-                tables.product_species, tables.is_ion, tables.proj_mass, tables.target_mass,
-                cfg.neutral_energy_ev, cfg.product_energy_ev, cfg.max_steps,
-                queue, pbuf, counters, event_counts, seed, cfg.particle_weight, *cfg.reflection_cosines,
-                cfg.excess_probability_yield,
-            )  # fmt: skip
+            src = Sources(tables.src_species, np.cumsum(rate) / total, m, e_mean, e_std)
+            run_particles(dom.mat, dom.fill, n_target, count_ions, src, cfg.neutral_energy_ev, tab, prm, buf,
+                          seed)
         states[t + 1] = psi(*dom.fractions(), scene, cfg.psi_sigma_vox)
         if on_transition is not None:
             on_transition(t + 1, n_tr)
     wall = time.perf_counter() - t0
     result = TrajectoryResult(
         states=states,
-        counters={name: int(v) for name, v in zip(COUNTER_NAMES, counters)},
+        counters={name: int(v) for name, v in zip(COUNTER_NAMES, counters, strict=True)},
         event_counts=event_counts,
         domain=dom,
         initial_totals=initial_totals,

@@ -115,6 +115,8 @@ def fire(
     queue = np.zeros((4096, 8))
     pbuf = np.zeros(tables.max_channels)
     events = np.zeros(len(tables.action), dtype=np.int64)
+    tab = tables.kernel_tables()
+    prm = K.transport_params(cfg, cap, rcap)._replace(weight=1.0)  # one real projectile per flight
     rng = np.random.default_rng(seed)
     removed = np.empty(n)
     K.seed_rng(int(rng.integers(0, 2**31)))
@@ -123,15 +125,8 @@ def fire(
         fill = fill0.copy()
         counters = np.zeros(K.N_COUNTERS, dtype=np.int64)
         x0, y0 = rng.random() * nx, rng.random() * ny
-        K.fly(
-            s, energy_ev, x0, y0, nz - 1e-9, *d, mat, fill, float(cap), float(rcap),
-            tables.pair_start, tables.pair_count, tables.pair_events, tables.action, tables.conv_to,
-            tables.prob_model, tables.prob_params, tables.angle_kind, tables.yield_model,
-            tables.yield_params, tables.s_dep, tables.prod_coef, tables.prod_is_yield,
-            tables.product_species, tables.is_ion, tables.proj_mass, tables.target_mass,
-            cfg.product_energy_ev, cfg.max_steps, queue, 0, 0, pbuf, counters, events, 1.0,
-            *cfg.reflection_cosines, cfg.excess_probability_yield,
-        )  # fmt: skip
+        buf = K.WorkBuffers(queue, pbuf, counters, events)
+        K.fly(s, energy_ev, x0, y0, nz - 1e-9, *d, mat, fill, tab, prm, buf, 0, 0)
         removed[i] = counters[K.C_REMOVED : K.C_REMOVED + 5].sum()
     y = cfg.flux_scale * removed
     return float(y.mean()), float(y.std(ddof=1) / math.sqrt(n)) if n > 1 else 0.0

@@ -1,4 +1,5 @@
-"""Training: TrainConfig ([supp_training]), the one-step training loop, checkpoints with provenance.
+"""Training: TrainConfig ([supp_training]) and the training loop. Checkpoint I/O is ``nemsim.checkpoint``
+(a level below, so evaluation reads checkpoints without depending on training).
 
-Import the submodules (``config``, ``loop``, ``checkpoint``); nothing heavy happens here.
+Import the submodules (``config``, ``loop``); nothing heavy happens here.
 """

@@ -39,11 +39,8 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Literal
 
-# Measured on the 2-core development CPU (torch 2.13, 1 thread, machine shared, two runs), NEMSim on the
-# small scene, one optimizer step at batch 24:
-#   fp32 channels-first 1.61 / 1.93 s   bf16 channels-first 1.19 / 1.03 s
-#   fp32 channels-last  1.92 / 1.55 s   bf16 channels-last  1.35 / 1.22 s
-# bf16 autocast wins consistently (~1.5x); channels_last_3d does not (slower with bf16 both times).
+# The faster setting of one NEMSim training step on the small scene: bf16 autocast on, channels_last_3d off
+# (benchmarks/small/README.md, "Training-step precision and memory format").
 DEFAULT_CHANNELS_LAST = False
 DEFAULT_BF16 = True
 
@@ -63,7 +60,7 @@ class TrainConfig:
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
     warmup_steps: int | None = None  # warm-up length in steps; overrides warmup_epochs when set
-    checkpoint_every: int | None = None  # also write last.pt every N steps (resume mid-epoch); None = per epoch
+    checkpoint_every: int | None = None  # also write last.pt every N steps (mid-epoch resume); None: epochs
     # --- validation / model selection ([supp_evaluation]) ---
     val_every: int = 10  # epochs between validation rollouts
     patience: int = 20  # validation rounds without improvement before early stop
@@ -90,8 +87,9 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("max_steps", "warmup_steps", "checkpoint_every", "val_cases", "test_cases"):
             value = getattr(self, name)
-            if value is not None and value < (0 if name == "warmup_steps" else 1):
-                raise ValueError(f"{name} must be None or >= {0 if name == 'warmup_steps' else 1}, got {value}")
+            low = 0 if name == "warmup_steps" else 1
+            if value is not None and value < low:
+                raise ValueError(f"{name} must be None or >= {low}, got {value}")
         if self.warmup_epochs < 0:
             raise ValueError(f"warmup_epochs must be >= 0, got {self.warmup_epochs}")
         if self.rollout_steps is not None and self.rollout_steps < 1:

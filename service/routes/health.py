@@ -20,7 +20,7 @@ router = APIRouter(tags=["health"])
 async def get_health(request: Request) -> Health:
     """The process is alive (liveness); `model_id` once the model is served, `detail` the loading stage."""
     state = request.app.state.service
-    return Health(
+    return Health(  # type: ignore[call-arg]
         status="ok",
         model_id=state.surrogate.model_id if state.ready else None,
         detail=None if state.ready else state.status,
@@ -32,7 +32,7 @@ async def get_ready(request: Request) -> Health | JSONResponse:
     """200 once the checkpoint is loaded and a warm-up rollout ran, else 503 with the reason."""
     state = request.app.state.service
     if state.ready:
-        return Health(status="ready", model_id=state.surrogate.model_id)
+        return Health(status="ready", model_id=state.surrogate.model_id)  # type: ignore[call-arg]
     reason = state.error or "the checkpoint is still loading"
     body = Health(
         status=state.status, detail=state.error, message=f"model not ready ({state.status}): {reason}"

@@ -57,6 +57,6 @@ async def get_mechanisms(
         controls=array_to_controls(raw),
         result=jsonable(result),
         warnings=warnings,
-        extrapolation=[e.as_dict() for e in found],
+        extrapolation=[e.as_dict() for e in found],  # type: ignore[misc]
         clipped=clipped,
     )

@@ -108,7 +108,7 @@ async def post_rollout(
     if body.fields != "none":
         steps = list(range(result.steps + 1)) if body.fields == "all" else [result.steps]
         data = result.states[steps].astype("<f2", copy=False)  # (n, 2, D, H, W)
-        fields = FieldsPayload(
+        fields = FieldsPayload(  # type: ignore[call-arg]
             shape=list(data.shape),
             steps=steps,
             d_max_nm=float(surrogate.scene.d_max_nm),
@@ -143,7 +143,7 @@ async def post_rollout(
         controls=array_to_controls(result.controls_raw[0]),
         recipe=[array_to_controls(row) for row in result.controls_raw] if varying else None,
         warnings=warnings,
-        extrapolation=[e.as_dict() for e in found],
+        extrapolation=[e.as_dict() for e in found],  # type: ignore[misc]
         clipped=clipped,
         fields=fields,
         meshes=meshes,

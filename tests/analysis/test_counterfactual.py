@@ -15,13 +15,13 @@ from nemsim.analysis.counterfactual import (
     response_batch,
     write_outputs,
 )
-from nemsim.training.checkpoint import LoadedModel
+from nemsim.checkpoint import LoadedModel
 
 
 @pytest.fixture(scope="module")
 def setup(tiny_scene):
     from nemsim.controls import CONTROL_NAMES, lhs_design
-    from nemsim.model.registry import build_model
+    from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
 
@@ -45,7 +45,7 @@ def test_eight_interventions_scale_only_the_two_fluxes(setup):
     assert rows.shape == (9, 14) and np.array_equal(rows[0], raw[0])
     ip, inn = names.index("flux_cl_plus"), names.index("flux_cl")
     others = [k for k in range(14) if k not in (ip, inn)]
-    for row, (sp, sn) in zip(rows[1:], INTERVENTIONS):
+    for row, (sp, sn) in zip(rows[1:], INTERVENTIONS, strict=True):
         assert row[ip] == pytest.approx(raw[0, ip] * sp) and row[inn] == pytest.approx(raw[0, inn] * sn)
         assert np.array_equal(row[others], raw[0, others])
 
@@ -60,7 +60,8 @@ def test_mechanism_response_per_control_vector(setup):
     np.testing.assert_allclose(np.sum(out["base"]["alpha"], axis=1), 1.0, atol=1e-5)
     iv = out["interventions"][0]
     base_m = out["base"]["M"]["coupled"]
-    assert iv["delta_M_pct"]["coupled"] == pytest.approx(100 * (iv["M"]["coupled"] - base_m) / base_m, rel=1e-6)
+    expect = 100 * (iv["M"]["coupled"] - base_m) / base_m
+    assert iv["delta_M_pct"]["coupled"] == pytest.approx(expect, rel=1e-6)
 
 
 def test_batched_equals_single(setup):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import pytest
 
@@ -66,14 +64,6 @@ def test_profile_driven_by_one_control(tiny_scene):
     assert abs(res.beta[4, d]) > 0.9 and abs(res.rho[4, d]) > 0.9
 
 
-def _has_hdf5_io() -> bool:
-    try:
-        return importlib.util.find_spec("nemsim.data.hdf5") is not None
-    except ModuleNotFoundError:
-        return False
-
-
-@pytest.mark.skipif(not _has_hdf5_io(), reason="nemsim.data.hdf5 not available yet")
 def test_cli_on_a_trajectory_file(tmp_path, tiny_scene, capsys):
     from nemsim.cli import main
     from nemsim.controls import CONTROL_NAMES, lhs_design

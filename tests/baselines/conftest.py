@@ -1,9 +1,7 @@
-"""Fixtures for the baseline tests: the compiled rules (real library; tests needing RuleFeat values skip
-until ``nemsim.controls`` exists) and a structural stand-in that is enough to construct the +Prior models."""
+"""Fixtures for the baseline tests: a structural stand-in for the rules that is enough to construct the +Prior
+models (the real library is the shared ``rules`` fixture)."""
 
 from __future__ import annotations
-
-import importlib.util
 
 import numpy as np
 import pytest
@@ -24,14 +22,6 @@ class ShapeOnlyRules:
 def shape_rules():
     return ShapeOnlyRules()
 
-
-@pytest.fixture(scope="session")
-def rules():
-    if importlib.util.find_spec("nemsim.controls") is None:
-        pytest.skip("nemsim.controls (data module) not available: the rules library cannot be compiled")
-    from nemsim.rules import compile_rules, load_rules
-
-    return compile_rules(load_rules())
 
 
 @pytest.fixture

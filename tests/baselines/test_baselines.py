@@ -9,7 +9,7 @@ import torch
 
 from nemsim.baselines import CNO3d, CNOConfig, DeepONet3d, DeepONetConfig, FNO3d, FNOConfig, UNO3d, UNOConfig
 from nemsim.evaluation.metrics import count_params as count_trainable
-from nemsim.model.registry import available_models, build_model
+from nemsim.registry import available_models, build_model
 from nemsim.scenes import PAPER, TINY
 
 BASELINES = ("convlstm", "fno", "uno", "cno", "deeponet", "cno-prior", "deeponet-prior")

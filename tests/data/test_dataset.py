@@ -1,4 +1,5 @@
-"""nemsim.data.dataset: streaming transition / trajectory datasets honouring manifests and visible prefixes."""
+"""nemsim.data.dataset: streaming transition / trajectory datasets honouring manifests and visible
+prefixes."""
 
 from __future__ import annotations
 

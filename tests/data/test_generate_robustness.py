@@ -19,12 +19,6 @@ from nemsim.sim.generate import generate_dataset
 REPO = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def rules():
-    from nemsim.rules import compile_rules, load_rules
-
-    return compile_rules(load_rules())
-
 
 @pytest.fixture(scope="module")
 def cheap_controls():

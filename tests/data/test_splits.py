@@ -36,7 +36,7 @@ def manifests(design):
 def test_split_sizes_match_paper_table(manifests, setting):
     m = manifests[setting]
     got = (len(m["train"]), len(m["val"]), len(m["test"]), len(m["unused"]))
-    for g, want in zip(got, PAPER[setting][:4]):
+    for g, want in zip(got, PAPER[setting][:4], strict=False):
         assert abs(g - want) <= 1, (setting, got, PAPER[setting])
     assert m["visible_transitions"] == PAPER[setting][4]
     ids = m["train"] + m["val"] + m["test"] + m["unused"]
@@ -80,7 +80,7 @@ def test_data_efficiency_nested_and_stratified(manifests, design):
     # 3x3 strata over log Ar+/Cl+: the 20-case subset touches every non-empty stratum with >= 3 members
     t = np.log10(design[m["train"]][:, :2])
     b = np.clip(np.floor((t - t.min(0)) / np.ptp(t, axis=0) * 3), 0, 2).astype(int)
-    strata = dict(zip(m["train"], b[:, 0] * 3 + b[:, 1]))
+    strata = dict(zip(m["train"], b[:, 0] * 3 + b[:, 1], strict=True))
     counts = np.bincount(list(strata.values()), minlength=9)
     hit = {strata[c] for c in sub["0.1"]}
     assert all(s in hit for s in range(9) if counts[s] >= 5)

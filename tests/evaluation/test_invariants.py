@@ -106,7 +106,7 @@ def test_noise_file_round_trip(truth, x0, tmp_path, tiny_scene, stubs):
 def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stubs):
     """The suite's exit code: 0 for a plausible model, 1 for one that etches without flux; bad flags 2."""
     import nemsim.cli as cli
-    from nemsim.training.checkpoint import LoadedModel
+    from nemsim.checkpoint import LoadedModel
 
     def fake_loader(model):
         from nemsim.rules import compile_rules, load_rules
@@ -117,7 +117,7 @@ def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stu
     args = ["stress", "--checkpoint", "stub.pt", "--steps", "6", "--max-corners", "2", "--noise-cases", "0",
             "--sim-steps", str(STEPS), "--pair-bases", "0", "--no-progress",
             "--cache-dir", str(tmp_path / "c")]
-    import nemsim.training.checkpoint as ck
+    import nemsim.checkpoint as ck
 
     monkeypatch.setattr(ck, "load_checkpoint", fake_loader(stubs.Plausible()))
     out = tmp_path / "ok.json"

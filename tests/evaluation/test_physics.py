@@ -124,13 +124,14 @@ def test_sim_truth_cache(tiny_scene, tmp_path):
         SimTruth(tiny_scene, rules, steps=tiny_scene.n_transitions + 1)
 
 
-@pytest.mark.slow  # ~30 s: two spawned workers import torch and numba
+@pytest.mark.slow  # two spawned workers import torch and numba
 def test_sim_truth_workers_match_serial(tiny_scene, tmp_path):
     from nemsim.rules import compile_rules, load_rules
 
     rules = compile_rules(load_rules())
     runs = [(r, 1) for r in sweep_recipes(3)["flux_cl_plus"]["raw"][1:]]
-    with SimTruth(tiny_scene, rules, steps=2) as serial, SimTruth(tiny_scene, rules, steps=2, workers=2) as pool:
+    with (SimTruth(tiny_scene, rules, steps=2) as serial,
+          SimTruth(tiny_scene, rules, steps=2, workers=2) as pool):
         serial.ensure(runs)
         pool.ensure(runs)
         for raw, seed in runs:
@@ -158,7 +159,8 @@ def test_cli_bench_physics_heldout_from_a_data_file(tiny_checkpoint, tiny_scene,
     splits = tmp_path / "splits"
     splits.mkdir()
     (splits / "control-id.json").write_text(json.dumps(
-        {"setting": "control-id", "train": [0], "val": [], "test": [2, 1], "unused": [], "visible_transitions": 100}))
+        {"setting": "control-id", "train": [0], "val": [], "test": [2, 1], "unused": [],
+         "visible_transitions": 100}))
     out = tmp_path / "phys"
     rc = main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--data", str(data), "--splits",
                str(splits), "--sim-steps", "1", "--no-progress", "--out", str(out)])
@@ -166,4 +168,5 @@ def test_cli_bench_physics_heldout_from_a_data_file(tiny_checkpoint, tiny_scene,
     rep = json.loads((out / "physics.json").read_text())
     assert [c["name"] for c in rep["heldout"]] == ["case-2", "case-1"]
     np.testing.assert_allclose([c["controls"] for c in rep["heldout"]], design[[2, 1]])
-    assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--data", str(tmp_path / "no.h5")]) == 2
+    args = ["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--data", str(tmp_path / "no.h5")]
+    assert main(args) == 2

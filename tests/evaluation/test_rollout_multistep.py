@@ -12,14 +12,6 @@ from nemsim.model import NEMSim, NEMSimConfig
 from nemsim.scenes import TINY
 
 
-@pytest.fixture(scope="module")
-def rules():
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-
-    return compile_rules(load_rules())
-
-
 def _model(rules, k):
     torch.manual_seed(0)
     model = NEMSim(rules, NEMSimConfig(steps_per_call=k)).eval()

@@ -1,5 +1,6 @@
 """Depth-windowed rollout (nemsim.model.window): exact on the recorded state, held voxels, stats, and
-agreement with the full rollout on the shipped checkpoint within the tolerance stated in the module docstring."""
+agreement with the full rollout on the shipped checkpoint within the tolerance stated in the module
+docstring."""
 
 from __future__ import annotations
 
@@ -20,13 +21,6 @@ SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "nemsim-small-k1
 # 0.0029-0.0097 over 100 steps on six control vectors).
 TOLERANCE_AVG_RMS = 0.01
 
-
-@pytest.fixture(scope="module")
-def rules():
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-
-    return compile_rules(load_rules())
 
 
 def _model(rules, k):
@@ -93,10 +87,9 @@ def test_windowed_rollout_holds_the_voxels_below_and_reports_the_fraction(rules)
         rollout(lambda x, u: x, x0, torch.zeros(1, 14), 2, window=True)
 
 
-@pytest.mark.skipif(not SHIPPED.is_file(), reason="needs the shipped small checkpoint")
 def test_windowed_rollout_agrees_with_the_full_one_on_the_shipped_model():
+    from nemsim.checkpoint import load_checkpoint
     from nemsim.sim import initial_state
-    from nemsim.training.checkpoint import load_checkpoint
 
     torch.set_num_threads(1)
     loaded = load_checkpoint(SHIPPED)

@@ -32,7 +32,7 @@ STEPS = 6
 def trained(tiny_scene):
     """(model, x0 (2, 2, D, H, W), u (2, STEPS, 14)): NEMSim after 5 Adam steps; a recipe per case."""
     from nemsim.evaluation.stress import initial_state
-    from nemsim.model.registry import build_model
+    from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
 
@@ -173,7 +173,7 @@ def test_bad_options_name_the_choices(kwargs, match):
 @pytest.mark.slow
 @needs_openvino
 def test_bench_rollout_has_openvino_variants(trained):
-    from nemsim.evaluation.bench import bench_rollout
+    from nemsim.evaluation.rollout_speed import bench_rollout
 
     model, x0, _ = trained
     rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-f32"])

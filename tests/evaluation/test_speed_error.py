@@ -1,6 +1,6 @@
 """`nemsim bench speed-error` and `nemsim bench collect` on a 3-case `tiny` data file, untrained checkpoint.
 
-One simulator-generated data file (3 design cases, full tiny horizon, ~2 s) and one untrained NEMSim
+One simulator-generated data file (3 design cases, full tiny horizon) and one untrained NEMSim
 checkpoint are shared by the module; the bench runs once (1 case, runtimes torch-f32, torch-bf16 and, when
 openvino is installed, openvino-f32; throughput batch 2) through the CLI. The equal-accuracy interpolation
 is checked against hand-computed numbers.
@@ -18,13 +18,6 @@ from nemsim.evaluation.runtime import openvino_available
 
 torch.set_num_threads(1)
 
-
-@pytest.fixture(scope="module")
-def rules():
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-
-    return compile_rules(load_rules())
 
 
 @pytest.fixture(scope="module")

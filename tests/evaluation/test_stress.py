@@ -16,7 +16,7 @@ torch.set_num_threads(1)
 
 @pytest.fixture(scope="module")
 def loaded(tiny_checkpoint):
-    from nemsim.training.checkpoint import load_checkpoint
+    from nemsim.checkpoint import load_checkpoint
 
     return load_checkpoint(tiny_checkpoint)
 
@@ -125,7 +125,7 @@ def test_fast_path_matches_forward(loaded, x0):
         for k in ("lambda", "alpha", "T", "w"):
             assert torch.allclose(a1[k], a2[k], atol=1e-6), k
     finally:
-        from nemsim.training.checkpoint import load_checkpoint
+        from nemsim.checkpoint import load_checkpoint
 
         model.load_state_dict(load_checkpoint(loaded.path).model.state_dict())
 

@@ -8,11 +8,12 @@ import pytest
 import torch
 
 from nemsim.baselines.rulefeat import RuleFeat
+from nemsim.checkpoint import load_checkpoint, save_checkpoint
 from nemsim.controls import CONTROL_INDEX, HIGH, IS_LOG, LOW, to_normalized
-from nemsim.model import NEMSim, NEMSimConfig, build_model
+from nemsim.model import NEMSim, NEMSimConfig
+from nemsim.registry import build_model
 from nemsim.rules import kinetics
 from nemsim.scenes import TINY
-from nemsim.training.checkpoint import load_checkpoint, save_checkpoint
 
 ION_EVENTS = list(range(6, 22))
 

@@ -5,11 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from nemsim.model import NEMSim, NEMSimConfig, available_models, build_model, model_config
+from nemsim.model import NEMSim, NEMSimConfig
+from nemsim.registry import available_models, build_model, model_config
 from nemsim.rules import kinetics
 from nemsim.scenes import PAPER, SMALL, TINY
 
-PAPER_PARAMS = 253_000
+PAPER_PARAMS = 253_000  # the paper's figure (0.253 M)
+NEMSIM_PARAMS = 212_122  # this implementation, paper configuration (checkpoints/README.md)
 
 
 def n_params(model: torch.nn.Module) -> int:
@@ -168,10 +170,7 @@ def test_perturbed_rules_pass_through(rules):
 
     mask = np.ones(len(rules.names), dtype=np.float64)
     mask[:12] = 0
-    try:
-        dropped = rules.replace(event_mask=mask)
-    except AttributeError:
-        pytest.skip("fake rule library")
+    dropped = rules.replace(event_mask=mask)
     m = NEMSim(dropped).eval()
     x, u = inputs(TINY, batch=1)
     with torch.no_grad():
@@ -180,8 +179,12 @@ def test_perturbed_rules_pass_through(rules):
 
 
 def test_param_count_paper_config(rules):
+    """The paper reports 0.253 M trainable parameters but not every layer's width; this implementation of its
+    configuration has NEMSIM_PARAMS (16 % fewer). The count is pinned so that an architecture change is
+    deliberate (and the model card's figure changes with it)."""
     n = n_params(NEMSim(rules))
-    assert 0.75 * PAPER_PARAMS <= n <= 1.25 * PAPER_PARAMS, n
+    assert n == NEMSIM_PARAMS
+    assert n / PAPER_PARAMS == pytest.approx(0.84, abs=0.01)
     # The count does not depend on the scene: the model pads internally.
     assert n_params(build_model("nemsim", PAPER, rules)) == n_params(build_model("nemsim", SMALL, rules)) == n
 

@@ -107,7 +107,7 @@ def test_below_threshold_is_smooth_and_vanishes(tensors):
     sel = slice(E7, E7 + 1)
     p = K.probability_physical(mu, sigma, torch.ones_like(mu), *event_laws(tensors, sel))
     p = p[:, 0].tolist()
-    assert p[0] < 1e-5 and all(a < b for a, b in zip(p, p[1:]))  # 5 sigma below E_th
+    assert p[0] < 1e-5 and all(a < b for a, b in zip(p, p[1:], strict=False))  # 5 sigma below E_th
     # at the threshold: expected excess = sigma phi(0) = 5/sqrt(2 pi)
     assert p[2] == pytest.approx(0.05 * math.sqrt(5.0 / math.sqrt(2 * math.pi) / 75.0), rel=1e-7)
     excess = K.expected_excess(torch.tensor([40.0]), torch.tensor(25.0), torch.tensor(1e-3))

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from nemsim.rules import compile_rules, parse_rules
 from nemsim.rules.compile import META_FLAGS
@@ -143,7 +142,8 @@ def test_sha_changes_with_content(spec, rules_text):
 
 
 def test_torch_buffers(tensors):
-    torch = pytest.importorskip("torch")
+    import torch
+
     bufs = tensors.torch_buffers()
     assert bufs["R"].dtype == torch.float32 and bufs["ctrl_idx"].dtype == torch.int64
     assert bufs["is_primary"].dtype == torch.bool and bufs["phi"].shape == (37, 35)

@@ -115,7 +115,8 @@ def test_primary_terms_by_hand(tensors):
     # E7: Yamamura multiplier at the effective cosine
     c_max, ratio = 0.5, 2.2 / 1.2
     q = -math.log(ratio) / (math.log(c_max) + 1 - c_max + K.EPS)
-    y_expect = c ** (-q) * math.exp(-q * c_max * (1 / c - 1)) * sig((energy - (2 * (25 - 160) / 340 - 1)) / 0.5)
+    e_th = 2 * (25 - 160) / 340 - 1  # 25 eV in normalized energy coordinates
+    y_expect = c ** (-q) * math.exp(-q * c_max * (1 / c - 1)) * sig((energy - e_th) / 0.5)
     y_expect *= sig((c - K.EPS) / K.TAU_C)
     assert float(y[0, E7]) == pytest.approx(y_expect, rel=1e-9)
     # deposition events: no primary terms

@@ -72,7 +72,8 @@ def test_rate_yield_noise(spec, tensors):
     assert [e.name for e in noisy.events] == [e.name for e in spec.events]
     for key in ("ctrl_idx", "group", "prob_model", "yield_model", "angle_kind", "w_sink", "src_is_yield"):
         np.testing.assert_array_equal(getattr(out_t, key), getattr(tensors, key))
-    ratio_p = out_t.prob_params[:, :4] / np.where(tensors.prob_params[:, :4] == 0, 1, tensors.prob_params[:, :4])
+    base = tensors.prob_params[:, :4]
+    ratio_p = out_t.prob_params[:, :4] / np.where(base == 0, 1, base)
     nz = tensors.prob_params[:, :4] != 0
     assert (ratio_p[nz] >= 0.7 - 1e-12).all() and (ratio_p[nz] <= 1.3 + 1e-12).all()
     assert not np.allclose(out_t.prob_params, tensors.prob_params)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-# A moderate process condition (raw units, CONTROL_NAMES order): fast on `tiny` (~0.5 s per trajectory).
+# A moderate process condition (raw units, CONTROL_NAMES order): few particles, so fast on `tiny`.
 BASE_CONTROLS = dict(
     flux_ar_plus=1e-3, flux_cl_plus=1e-3, flux_cl2_plus=1e-5, flux_cl=5e-3,
     angle_cl=5, angle_cl_plus=500, angle_cl2_plus=500, angle_ar_plus=500,
@@ -23,12 +23,6 @@ def controls(**overrides: float) -> np.ndarray:
     values = {**BASE_CONTROLS, **overrides}
     return np.array([float(values[n]) for n in CONTROL_NAMES])
 
-
-@pytest.fixture(scope="session")
-def rules():
-    from nemsim.rules import compile_rules, load_rules
-
-    return compile_rules(load_rules())
 
 
 @pytest.fixture(scope="session")

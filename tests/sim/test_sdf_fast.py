@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import sdf_reference as ref  # tests/sim is on sys.path (rootdir-relative test modules)
 
 from nemsim.scenes import SMALL, TINY
 from nemsim.sim import sdf
 from nemsim.sim.domain import initial_domain
-
-import sdf_reference as ref  # tests/sim is on sys.path (rootdir-relative test modules)
 
 
 def _small_etched(seed: int) -> tuple[np.ndarray, np.ndarray]:

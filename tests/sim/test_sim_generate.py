@@ -14,7 +14,7 @@ from nemsim.sim.generate import case_seed, generate_dataset
 
 @pytest.fixture(scope="module")
 def low_flux(make_controls):
-    """(3, 14) cheap control rows (~0.2 s per `tiny` trajectory)."""
+    """(3, 14) cheap control rows (low fluxes: few particles per `tiny` trajectory)."""
     base = dict(flux_ar_plus=2e-4, flux_cl_plus=2e-4, flux_cl2_plus=2e-6, flux_cl=1e-3)
     return np.stack([make_controls(**base, energy_mean_ar_plus=e) for e in (200.0, 300.0, 400.0)])
 

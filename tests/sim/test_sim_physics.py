@@ -16,17 +16,10 @@ from nemsim.sim.yields import fire
 
 
 def _fly(tables, mat, fill, species, energy, pos, direction, counters, config=None):
-    cfg = config or SimConfig()
-    queue = np.zeros((64, 8))
-    return K.fly(
-        species, energy, *pos, *direction, mat, fill, 16.0, 16.0,
-        tables.pair_start, tables.pair_count, tables.pair_events, tables.action, tables.conv_to,
-        tables.prob_model, tables.prob_params, tables.angle_kind, tables.yield_model, tables.yield_params,
-        tables.s_dep, tables.prod_coef, tables.prod_is_yield, tables.product_species, tables.is_ion,
-        tables.proj_mass, tables.target_mass, 2.0, 10_000, queue, 0, 0,
-        np.zeros(tables.max_channels), counters, np.zeros(len(tables.action), dtype=np.int64), 1.0,
-        *cfg.reflection_cosines, cfg.excess_probability_yield,
-    )  # fmt: skip
+    buf = K.WorkBuffers(np.zeros((64, 8)), np.zeros(tables.max_channels), counters,
+                        np.zeros(len(tables.action), dtype=np.int64))  # fmt: skip
+    prm = K.transport_params(config or SimConfig(), 16.0, 16.0)
+    return K.fly(species, energy, *pos, *direction, mat, fill, tables.kernel_tables(), prm, buf, 0, 0)
 
 
 def _two_walls(nx=8, ny=8, nz=12):

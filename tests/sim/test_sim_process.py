@@ -1,6 +1,6 @@
 """Whole trajectories on `tiny`: bookkeeping, determinism, controls, and the physics the design relies on.
 
-The statistical tests compare two control settings with two seeds each (every run ~0.5 s) and require the
+The statistical tests compare two control settings with two seeds each (short `tiny` runs) and require the
 ordering to hold for every seed pair, with margins several times the seed-to-seed spread measured when the
 simulator was calibrated.
 """

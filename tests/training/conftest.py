@@ -44,18 +44,11 @@ def _build_standin(scene, rules, cfg: StandInConfig) -> nn.Module:
 
 @pytest.fixture(scope="session", autouse=True)
 def standin_registered():
-    from nemsim.model.registry import register_model
+    from nemsim.registry import register_model
 
     register_model("test-standin", _build_standin, StandInConfig)
     return "test-standin"
 
-
-@pytest.fixture(scope="session")
-def rules():
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-
-    return compile_rules(load_rules())
 
 
 def _synthetic_states(scene, controls_norm: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -7,9 +7,9 @@ import dataclasses
 import pytest
 import torch
 
-from nemsim.model.registry import build_model, model_config
+from nemsim.checkpoint import CheckpointMismatch, load_checkpoint, read_checkpoint, save_checkpoint
+from nemsim.registry import build_model, model_config
 from nemsim.scenes import SMALL
-from nemsim.training.checkpoint import CheckpointMismatch, load_checkpoint, read_checkpoint, save_checkpoint
 
 
 def _save(path, name, scene, rules, overrides=None):

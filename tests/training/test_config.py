@@ -13,7 +13,8 @@ from nemsim.training.loop import lr_at
 def test_paper_defaults():
     c = TrainConfig()
     assert (c.lr, c.weight_decay, c.min_lr, c.grad_clip) == (5e-4, 1e-5, 1e-5, 1.0)
-    assert (c.warmup_epochs, c.batch_size, c.max_epochs, c.val_every, c.patience, c.seed) == (10, 24, 350, 10, 20, 0)
+    got = (c.warmup_epochs, c.batch_size, c.max_epochs, c.val_every, c.patience, c.seed)
+    assert got == (10, 24, 350, 10, 20, 0)
     assert c.rollout_steps is None  # full horizon
 
 
@@ -23,9 +24,9 @@ def test_schedule_warmup_then_cosine_to_min():
     lrs = [lr_at(s, spe, c) for s in range(c.max_epochs * spe)]
     warm = c.warmup_epochs * spe
     assert lrs[0] == pytest.approx(c.lr / warm)
-    assert all(b > a for a, b in zip(lrs[: warm - 1], lrs[1:warm]))  # linear increase
+    assert all(b > a for a, b in zip(lrs[: warm - 1], lrs[1:warm], strict=True))  # linear increase
     assert lrs[warm - 1] == pytest.approx(c.lr)
-    assert all(b <= a for a, b in zip(lrs[warm:], lrs[warm + 1:]))  # monotone cosine decay
+    assert all(b <= a for a, b in zip(lrs[warm:], lrs[warm + 1:], strict=False))  # monotone cosine decay
     assert lr_at(c.max_epochs * spe, spe, c) == pytest.approx(c.min_lr)
     mid = warm + (c.max_epochs * spe - warm) // 2
     assert lrs[mid] == pytest.approx(c.min_lr + 0.5 * (c.lr - c.min_lr), rel=1e-2)
@@ -52,7 +53,8 @@ def test_step_budget_schedule():
     assert lr_at(250, spe, c) == pytest.approx(c.min_lr)
     assert lr_at(25 + 225 // 2, spe, c) == pytest.approx(c.min_lr + 0.5 * (c.lr - c.min_lr), rel=1e-2)
     # an epoch budget smaller than max_steps still wins
-    assert lr_at(2 * 7, 7, TrainConfig(max_epochs=2, warmup_epochs=1, max_steps=10**6)) == pytest.approx(c.min_lr)
+    long_budget = TrainConfig(max_epochs=2, warmup_epochs=1, max_steps=10**6)
+    assert lr_at(2 * 7, 7, long_budget) == pytest.approx(c.min_lr)
     with pytest.raises(ValueError, match="max_steps"):
         TrainConfig(max_steps=0)
 

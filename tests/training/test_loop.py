@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import csv
-import math
 import dataclasses
+import math
 
 import pytest
 import torch
 
-from nemsim.model.registry import build_model, model_config
-from nemsim.training.checkpoint import load_checkpoint, read_checkpoint
+from nemsim.checkpoint import load_checkpoint, read_checkpoint
+from nemsim.registry import build_model, model_config
 from nemsim.training.config import TrainConfig
 from nemsim.training.loop import ModelMeta, TrainData, seed_everything, train
 
@@ -28,7 +28,8 @@ def _run(out, cfg, tiny_data, manifest, tiny_scene, rules, resume=False):
 
     seed_everything(cfg.seed)
     model = build_model("test-standin", tiny_scene, rules)
-    meta = ModelMeta("test-standin", dataclasses.asdict(model_config("test-standin", tiny_scene)), tiny_scene, rules)
+    mcfg = dataclasses.asdict(model_config("test-standin", tiny_scene))
+    meta = ModelMeta("test-standin", mcfg, tiny_scene, rules)
     data = TrainData(TransitionDataset(tiny_data, manifest, "train", visible_transitions=VISIBLE,
                                        unroll=cfg.unroll_steps),
                      TrajectoryDataset(tiny_data, manifest, "val"))
@@ -162,13 +163,16 @@ def test_pushforward_loss_is_mean_of_detached_steps():
     assert m.a.grad.item() == pytest.approx(10.0)
 
 
-def test_continue_with_pushforward_after_one_step_training(tmp_path, tiny_data, tiny_manifest, tiny_scene, rules):
-    """Resuming an epoch-end last.pt with another unroll (other steps per epoch) trains the whole next epoch."""
+def test_continue_with_pushforward_after_one_step_training(tmp_path, tiny_data, tiny_manifest, tiny_scene,
+                                                            rules):
+    """Resuming an epoch-end last.pt with another unroll (other steps per epoch) trains the whole next
+    epoch."""
     from nemsim.data.dataset import TransitionDataset
 
     _run(tmp_path, _cfg(max_epochs=1), tiny_data, tiny_manifest, tiny_scene, rules)
     first = int(list(csv.DictReader((tmp_path / "metrics.csv").open()))[0]["step"])
-    _run(tmp_path, _cfg(max_epochs=2, unroll_steps=2), tiny_data, tiny_manifest, tiny_scene, rules, resume=True)
+    _run(tmp_path, _cfg(max_epochs=2, unroll_steps=2), tiny_data, tiny_manifest, tiny_scene, rules,
+         resume=True)
     rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
     n2 = len(TransitionDataset(tiny_data, tiny_manifest, "train", visible_transitions=VISIBLE, unroll=2))
     assert [int(r["epoch"]) for r in rows] == [1, 2]

@@ -10,13 +10,18 @@ from contextlib import nullcontext
 import pytest
 import torch
 
-from nemsim.model.registry import build_model, model_config
+from nemsim.checkpoint import checkpoint_sim_config, load_checkpoint, read_checkpoint, save_checkpoint
+from nemsim.registry import build_model, model_config
 from nemsim.scenes import SMALL as SMALL_SCENE
-from nemsim.training.checkpoint import (checkpoint_sim_config, load_checkpoint, read_checkpoint,
-                                        save_checkpoint)
 from nemsim.training.config import TrainConfig
-from nemsim.training.loop import (ModelMeta, TrainData, multistep_loss, pushforward_loss, seed_everything,
-                                  train)
+from nemsim.training.loop import (
+    ModelMeta,
+    TrainData,
+    multistep_loss,
+    pushforward_loss,
+    seed_everything,
+    train,
+)
 
 STEPS, VISIBLE = 4, 5  # as in tests/training/conftest.py
 K = 3
@@ -82,7 +87,7 @@ def _batch_loss(model, tiny_data, manifest, k=K):
 
     ds = TransitionDataset(tiny_data, manifest, "train", visible_transitions=VISIBLE, unroll=k)
     items = [ds[i] for i in range(len(ds))]
-    x, u, y = (torch.stack(v) for v in zip(*items))
+    x, u, y = (torch.stack(v) for v in zip(*items, strict=True))
     with torch.no_grad():
         return multistep_loss(model, x, u, y, k, nullcontext()).item()
 

@@ -46,7 +46,7 @@ class _PerCall(nn.Module):
         return self.model(x, u)
 
 
-def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[nn.Module, torch.Tensor, Any]:
+def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[Any, torch.Tensor, Any]:
     """(model, x0, context manager factory) of one variant."""
     if name == "fp32":
         return model, x0, contextlib.nullcontext
@@ -55,12 +55,13 @@ def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[nn.Module, 
     if name == "bf16":
         return model, x0, lambda: torch.autocast("cpu", dtype=torch.bfloat16)
     if name == "channels_last":
-        cl = copy.deepcopy(model).to(memory_format=torch.channels_last_3d)
+        cl = copy.deepcopy(model).to(memory_format=torch.channels_last_3d)  # type: ignore[call-overload]
         return cl, x0.contiguous(memory_format=torch.channels_last_3d), contextlib.nullcontext
     if name in ("openvino-f32", "openvino-bf16"):
-        from nemsim.evaluation.runtime import compile_model
+        from nemsim.evaluation.runtime import Precision, compile_model
 
-        return compile_model(model, "openvino", name.split("-")[1]), x0, contextlib.nullcontext
+        precision: Precision = "bf16" if name.endswith("bf16") else "f32"
+        return compile_model(model, "openvino", precision), x0, contextlib.nullcontext
     raise ValueError(f"unknown variant {name!r}; expected one of {VARIANTS}")
 
 

@@ -148,8 +148,6 @@ def rules_from_checkpoint(ckpt: dict[str, Any]) -> Any:
         from nemsim.rules.perturb import perturb
 
         rules = perturb(rules, pert["kind"], int(pert["seed"]))
-        if not hasattr(rules, "sha256"):  # a perturbation returning a spec: compile it
-            rules = compile_rules(rules)
     elif pert and rules.perturbation == "none":  # spec-level perturbation (rate noise): text already noisy
         rules = rules.replace(perturbation=f"{pert['kind']}(seed={pert['seed']})")
     if rules.sha256 != ckpt["rules_sha256"]:
@@ -164,15 +162,16 @@ def check_compatible(ckpt: dict[str, Any], *, rules: Any = None, scene: Scene | 
     """Raise CheckpointMismatch naming "rules" or "scene" if the caller's differ from the checkpoint's."""
     if rules is not None and str(rules.sha256) != ckpt["rules_sha256"]:
         raise CheckpointMismatch(
-            f"rules library mismatch: checkpoint was trained with rules sha256 {ckpt['rules_sha256'][:12]}..., "
-            f"the supplied rules have sha256 {str(rules.sha256)[:12]}..."
+            f"rules library mismatch: checkpoint was trained with rules sha256 "
+            f"{ckpt['rules_sha256'][:12]}..., the supplied rules have sha256 {str(rules.sha256)[:12]}..."
         )
     if scene is not None:
         stored = Scene.from_json(ckpt["scene"])
         if stored != scene:
             raise CheckpointMismatch(
                 f"scene mismatch: checkpoint was trained on scene {stored.name!r} "
-                f"(state {stored.state_shape}), the supplied scene is {scene.name!r} (state {scene.state_shape})"
+                f"(state {stored.state_shape}), the supplied scene is {scene.name!r} "
+                f"(state {scene.state_shape})"
             )
 
 
@@ -192,7 +191,7 @@ def load_checkpoint(
         scene: optional Scene; refused (CheckpointMismatch naming "scene") unless equal to the stored one.
         device: where to put the model.
     """
-    from nemsim.model.registry import build_model
+    from nemsim.registry import build_model
 
     ckpt = read_checkpoint(path)
     check_compatible(ckpt, rules=rules, scene=scene)

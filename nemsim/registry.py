@@ -1,9 +1,10 @@
 """Model registry: every model (NEMSim, its ablations, the baselines) by name.
 
 ``build_model(name, scene, rules, config)`` returns an ``nn.Module`` with
-``forward(x (B, 2, D, H, W), u (B, 14)) -> x_next``. Baselines register themselves from their own modules
-with ``register_model(name, builder, config_cls)``; the registry imports ``nemsim.baselines`` lazily the first
-time a name is looked up, so importing this module has no side effects beyond registering NEMSim.
+``forward(x (B, 2, D, H, W), u (B, 14)) -> x_next``. The registry sits above ``nemsim.model`` and
+``nemsim.baselines`` and registers both here, so neither package imports it (package dependencies point one
+way: baselines -> model -> rules; registry -> both). Other models (tests, experiments) register with
+``register_model(name, builder, config_cls)``.
 
 ``builder(scene, rules, cfg) -> nn.Module``; ``config_cls`` is a frozen dataclass whose defaults are the
 paper configuration. Overrides are a dict (nested dicts or dotted keys for nested dataclasses).
@@ -12,19 +13,17 @@ paper configuration. Overrides are a dict (nested dicts or dotted keys for neste
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from collections.abc import Callable
 from typing import Any
 
 from torch import nn
 
+from nemsim.baselines import cno, convlstm, deeponet, fno, uno
 from nemsim.model.surrogate import NEMSim, NEMSimConfig, apply_overrides
 
 Builder = Callable[[Any, Any, Any], nn.Module]
 
 _REGISTRY: dict[str, tuple[Builder, type, dict[str, Any]]] = {}
-_PLUGINS = ("nemsim.baselines",)
-_plugins_loaded = False
 
 
 def register_model(
@@ -36,27 +35,11 @@ def register_model(
     _REGISTRY[name] = (builder, config_cls, dict(defaults or {}))
 
 
-def _load_plugins() -> None:
-    global _plugins_loaded
-    if _plugins_loaded:
-        return
-    _plugins_loaded = True
-    for module in _PLUGINS:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as err:  # the baselines package may not exist yet
-            if err.name != module:
-                raise
-
-
 def available_models() -> list[str]:
-    _load_plugins()
     return sorted(_REGISTRY)
 
 
 def _entry(name: str) -> tuple[Builder, type, dict[str, Any]]:
-    if name not in _REGISTRY:
-        _load_plugins()
     try:
         return _REGISTRY[name]
     except KeyError:
@@ -92,3 +75,12 @@ register_model("nemsim", _build_nemsim, NEMSimConfig)
 register_model("nemsim-no-eic", _build_nemsim, NEMSimConfig, {"use_eic": False})
 register_model("nemsim-no-mac", _build_nemsim, NEMSimConfig, {"use_mac": False})
 register_model("nemsim-no-mrc", _build_nemsim, NEMSimConfig, {"use_mrc": False})
+register_model("convlstm", lambda scene, rules, cfg: convlstm.ConvLSTM3d(cfg), convlstm.ConvLSTMConfig)
+register_model("fno", lambda scene, rules, cfg: fno.FNO3d(cfg), fno.FNOConfig)
+register_model("uno", lambda scene, rules, cfg: uno.UNO3d(cfg), uno.UNOConfig)
+register_model("cno", lambda scene, rules, cfg: cno.CNO3d(cfg, rules), cno.CNOConfig)
+register_model("deeponet", lambda scene, rules, cfg: deeponet.DeepONet3d(cfg, rules), deeponet.DeepONetConfig)
+register_model("cno-prior", lambda scene, rules, cfg: cno.CNO3d(cfg, rules), cno.CNOConfig,
+               {"rulefeat": True})
+register_model("deeponet-prior", lambda scene, rules, cfg: deeponet.DeepONet3d(cfg, rules),
+               deeponet.DeepONetConfig, {"rulefeat": True})
