@@ -366,23 +366,7 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     _add_sim_overrides(p)
     p.set_defaults(handler=_cmd_bench_yields)
-    p = bench_sub.add_parser(
-        "allocator",
-        help="CPU seconds per training step with glibc's default allocator vs the tuned one",
-        description=(
-            "Time optimizer steps of a checkpoint's model (random states, bf16 autocast, one thread) in "
-            "fresh processes, alternating glibc's default allocator and the settings `nemsim` runs with "
-            "(nemsim/allocator.py), and print wall, user and system seconds per step. System time is the "
-            "page-fault cost the settings remove; compare CPU seconds when the machine is busy. "
-            "Example: nemsim bench allocator --checkpoint checkpoints/nemsim-small.pt"
-        ),
-    )
-    p.add_argument("--checkpoint", required=True, help="checkpoint .pt whose model is stepped")
-    p.add_argument("--batch", type=int, default=24, help="batch size (default 24, the training recipe's)")
-    p.add_argument("--steps", type=int, default=4, help="timed steps per process (default 4)")
-    p.add_argument("--rounds", type=int, default=2, help="processes per allocator, alternated (default 2)")
-    p.add_argument("--json", dest="json_out", default=None, help="also write the rows to this JSON file")
-    p.set_defaults(handler=_cmd_bench_allocator)
+    _add_bench_allocator(bench_sub)
     p = bench_sub.add_parser(
         "bowing",
         help="bowing map over ion angular exponent x ion energy x flux ratio (final time)",
@@ -407,6 +391,26 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="runs/bowing/map", help="output path without extension")
     _add_sim_overrides(p)
     p.set_defaults(handler=_cmd_bench_bowing)
+
+
+def _add_bench_allocator(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser(
+        "allocator",
+        help="CPU seconds per training step with glibc's default allocator vs the tuned one",
+        description=(
+            "Time optimizer steps of a checkpoint's model (random states, bf16 autocast, one thread) in "
+            "fresh processes, alternating glibc's default allocator and the settings `nemsim` runs with "
+            "(nemsim/allocator.py), and print wall, user and system seconds per step. System time is the "
+            "page-fault cost the settings remove; compare CPU seconds when the machine is busy. "
+            "Example: nemsim bench allocator --checkpoint checkpoints/nemsim-small.pt"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt whose model is stepped")
+    p.add_argument("--batch", type=int, default=24, help="batch size (default 24, the training recipe's)")
+    p.add_argument("--steps", type=int, default=4, help="timed steps per process (default 4)")
+    p.add_argument("--rounds", type=int, default=2, help="processes per allocator, alternated (default 2)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the rows to this JSON file")
+    p.set_defaults(handler=_cmd_bench_allocator)
 
 
 def _floats(text: str, option: str) -> tuple[float, ...]:
