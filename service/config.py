@@ -26,7 +26,8 @@ def checkpoint_dirs() -> list[Path]:
     return list(dict.fromkeys(d.resolve() for d in dirs))
 
 
-SHIPPED_CHECKPOINT = "nemsim-small.pt"  # the served model (checkpoints/README.md); other .pt files are references
+# the served model (checkpoints/README.md); other .pt files are references
+SHIPPED_CHECKPOINT = "nemsim-small.pt"
 
 
 def default_checkpoint() -> Path | None:
@@ -87,6 +88,13 @@ class Settings(BaseSettings):
     )
     runtime_precision: Literal["f32", "bf16"] = Field(
         default="bf16", description="rollout precision (bf16: same Avg RMSE within 1 %, measured)"
+    )
+    rollout_nice: int = Field(
+        default=10,
+        ge=0,
+        le=19,
+        description="rollouts compute on threads this much nicer than the server (Linux), so cached answers, "
+        "meshes and metadata get the CPU first when rollouts saturate it (0: same priority)",
     )
     runtime_threads: int = Field(
         default=1, ge=1, description="OpenVINO threads per rollout; keep threads x max_concurrency <= cores"
