@@ -71,7 +71,10 @@ class Settings(BaseSettings):
     queue_timeout_s: float = Field(default=60.0, gt=0, description="longest wait for a slot before 503")
     cache_size: int = Field(default=32, ge=0, description="rollouts kept (LRU) for repeats and mesh requests")
     cache_max_mb: int = Field(
-        default=256, ge=1, description="memory budget of the rollout cache in MB (meshes: a quarter more)"
+        default=192,
+        ge=1,
+        description="memory budget of the rollout cache in MB (meshes: a quarter more); the default keeps a "
+        "loaded `small` server under 1 GB resident",
     )
     max_meshes: int = Field(default=8, ge=0, description="meshes one POST /rollout may ask for inline")
     warmup_steps: int = Field(

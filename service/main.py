@@ -57,22 +57,21 @@ def stop_process() -> None:
     os.kill(os.getpid(), signal.SIGTERM)
 
 
-M_MMAP_THRESHOLD, M_ARENA_MAX = -3, -8  # glibc mallopt parameters (malloc.h)
+M_ARENA_MAX = -8  # glibc mallopt parameter (malloc.h)
 
 
 def limit_allocator_retention() -> None:
-    """Keep glibc malloc from holding freed memory (Linux/glibc; MALLOC_* environment variables win).
+    """At most two glibc malloc arenas (Linux/glibc; a MALLOC_* environment variable wins).
 
-    Why: a rollout allocates arrays of tens of MB; glibc raises its mmap threshold after the first such
-    free, so later ones come from the heap and stay resident after they are freed, once per thread
-    arena. A fixed 1 MB threshold returns every large array to the system when it is freed, and at most
-    two arenas bound the fragmentation of the server's many short-lived threads."""
+    Why: glibc gives threads their own arenas (up to eight per core), and an arena keeps the memory
+    of the large arrays freed in it for reuse; the server's many short-lived threads (mesh exports,
+    body parsing, rollouts) could each grow one. A fixed mmap threshold, which would return every
+    large array at once, cost clearly more CPU per uncached rollout in page faults (measured; see
+    benchmarks/service/README.md): not used."""
     if not sys.platform.startswith("linux") or any(k.startswith("MALLOC_") for k in os.environ):
         return
     try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(M_MMAP_THRESHOLD, 1 << 20)
-        libc.mallopt(M_ARENA_MAX, 2)
+        ctypes.CDLL("libc.so.6").mallopt(M_ARENA_MAX, 2)
     except (OSError, AttributeError):  # not glibc (e.g. musl): nothing to tune
         return
 

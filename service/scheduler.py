@@ -15,6 +15,11 @@ turned cheap mesh requests into 503s, and requests whose client had already disc
   to the event loop (cheap answers, new requests) the moment it has work, instead of time-slicing it
   with a rollout that takes a few hundred milliseconds anyway. The model runtime computes in the
   calling thread, so the priority covers the forward passes; other work uses the default thread pool.
+* No micro-batching of concurrent uncached rollouts (one forward pass over several waiting requests):
+  measured through the served runtime (OpenVINO bf16, one thread), it saved only a small share of the
+  model's CPU per rollout (the post-processing per rollout does not batch), while every batch shape
+  compiles its own model (resident memory against the server's 1 GB budget) and each member of a batch
+  waits for the whole batch. The figures are in benchmarks/service/README.md.
 * `run_gated`: wait for a slot, run the blocking function in a worker thread, and give up as soon as
   the client disconnects. A request still waiting is dropped at once (its slot goes to the next one);
   one already computing finishes (a thread cannot be interrupted mid forward pass) and its result is

@@ -9,7 +9,8 @@ adds what a server needs:
 * an LRU cache of finished rollouts keyed by (model id, normalized controls per transition, steps); the
   key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
   controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway) and the
-  cache is bounded in entries;
+  cache is bounded in entries and bytes, and segmented (`_LRU`) so one-off rollouts do not evict the ones
+  in use;
 * cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
   `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
   computations through its own gates (`service.scheduler`). This class does no admission control.
@@ -96,7 +97,13 @@ def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str
 
 class _LRU:
     """Least-recently-used cache bounded in entries and, with `weigh`, in bytes (an entry larger than
-    the whole budget is not kept)."""
+    the whole budget is not kept). Segmented, so a stream of one-off entries cannot flush the entries in
+    use: a new entry starts on probation; a hit moves it to the protected segment (at most
+    `PROTECTED_SHARE` of both bounds; its least recent entries step back to probation); eviction takes
+    the least recent probation entry first. Under a flood of distinct uncached rollouts the rollouts
+    that clients come back to (repeats, their meshes) stay cached."""
+
+    PROTECTED_SHARE = 0.5
 
     def __init__(
         self, size: int, max_bytes: int | None = None, weigh: Callable[[Any], int] | None = None
@@ -104,34 +111,60 @@ class _LRU:
         self.size = size
         self.max_bytes = max_bytes
         self.weigh = weigh or (lambda value: 0)
-        self.bytes = 0
-        self._items: OrderedDict[Any, Any] = OrderedDict()
+        self.bytes = 0  # both segments
+        self._probation: OrderedDict[Any, Any] = OrderedDict()
+        self._protected: OrderedDict[Any, Any] = OrderedDict()
+        self._protected_bytes = 0
         self._lock = threading.Lock()
 
     def get(self, key: Any) -> Any | None:
         with self._lock:
-            if key not in self._items:
+            if key in self._protected:
+                self._protected.move_to_end(key)
+                return self._protected[key]
+            if key not in self._probation:
                 return None
-            self._items.move_to_end(key)
-            return self._items[key]
+            value = self._probation.pop(key)
+            self._protected[key] = value
+            self._protected_bytes += self.weigh(value)
+            while len(self._protected) > 1 and self._protected_over():
+                old_key, old = self._protected.popitem(last=False)
+                self._protected_bytes -= self.weigh(old)
+                self._probation[old_key] = old  # most recent end of probation
+            return value
 
     def put(self, key: Any, value: Any) -> None:
         weight = self.weigh(value)
         if self.size <= 0 or (self.max_bytes is not None and weight > self.max_bytes):
             return
         with self._lock:
-            if key in self._items:
-                self.bytes -= self.weigh(self._items.pop(key))
-            self._items[key] = value
-            self.bytes += weight
-            while len(self._items) > self.size or self._over_budget():
-                self.bytes -= self.weigh(self._items.popitem(last=False)[1])
+            if key in self._protected:
+                old = self._protected[key]
+                self._protected[key] = value
+                self._protected_bytes += weight - self.weigh(old)
+                self.bytes += weight - self.weigh(old)
+            else:
+                if key in self._probation:
+                    self.bytes -= self.weigh(self._probation.pop(key))
+                self._probation[key] = value
+                self.bytes += weight
+            while len(self) > self.size or self._over_budget():
+                segment = self._probation if self._probation else self._protected
+                _, old = segment.popitem(last=False)
+                self.bytes -= self.weigh(old)
+                if segment is self._protected:
+                    self._protected_bytes -= self.weigh(old)
+
+    def _protected_over(self) -> bool:
+        share = self.PROTECTED_SHARE
+        over_bytes = self.max_bytes is not None and self._protected_bytes > share * self.max_bytes
+        return len(self._protected) > share * self.size or over_bytes
 
     def _over_budget(self) -> bool:
         return self.max_bytes is not None and self.bytes > self.max_bytes
 
     def __len__(self) -> int:
-        return len(self._items)
+        return len(self._probation) + len(self._protected)
 
 
 def file_sha256(path: Path) -> str:

@@ -245,3 +245,23 @@ def test_cancelled_work_holds_its_slot_until_the_thread_finishes():
             return finished.is_set()
 
     assert asyncio.run(main())
+
+
+def test_cache_keeps_entries_in_use_under_a_flood_of_new_ones():
+    """A stream of one-off entries evicts other one-off entries, not those that were hit again; the
+    bounds in entries and bytes hold throughout."""
+    from service.surrogate import _LRU
+
+    cache = _LRU(6, max_bytes=600, weigh=lambda v: v)
+    for key in ("hot1", "hot2"):
+        cache.put(key, 100)
+        assert cache.get(key) == 100  # used again: protected
+    for k in range(50):
+        cache.put(f"once{k}", 100)
+        assert len(cache) <= 6 and cache.bytes <= 600
+    assert cache.get("hot1") == 100 and cache.get("hot2") == 100
+    assert cache.get("once0") is None and cache.get("once49") == 100
+    plain = _LRU(6, max_bytes=600, weigh=lambda v: v)  # same bounds, nothing reused: plain LRU order
+    for k in range(8):
+        plain.put(k, 100)
+    assert [plain.get(k) for k in range(8)] == [None, None, *[100] * 6]
