@@ -97,7 +97,8 @@ class Settings(BaseSettings):
         ge=0,
         le=19,
         description="rollouts compute on threads this much nicer than the server (Linux), so cached answers, "
-        "meshes and metadata get the CPU first when rollouts saturate it (0: same priority)",
+        "meshes and metadata get the CPU first when rollouts saturate it; outside a container's own CPU "
+        "group the rollouts also yield to other processes on the machine (0: same priority)",
     )
     runtime_threads: int = Field(
         default=1, ge=1, description="OpenVINO threads per rollout; keep threads x max_concurrency <= cores"
