@@ -1074,7 +1074,8 @@ def _bench_service_load(args: argparse.Namespace) -> int:
     lines.append(
         f"  errors {report['errors']}; uncached rollouts {report['uncached_rollouts_per_s']:.2f}/s; "
         "server RSS "
-        f"{srv['rss_mb']:.0f} MB (peak {srv['peak_rss_mb']:.0f} MB), CPU {srv['cpu_s_during_run']:.1f} s"
+        f"{srv['rss_mb_at_start']:.0f} MB at the start, {srv['rss_mb']:.0f} MB at the end (peak "
+        f"{srv['peak_rss_mb']:.0f} MB), CPU {srv['cpu_s_during_run']:.1f} s"
     )
     print("\n".join(lines))  # noqa: T201
     if args.json_out:
@@ -1101,8 +1102,12 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
     print(  # noqa: T201
         f"POST /rollout, {report['steps']} steps, metrics only, model {report['model_id']} "
         "(in-process ASGI):\n"
-        f"  uncached: p50 {u['p50_ms']:.1f} ms  p95 {u['p95_ms']:.1f} ms  (n={u['n']})\n"
-        f"  cached:   p50 {c['p50_ms']:.2f} ms  p95 {c['p95_ms']:.2f} ms  (n={c['n']})"
+        f"  uncached: p50 {u['p50_ms']:.1f} ms  p95 {u['p95_ms']:.1f} ms  (n={u['n']}); model rollout p50 "
+        f"{u['rollout_p50_ms']:.1f} ms, share of the latency outside it p50 "
+        f"{u['outside_rollout_share_p50']:.2f}; "
+        f"CPU {u['cpu_ms_per_request']:.1f} ms per request\n"
+        f"  cached:   p50 {c['p50_ms']:.2f} ms  p95 {c['p95_ms']:.2f} ms  (n={c['n']}); "
+        f"CPU {c['cpu_ms_per_request']:.2f} ms per request"
     )
     if args.json_out:
         _write_json(args.json_out, report)

@@ -2,7 +2,10 @@
 
 `bench_service`: latency of POST /rollout through the whole app stack (in-process ASGI client, no
 network). Uncached requests use distinct controls drawn uniformly in the normalized design box (seeded),
-so every one is a real rollout; the cached figure repeats one request. Reported: p50/p95/mean in ms.
+so every one is a real rollout; the cached figure repeats one request. Reported: p50/p95/mean in ms, the
+CPU milliseconds per request (this process: client and server), and for the uncached requests the share
+of the wall time spent outside the model's rollout (1 - rollout_ms / latency, per request): a ratio that
+stays meaningful on a machine shared with other work, where absolute times are not.
 
 `bench_load`: a live `nemsim serve` on a loopback port under `clients` concurrent HTTP clients for a
 fixed time, each drawing requests from `ROUTE_MIX` (uncached and cached rollouts, meshes of finished
@@ -68,27 +71,40 @@ def bench_service(
         model_id = client.get("/model").json()["model_id"]
         first = body(np.asarray(from_normalized(np.zeros(len(CONTROL_NAMES))), dtype=np.float64))
         _post(client, first)  # warm the cache for the repeat figure
+        cpu0 = time.process_time()
         uncached = [
             _post(client, body(np.asarray(from_normalized(rng.uniform(-1, 1, len(CONTROL_NAMES))))))
             for _ in range(n)
         ]
+        cpu1 = time.process_time()
         cached = [_post(client, first) for _ in range(n_cached)]
+        cpu2 = time.process_time()
+    outside = [1.0 - rollout_s / wall_s for wall_s, rollout_s in uncached]
     return {
         "checkpoint": Path(checkpoint).name,  # the file name: reports carry no machine paths
         "model_id": model_id,
         "steps": steps,
-        "uncached": _percentiles(uncached),
-        "cached": _percentiles(cached),
+        "uncached": {
+            **_percentiles([wall for wall, _ in uncached]),
+            "cpu_ms_per_request": 1e3 * (cpu1 - cpu0) / n,
+            "rollout_p50_ms": float(np.percentile([r for _, r in uncached], 50)) * 1e3,
+            "outside_rollout_share_p50": float(np.percentile(outside, 50)),
+        },
+        "cached": {
+            **_percentiles([wall for wall, _ in cached]),
+            "cpu_ms_per_request": 1e3 * (cpu2 - cpu1) / n_cached,
+        },
     }
 
 
-def _post(client: Any, body: dict[str, Any]) -> float:
+def _post(client: Any, body: dict[str, Any]) -> tuple[float, float]:
+    """(latency, the server's model rollout time) of one POST /rollout, seconds."""
     t0 = time.perf_counter()
     r = client.post("/rollout", json=body)
     elapsed = time.perf_counter() - t0
     if r.status_code != 200:
         raise RuntimeError(f"POST /rollout returned {r.status_code}: {r.text[:300]}")
-    return elapsed
+    return elapsed, r.json()["timings"]["rollout_ms"] / 1e3
 
 
 # --- load benchmark against a live server ----------------------------------------------------------
@@ -263,6 +279,7 @@ def bench_load(
         "error_examples": errors[:10],
         "uncached_rollouts_per_s": uncached_ok / wall,
         "server": {
+            "rss_mb_at_start": before["rss_mb"],  # loaded, warmed up, 4 rollouts and /mechanisms cached
             "rss_mb": after["rss_mb"],
             "peak_rss_mb": after["peak_rss_mb"],
             "cpu_s_during_run": after["cpu_s"] - before["cpu_s"],

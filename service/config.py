@@ -26,7 +26,8 @@ def checkpoint_dirs() -> list[Path]:
     return list(dict.fromkeys(d.resolve() for d in dirs))
 
 
-SHIPPED_CHECKPOINT = "nemsim-small.pt"  # the served model (checkpoints/README.md); other .pt: references
+# the served model (checkpoints/README.md); other .pt files are references
+SHIPPED_CHECKPOINT = "nemsim-small.pt"
 
 
 def default_checkpoint() -> Path | None:
@@ -70,7 +71,10 @@ class Settings(BaseSettings):
     queue_timeout_s: float = Field(default=60.0, gt=0, description="longest wait for a slot before 503")
     cache_size: int = Field(default=32, ge=0, description="rollouts kept (LRU) for repeats and mesh requests")
     cache_max_mb: int = Field(
-        default=256, ge=1, description="memory budget of the rollout cache in MB (meshes: a quarter more)"
+        default=192,
+        ge=1,
+        description="memory budget of the rollout cache in MB (meshes: a quarter more); the default keeps a "
+        "loaded `small` server under 1 GB resident",
     )
     max_meshes: int = Field(default=8, ge=0, description="meshes one POST /rollout may ask for inline")
     warmup_steps: int = Field(
@@ -87,6 +91,14 @@ class Settings(BaseSettings):
     )
     runtime_precision: Literal["f32", "bf16"] = Field(
         default="bf16", description="rollout precision (bf16: same Avg RMSE within 1 %, measured)"
+    )
+    rollout_nice: int = Field(
+        default=10,
+        ge=0,
+        le=19,
+        description="rollouts compute on threads this much nicer than the server (Linux), so cached answers, "
+        "meshes and metadata get the CPU first when rollouts saturate it; outside a container's own CPU "
+        "group the rollouts also yield to other processes on the machine (0: same priority)",
     )
     runtime_threads: int = Field(
         default=1, ge=1, description="OpenVINO threads per rollout; keep threads x max_concurrency <= cores"

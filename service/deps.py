@@ -17,8 +17,12 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
-def get_surrogate(request: Request) -> Surrogate:
-    """The loaded model; 503 until the checkpoint is loaded and warmed up."""
+async def get_surrogate(request: Request) -> Surrogate:
+    """The loaded model; 503 until the checkpoint is loaded and warmed up.
+
+    The dependencies here are `async def`: FastAPI runs a plain `def` dependency in its thread pool, a
+    thread hop per dependency per request that, on a core saturated by rollouts, waits for the scheduler
+    each time."""
     state = request.app.state.service
     if state.surrogate is None or not state.ready:
         raise HTTPException(
@@ -33,7 +37,7 @@ SurrogateDep = Annotated[Surrogate, Depends(get_surrogate)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
-def get_gates(request: Request) -> Gates:
+async def get_gates(request: Request) -> Gates:
     return request.app.state.gates
 
 
@@ -65,7 +69,7 @@ async def gated(request: Request, gate: FairGate, fn: Callable[..., T], *args: A
 LIST_QUERY_PARAMS = frozenset({"factors"})  # the only query parameters that may repeat
 
 
-def single_valued_query(request: Request) -> None:
+async def single_valued_query(request: Request) -> None:
     """422 naming a query parameter given more than once (frameworks silently keep the last one)."""
     seen: set[str] = set()
     for key, _ in request.query_params.multi_items():

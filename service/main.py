@@ -9,9 +9,11 @@ a non-zero status so a supervisor restarts or reports it instead of keeping a se
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import signal
+import sys
 import threading
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -53,6 +55,25 @@ def stop_process() -> None:
     """Ask the server to shut down (uvicorn turns SIGTERM into a graceful exit)."""
     LOAD_FAILURE_EXIT["failed"] = True
     os.kill(os.getpid(), signal.SIGTERM)
+
+
+M_ARENA_MAX = -8  # glibc mallopt parameter (malloc.h)
+
+
+def limit_allocator_retention() -> None:
+    """At most two glibc malloc arenas (Linux/glibc; a MALLOC_* environment variable wins).
+
+    Why: glibc gives threads their own arenas (up to eight per core), and an arena keeps the memory
+    of the large arrays freed in it for reuse; the server's many short-lived threads (mesh exports,
+    body parsing, rollouts) could each grow one. A fixed mmap threshold, which would return every
+    large array at once, cost clearly more CPU per uncached rollout in page faults (measured; see
+    benchmarks/service/README.md): not used."""
+    if not sys.platform.startswith("linux") or any(k.startswith("MALLOC_") for k in os.environ):
+        return
+    try:
+        ctypes.CDLL("libc.so.6").mallopt(M_ARENA_MAX, 2)
+    except (OSError, AttributeError):  # not glibc (e.g. musl): nothing to tune
+        return
 
 
 def load_surrogate(
@@ -113,11 +134,13 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         ).start()
     yield
     app.state.jobs.close()
+    app.state.gates.close()
 
 
 def create_app(settings: Settings | None = None, surrogate: Surrogate | None = None) -> FastAPI:
     """Build the app. `settings` replaces `get_settings()` (routes too); a given `surrogate` skips loading."""
     settings = settings or get_settings()
+    limit_allocator_retention()
     app = FastAPI(
         title="NEMSim",
         version=__version__,
@@ -138,7 +161,11 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
     if surrogate is not None:
         app.state.service.surrogate, app.state.service.status = surrogate, "ready"
-    app.dependency_overrides[get_settings] = lambda: settings
+
+    async def given_settings() -> Settings:  # async: no thread-pool hop per request (service.deps)
+        return settings
+
+    app.dependency_overrides[get_settings] = given_settings
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(HandlerTimeoutMiddleware, timeout_s=settings.handler_timeout_s)
     app.state.metrics = Metrics()

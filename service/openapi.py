@@ -4,8 +4,12 @@ Static rules live in the models (`service.schemas`: the scale guard as `maximum`
 exponents as `multipleOf`, "exactly one of" as `oneOf`, normalized bounds as `prefixItems`). What
 depends on this server's settings (the `steps` ceiling, inline meshes per rollout) is written into
 the document when it is first generated. Error responses share one schema (`ErrorBody`).
-The one rule JSON Schema cannot state: a mesh's `step` must not exceed the rollout's `steps`
-(the schema bounds it by the server's ceiling, its description says the rest; 422 otherwise).
+
+Two rules tie fields of a rollout request together: a recipe of n control sets means `steps` = n (when
+`steps` is given too), and an inline mesh's `step` must not exceed the rollout's steps (the given
+`steps`, the recipe's length, else the default 100). JSON Schema cannot compare two values, so
+`steps_agreement` states them as one `if`/`then` per possible n (the server's ceiling bounds n); above
+`STEPS_RULES_MAX` the document would grow too large and the field descriptions carry them instead.
 """
 
 from __future__ import annotations
@@ -48,6 +52,48 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorBody, "description": _WHY[code]} for code in codes}
 
 
+STEPS_RULES_MAX = 1_000  # larger `steps` ceilings: the rules stay in the descriptions (module docstring)
+
+
+def steps_agreement(max_steps: int) -> list[dict[str, Any]]:
+    """JSON Schema clauses (for an `allOf`) of the two cross-field rules of a rollout request (module
+    docstring): for each n in 1..max_steps, "steps = n or a recipe of n sets" implies "steps is n or
+    absent, the recipe (if any) has n sets and every mesh step is at most n"; with neither, the
+    default number of steps bounds the mesh steps."""
+
+    def mesh_steps_at_most(n: int) -> dict[str, Any]:
+        return {"type": "array", "items": {"properties": {"step": {"maximum": n}}}}
+
+    clauses: list[dict[str, Any]] = [
+        {
+            "if": {
+                "anyOf": [
+                    {"required": ["steps"], "properties": {"steps": {"const": n}}},
+                    {
+                        "required": ["recipe"],
+                        "properties": {"recipe": {"type": "array", "minItems": n, "maxItems": n}},
+                    },
+                ]
+            },
+            "then": {
+                "properties": {
+                    "steps": {"anyOf": [{"const": n}, {"type": "null"}]},
+                    "recipe": {"anyOf": [{"type": "null"}, {"type": "array", "minItems": n, "maxItems": n}]},
+                    "meshes": mesh_steps_at_most(n),
+                }
+            },
+        }
+        for n in range(1, max_steps + 1)
+    ]
+    unset = [
+        {"anyOf": [{"not": {"required": [name]}}, {"properties": {name: {"type": "null"}}}]}
+        for name in ("steps", "recipe")
+    ]
+    default = {"properties": {"meshes": mesh_steps_at_most(DEFAULT_STEPS)}}
+    clauses.append({"if": {"allOf": unset}, "then": default})
+    return clauses
+
+
 def install(app: FastAPI, settings: Any) -> None:
     """Generate the document once, with this server's ceilings written in."""
 
@@ -72,6 +118,8 @@ def install(app: FastAPI, settings: Any) -> None:
                 {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
                 for name in ("recipe", "steps")
             ]
+        if settings.max_steps <= STEPS_RULES_MAX:
+            request["allOf"] = steps_agreement(settings.max_steps)
         mesh = doc["paths"]["/rollouts/{rollout_id}/mesh"]["get"]
         for param in mesh["parameters"]:
             if param["name"] == "step":

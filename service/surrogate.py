@@ -9,7 +9,8 @@ adds what a server needs:
 * an LRU cache of finished rollouts keyed by (model id, normalized controls per transition, steps); the
   key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
   controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway) and the
-  cache is bounded in entries;
+  cache is bounded in entries and bytes, and segmented (`_LRU`) so one-off rollouts do not evict the ones
+  in use;
 * cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
   `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
   computations through its own gates (`service.scheduler`). This class does no admission control.
@@ -17,9 +18,11 @@ adds what a server needs:
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import inspect
 import logging
+import math
 import threading
 import time
 from collections import OrderedDict
@@ -51,7 +54,7 @@ class RolloutResult:
     steps: int
     controls_raw: np.ndarray  # (T, 14) physical units
     states: np.ndarray  # (T+1, 2, D, H, W) float16, normalized SDF
-    metrics: dict[str, list[float]]  # name -> (T+1,) values in nm
+    metrics: dict[str, list[float | None]]  # name -> (T+1,) values in nm, None where not finite
     times_s: list[float]  # (T+1,)
     rollout_ms: float
     metrics_ms: float
@@ -63,9 +66,18 @@ STATE_BOUND = 1.5  # |normalized SDF| above this is outside anything the model l
 
 def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str]:
     """Readable warnings for a predicted trajectory (T+1, 2, D, H, W): the first step whose state is not
-    finite, and the first step whose |value| exceeds ``bound`` (`nemsim stress` measures the same)."""
+    finite, and the first step whose |value| exceeds ``bound`` (`nemsim stress` measures the same).
+
+    Two reductions per step and no temporary of the trajectory's size: a step is finite exactly when its
+    max and min are (both propagate NaN and carry an infinity); only non-finite steps are scanned again
+    to find their largest finite |value|."""
     flat = traj.reshape(traj.shape[0], -1)
-    finite = np.isfinite(flat).all(axis=1)  # (T+1,)
+    hi, lo = flat.max(axis=1), flat.min(axis=1)  # (T+1,) each
+    finite = np.isfinite(hi) & np.isfinite(lo)
+    peak = np.maximum(hi, -lo)
+    for row in np.flatnonzero(~finite):
+        ok = flat[row][np.isfinite(flat[row])]
+        peak[row] = np.abs(ok).max() if ok.size else 0.0
     out: list[str] = []
     if not finite.all():
         k = int(np.argmin(finite))
@@ -73,7 +85,6 @@ def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str
             f"the prediction is not finite from step {k} on (NaN/Inf): states and metrics from there on "
             "are unusable"
         )
-    peak = np.abs(np.where(np.isfinite(flat), flat, 0.0)).max(axis=1)  # (T+1,)
     if (peak > bound).any():
         k = int(np.argmax(peak > bound))
         out.append(
@@ -86,7 +97,13 @@ def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str
 
 class _LRU:
     """Least-recently-used cache bounded in entries and, with `weigh`, in bytes (an entry larger than
-    the whole budget is not kept)."""
+    the whole budget is not kept). Segmented, so a stream of one-off entries cannot flush the entries in
+    use: a new entry starts on probation; a hit moves it to the protected segment (at most
+    `PROTECTED_SHARE` of both bounds; its least recent entries step back to probation); eviction takes
+    the least recent probation entry first. Under a flood of distinct uncached rollouts the rollouts
+    that clients come back to (repeats, their meshes) stay cached."""
+
+    PROTECTED_SHARE = 0.5
 
     def __init__(
         self, size: int, max_bytes: int | None = None, weigh: Callable[[Any], int] | None = None
@@ -94,34 +111,60 @@ class _LRU:
         self.size = size
         self.max_bytes = max_bytes
         self.weigh = weigh or (lambda value: 0)
-        self.bytes = 0
-        self._items: OrderedDict[Any, Any] = OrderedDict()
+        self.bytes = 0  # both segments
+        self._probation: OrderedDict[Any, Any] = OrderedDict()
+        self._protected: OrderedDict[Any, Any] = OrderedDict()
+        self._protected_bytes = 0
         self._lock = threading.Lock()
 
     def get(self, key: Any) -> Any | None:
         with self._lock:
-            if key not in self._items:
+            if key in self._protected:
+                self._protected.move_to_end(key)
+                return self._protected[key]
+            if key not in self._probation:
                 return None
-            self._items.move_to_end(key)
-            return self._items[key]
+            value = self._probation.pop(key)
+            self._protected[key] = value
+            self._protected_bytes += self.weigh(value)
+            while len(self._protected) > 1 and self._protected_over():
+                old_key, old = self._protected.popitem(last=False)
+                self._protected_bytes -= self.weigh(old)
+                self._probation[old_key] = old  # most recent end of probation
+            return value
 
     def put(self, key: Any, value: Any) -> None:
         weight = self.weigh(value)
         if self.size <= 0 or (self.max_bytes is not None and weight > self.max_bytes):
             return
         with self._lock:
-            if key in self._items:
-                self.bytes -= self.weigh(self._items.pop(key))
-            self._items[key] = value
-            self.bytes += weight
-            while len(self._items) > self.size or self._over_budget():
-                self.bytes -= self.weigh(self._items.popitem(last=False)[1])
+            if key in self._protected:
+                old = self._protected[key]
+                self._protected[key] = value
+                self._protected_bytes += weight - self.weigh(old)
+                self.bytes += weight - self.weigh(old)
+            else:
+                if key in self._probation:
+                    self.bytes -= self.weigh(self._probation.pop(key))
+                self._probation[key] = value
+                self.bytes += weight
+            while len(self) > self.size or self._over_budget():
+                segment = self._probation if self._probation else self._protected
+                _, old = segment.popitem(last=False)
+                self.bytes -= self.weigh(old)
+                if segment is self._protected:
+                    self._protected_bytes -= self.weigh(old)
+
+    def _protected_over(self) -> bool:
+        share = self.PROTECTED_SHARE
+        over_bytes = self.max_bytes is not None and self._protected_bytes > share * self.max_bytes
+        return len(self._protected) > share * self.size or over_bytes
 
     def _over_budget(self) -> bool:
         return self.max_bytes is not None and self.bytes > self.max_bytes
 
     def __len__(self) -> int:
-        return len(self._items)
+        return len(self._probation) + len(self._protected)
 
 
 def file_sha256(path: Path) -> str:
@@ -195,6 +238,8 @@ class Surrogate:
         self._rollouts = _LRU(cache_size, cache_bytes, lambda r: int(r.states.nbytes))
         self._meshes = _LRU(4 * cache_size, None if cache_bytes is None else cache_bytes // 4, len)
         self._mechanisms = _LRU(cache_size)
+        self._buffers: list[torch.Tensor] = []  # idle trajectory buffers (`_take_buffer`)
+        self._buffers_lock = threading.Lock()
         ranges = (loaded.raw or {}).get("control_ranges") or {}
         specs = {s.name: s for s in CONTROL_SPECS}
         # train range: what the checkpoint recorded at training time, else the current design range
@@ -277,13 +322,28 @@ class Surrogate:
         steps = u_norm.shape[0]
         x0 = torch.from_numpy(self.x0)[None]  # (1, 2, D, H, W)
         u = torch.from_numpy(u_norm)[None]  # (1, T, 14)
-        t0 = time.perf_counter()
-        with torch.inference_mode():
-            traj = rollout(self.predictor, x0, u, steps)[0].float().numpy()  # type: ignore[arg-type]  # (T+1, 2, D, H, W)
-        t1 = time.perf_counter()
-        metrics = {k: [float(v) for v in vals] for k, vals in profile_metrics_batch(traj, self.scene).items()}
-        t2 = time.perf_counter()
-        guard = stability_warnings(traj)
+        buf = self._take_buffer(steps)  # (>= T+1, 2, D, H, W) float32
+        try:
+            t0 = time.perf_counter()
+            traj_t = buf[: steps + 1]  # (T+1, 2, D, H, W)
+
+            def keep(t: int, x: torch.Tensor) -> None:  # x: (1, 2, D, H, W), the state after t transitions
+                traj_t[t].copy_(x[0])
+
+            with torch.inference_mode():
+                traj_t[0] = x0[0]
+                rollout(self.predictor, x0, u, steps, keep=False, on_step=keep)  # type: ignore[arg-type]
+            t1 = time.perf_counter()
+            traj = traj_t.numpy()
+            metrics = {
+                k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
+                for k, vals in profile_metrics_batch(traj, self.scene).items()
+            }
+            t2 = time.perf_counter()
+            guard = stability_warnings(traj)
+            states = traj_t.half().numpy()  # (T+1, 2, D, H, W) float16 (torch's conversion is vectorized)
+        finally:
+            self._give_back(buf)
         if guard:
             log.warning("rollout %s: %s", rid, "; ".join(guard))
         dt = float(self.scene.snapshot_dt_s)
@@ -292,13 +352,30 @@ class Surrogate:
             model_id=self.model_id,
             steps=steps,
             controls_raw=controls_raw,
-            states=traj.astype(np.float16),
+            states=states,
             metrics=metrics,
             times_s=[round(k * dt, 6) for k in range(steps + 1)],
             rollout_ms=1e3 * (t1 - t0),
             metrics_ms=1e3 * (t2 - t1),
             warnings=tuple(guard),
         )
+
+    def _take_buffer(self, steps: int) -> torch.Tensor:
+        """A float32 trajectory buffer of at least steps + 1 states, reused across rollouts: a fresh
+        array of a trajectory's size costs page faults on every rollout, and the stacked copy of the
+        states another one. One buffer per rollout computing at the same time (`_give_back`)."""
+        with self._buffers_lock:
+            for i, buf in enumerate(self._buffers):
+                if buf.shape[0] >= steps + 1:
+                    return self._buffers.pop(i)
+            if self._buffers:
+                self._buffers.pop(0)  # too short for this rollout: replaced by a longer one
+        with torch.inference_mode(False):
+            return torch.empty((steps + 1, *self.x0.shape), dtype=torch.float32)
+
+    def _give_back(self, buf: torch.Tensor) -> None:
+        with self._buffers_lock:
+            self._buffers.append(buf)
 
     def warm_up(self, steps: int) -> None:
         """One short uncached rollout so the first request does not pay for allocation/JIT."""
@@ -350,7 +427,7 @@ class Surrogate:
         return data
 
     # --- mechanisms ---------------------------------------------------------------------------------
-    @property
+    @functools.cached_property
     def supports_mechanisms(self) -> bool:
         """Only NEMSim models expose event intensities and attributions (forward(..., return_aux=True))."""
         return "return_aux" in inspect.signature(self.loaded.model.forward).parameters
@@ -369,12 +446,14 @@ class Surrogate:
         return self._mechanisms.get(self._mechanisms_key(controls_raw, factors))
 
     def mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any]:
-        """`mechanism_response` for one base control vector (cached).
+        """`mechanism_response` for one base control vector (cached), JSON-ready (`schemas.jsonable`:
+        plain lists and floats, non-finite as None), so a cache hit costs no conversion.
 
         `factors` are flux multiplier levels; the interventions are every (s_Cl+, s_Cl) pair of the levels
         and 1, except (1, 1) -- {0.5, 1.5} gives the paper's eight. None: the library default (the paper's).
         """
         from nemsim.analysis.counterfactual import mechanism_response
+        from service.schemas import jsonable
 
         key = self._mechanisms_key(controls_raw, factors)
         cached = self._mechanisms.get(key)
@@ -383,6 +462,6 @@ class Surrogate:
         kwargs: dict[str, Any] = {} if key[1] is None else {"factors": key[1]}
         # no inference_mode: the library owns its autograd settings
         raw = np.asarray(controls_raw, dtype=np.float64)
-        result = mechanism_response(self.loaded, raw, x0=self.x0, **kwargs)
+        result = jsonable(mechanism_response(self.loaded, raw, x0=self.x0, **kwargs))
         self._mechanisms.put(key, result)
         return result

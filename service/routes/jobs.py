@@ -23,7 +23,7 @@ router = APIRouter(tags=["jobs"])
 JobId = Annotated[str, Path(max_length=64)]
 
 
-def get_jobs(request: Request) -> JobQueue:
+async def get_jobs(request: Request) -> JobQueue:
     return request.app.state.jobs
 
 

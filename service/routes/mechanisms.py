@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.responses import Response
 
 from service import extrapolation
 from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
@@ -14,7 +15,7 @@ from service.schemas import (
     MechanismsResponse,
     array_to_controls,
     controls_to_array,
-    jsonable,
+    json_response,
 )
 
 router = APIRouter(tags=["mechanisms"])
@@ -32,7 +33,7 @@ async def get_mechanisms(
     surrogate: SurrogateDep,
     settings: SettingsDep,
     gates: GatesDep,
-) -> MechanismsResponse:
+) -> Response:
     """Cl+ / neutral-Cl interventions around one base control: Delta M per family, Delta R, lambda, alpha."""
     if not surrogate.supports_mechanisms:
         raise HTTPException(
@@ -52,11 +53,11 @@ async def get_mechanisms(
             result = await gated(request, gates.mechanisms, surrogate.mechanisms, raw, query.factors)
     except ValueError as exc:  # the library rejects an input it cannot analyse, naming it
         reject(("query",), str(exc))
-    return MechanismsResponse(
+    return json_response(MechanismsResponse(
         model_id=surrogate.model_id,
         controls=array_to_controls(raw),
-        result=jsonable(result),
+        result=result,
         warnings=warnings,
         extrapolation=[e.as_dict() for e in found],  # type: ignore[misc]
         clipped=clipped,
-    )
+    ))

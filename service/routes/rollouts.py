@@ -23,6 +23,7 @@ from service.schemas import (
     RolloutResponse,
     Timings,
     array_to_controls,
+    json_response,
 )
 from service.surrogate import RolloutResult, Surrogate, UnknownRollout
 
@@ -67,7 +68,7 @@ def cached_rollout(surrogate: Surrogate, rollout_id: str) -> RolloutResult:
 @router.post("/rollout", response_model=RolloutResponse)
 async def post_rollout(
     request: Request, body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep, gates: GatesDep
-) -> RolloutResponse:
+) -> Response:
     """Predict the etch over `steps` transitions of 0.1 s; metrics always, fields and meshes on demand."""
     t_start = time.perf_counter()
     assert body.steps is not None  # resolved by the request validator
@@ -130,16 +131,13 @@ async def post_rollout(
         )
     t2 = time.perf_counter()
     varying = body.recipe is not None
-    return RolloutResponse(
+    return json_response(RolloutResponse(
         id=result.id,
         model_id=result.model_id,
         steps=result.steps,
         cached=cached,
         times_s=result.times_s,
-        metrics={
-            k: [v if v == v and abs(v) != float("inf") else None for v in vals]
-            for k, vals in result.metrics.items()
-        },
+        metrics=result.metrics,
         controls=array_to_controls(result.controls_raw[0]),
         recipe=[array_to_controls(row) for row in result.controls_raw] if varying else None,
         warnings=warnings,
@@ -154,7 +152,7 @@ async def post_rollout(
             fields_ms=1e3 * (t1 - t0),
             meshes_ms=1e3 * (t2 - t1),
         ),
-    )
+    ))
 
 
 @router.get(

@@ -20,7 +20,9 @@ torch.set_num_threads(1)
 def surrogate(tiny_checkpoint):
     from service.surrogate import Surrogate
 
-    return Surrogate.from_checkpoint(tiny_checkpoint, cache_size=16)
+    s = Surrogate.from_checkpoint(tiny_checkpoint, cache_size=16)
+    s.warm_up(1)  # as the server does before /ready: the runtime compiles here, not in a test's request
+    return s
 
 
 def wait_ready(client, timeout_s: float = 60.0) -> None:

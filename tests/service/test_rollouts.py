@@ -180,3 +180,29 @@ def test_concurrent_requests_are_safe(client):
     for k, _, rid in results:
         ids.setdefault(k, set()).add(rid)
     assert all(len(v) == 1 for v in ids.values()) and len(ids) == 3
+
+
+def test_served_trajectory_is_the_rollout(surrogate, default_controls):
+    """The server's trajectory (kept in a reused buffer, stored as float16) and metrics are those of
+    `nemsim.evaluation.rollout` and `profile_metrics_batch`, for consecutive rollouts of different
+    lengths through the same buffer."""
+    import torch
+
+    from nemsim.controls import to_normalized
+    from nemsim.evaluation.rollout import rollout
+    from nemsim.geometry.profile import profile_metrics_batch
+    from service.surrogate import Surrogate
+
+    s = Surrogate(surrogate.loaded, model_id="buffer", x0=surrogate.x0, cache_size=0)
+    base = np.array(list(default_controls.values()))
+    for steps, scale in ((5, 1.0), (3, 1.3), (5, 0.8)):
+        raw = np.tile(base * scale, (steps, 1))
+        result, cached = s.rollout(raw)
+        u = torch.from_numpy(np.asarray(to_normalized(raw), dtype=np.float32))[None]
+        with torch.inference_mode():
+            ref = rollout(s.predictor, torch.from_numpy(s.x0)[None], u, steps)[0].numpy()  # (T+1, 2, D, H, W)
+        assert not cached and result.states.dtype == np.float16
+        np.testing.assert_array_equal(result.states, ref.astype(np.float16))
+        for name, values in profile_metrics_batch(ref, s.scene).items():
+            np.testing.assert_allclose(np.array(result.metrics[name], dtype=float), values, equal_nan=True)
+    assert len(s._buffers) == 1  # one rollout at a time: one buffer, reused

@@ -4,6 +4,8 @@ and queued work is dropped when its client disconnects."""
 from __future__ import annotations
 
 import asyncio
+import os
+import sys
 import threading
 
 import numpy as np
@@ -197,3 +199,69 @@ def test_mesh_warm_up_exports_every_format(surrogate, monkeypatch):
     monkeypatch.setattr(mesh_lib, "export_mesh", lambda mesh, fmt: seen.append(fmt) or export(mesh, fmt))
     surrogate.warm_up_meshes()
     assert sorted(seen) == ["glb", "obj", "ply", "stl"]
+
+
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="thread priorities are a POSIX facility")
+def test_rollouts_compute_on_lower_priority_threads(make_client, default_controls, surrogate, monkeypatch):
+    """Uncached rollouts run on the gate's own threads, `rollout_nice` nicer than the server's, so cheap
+    answers get the CPU first when rollouts saturate it."""
+    seen: list[tuple[str, int]] = []
+    compute = type(surrogate)._compute
+
+    def spy(self, *args):
+        tid = threading.get_native_id()
+        seen.append((threading.current_thread().name, os.getpriority(os.PRIO_PROCESS, tid)))
+        return compute(self, *args)
+
+    monkeypatch.setattr(type(surrogate), "_compute", spy)
+    c = make_client(rollout_nice=3)
+    controls = {**default_controls, "flux_cl": default_controls["flux_cl"] * 1.0123}
+    assert c.post("/rollout", json={"controls": controls, "steps": 2}).status_code == 200
+    (name, nice), base = seen[0], os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert name.startswith("nemsim-rollout")
+    assert nice == min(19, base + 3) if sys.platform.startswith("linux") else nice == base
+
+
+def test_cancelled_work_holds_its_slot_until_the_thread_finishes():
+    """in_thread on an executor: cancelling the awaiting task does not return before the thread is done
+    (a gate's slot must not be freed while its work still runs)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service.scheduler import in_thread
+
+    finished = threading.Event()
+
+    def work():
+        threading.Event().wait(0.3)
+        finished.set()
+
+    async def main():
+        with ThreadPoolExecutor(1) as pool:
+            task = asyncio.ensure_future(in_thread(pool, work))
+            await asyncio.sleep(0.05)
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            return finished.is_set()
+
+    assert asyncio.run(main())
+
+
+def test_cache_keeps_entries_in_use_under_a_flood_of_new_ones():
+    """A stream of one-off entries evicts other one-off entries, not those that were hit again; the
+    bounds in entries and bytes hold throughout."""
+    from service.surrogate import _LRU
+
+    cache = _LRU(6, max_bytes=600, weigh=lambda v: v)
+    for key in ("hot1", "hot2"):
+        cache.put(key, 100)
+        assert cache.get(key) == 100  # used again: protected
+    for k in range(50):
+        cache.put(f"once{k}", 100)
+        assert len(cache) <= 6 and cache.bytes <= 600
+    assert cache.get("hot1") == 100 and cache.get("hot2") == 100
+    assert cache.get("once0") is None and cache.get("once49") == 100
+    plain = _LRU(6, max_bytes=600, weigh=lambda v: v)  # same bounds, nothing reused: plain LRU order
+    for k in range(8):
+        plain.put(k, 100)
+    assert [plain.get(k) for k in range(8)] == [None, None, *[100] * 6]

@@ -178,6 +178,48 @@ def test_schema_states_the_rules(make_client):
         assert rollout[code]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody"), code
 
 
+def _cross_field_cases(default_controls):
+    """(label, body): requests on either side of the two cross-field rules (recipe length = steps; an
+    inline mesh's step <= the rollout's steps, default 100)."""
+    row = dict(default_controls)
+    mesh = {"channel": "si", "format": "stl"}
+    return [
+        ("recipe of 3, steps 3", {"recipe": [row] * 3, "steps": 3}),
+        ("recipe of 3, no steps", {"recipe": [row] * 3}),
+        ("recipe of 3, steps null", {"recipe": [row] * 3, "steps": None}),
+        ("recipe of 3, steps 2", {"recipe": [row] * 3, "steps": 2}),
+        ("recipe of 2, steps 3", {"recipe": [row] * 2, "steps": 3}),
+        ("mesh at the last step", {"controls": row, "steps": 2, "meshes": [{"step": 2, **mesh}]}),
+        ("mesh past the last step", {"controls": row, "steps": 2, "meshes": [{"step": 3, **mesh}]}),
+        ("mesh past a recipe", {"recipe": [row] * 2, "meshes": [{"step": 3, **mesh}]}),
+        ("mesh at a recipe's end", {"recipe": [row] * 2, "meshes": [{"step": 2, **mesh}]}),
+        ("default steps, mesh 100", {"controls": row, "meshes": [{"step": 100, **mesh}]}),
+        ("default steps, mesh 101", {"controls": row, "meshes": [{"step": 101, **mesh}]}),
+    ]
+
+
+def test_cross_field_rules_in_schema_match_the_server(make_client, default_controls):
+    """A request valid under the published schema is never refused with 422, and one the schema rejects
+    for a cross-field rule is refused by the server too (the schema is neither looser nor stricter)."""
+    import jsonschema_rs
+
+    from service.openapi import STEPS_RULES_MAX
+
+    c = make_client(max_steps=120)
+    doc = c.get("/openapi.json").json()
+    assert 120 <= STEPS_RULES_MAX and len(doc["components"]["schemas"]["RolloutRequest"]["allOf"]) == 121
+    validator = jsonschema_rs.Draft202012Validator(
+        {"$ref": "#/components/schemas/RolloutRequest", "components": doc["components"]}
+    )
+    verdicts = {}
+    for label, body in _cross_field_cases(default_controls):
+        accepted = c.post("/rollout", json=body).status_code
+        verdicts[label] = (validator.is_valid(body), accepted)
+        assert accepted in (200, 422), (label, accepted)
+    assert all(valid == (status == 200) for valid, status in verdicts.values()), verdicts
+    assert sum(valid for valid, _ in verdicts.values()) == 6  # both sides of every rule were exercised
+
+
 def test_normalized_bounds_in_schema_match_the_server(client):
     from service.schemas import NORM_MAX, NORM_MIN
 
