@@ -1654,6 +1654,8 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
     p.add_argument("--targets", type=int, default=8, help="reachable targets (default 8)")
     p.add_argument("--seed", type=int, default=7, help="seed of the held-out recipes (default 7)")
+    p.add_argument("--unreachable", type=int, default=3,
+                   help="deliberately unreachable targets to include, 0..3 (default 3)")
     p.add_argument("--methods", default="adam",
                    help="search methods to compare, comma-separated subset of adam, cma (default adam)")
     p.add_argument("--out", default="runs/bench/inverse", metavar="DIR",
@@ -1708,7 +1710,8 @@ def _cmd_bench_inverse(args: argparse.Namespace) -> int:
     from nemsim.evaluation.inverse_bench import format_bench, run_bench, write_bench
 
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    report = run_bench(args.checkpoint, n_targets=args.targets, seed=args.seed, methods=methods)
+    report = run_bench(args.checkpoint, n_targets=args.targets, seed=args.seed, methods=methods,
+                       n_unreachable=args.unreachable)
     paths = write_bench(report, args.out)
     print(format_bench(report))  # noqa: T201
     print(f"wrote {paths['md']}, {paths['json']}")  # noqa: T201

@@ -178,7 +178,8 @@ class Calibration:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps(self.to_dict(), indent=1)
-        text = re.sub(r"\[\s*([-+0-9.eE,\snul]*?)\s*\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text)
+        numbers = re.compile(r"\[\s*([-+0-9.eE,\snul]*?)\s*\]")  # a list of numbers and nulls
+        text = numbers.sub(lambda m: "[" + " ".join(m.group(1).split()) + "]", text)
         path.write_text(text + "\n")
         return path
 

@@ -42,6 +42,7 @@ def run_bench(
     n_targets: int = 8,
     seed: int = 7,
     methods: tuple[str, ...] = ("adam",),
+    n_unreachable: int = len(UNREACHABLE),
     progress: bool = True,
 ) -> dict[str, Any]:
     """Run the benchmark (module docstring); returns the JSON-ready report."""
@@ -58,6 +59,8 @@ def run_bench(
 
     if n_targets < 1:
         raise ValueError(f"--targets must be >= 1, got {n_targets}")
+    if not 0 <= n_unreachable <= len(UNREACHABLE):
+        raise ValueError(f"--unreachable must be in 0..{len(UNREACHABLE)}, got {n_unreachable}")
     bad = [m for m in methods if m not in ("adam", "cma")]
     if bad or not methods:
         raise ValueError(f"unknown methods {bad or methods}; expected a subset of ['adam', 'cma']")
@@ -85,7 +88,7 @@ def run_bench(
                     "oracle": oracle,
                 }
             )
-        for name, targets in UNREACHABLE:
+        for name, targets in UNREACHABLE[:n_unreachable]:
             cases.append({"name": name, "reachable": False, "spec": {"targets": targets}})
         bar = None
         if progress:

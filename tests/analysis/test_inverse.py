@@ -17,7 +17,7 @@ from nemsim.controls import CONTROL_NAMES, INT_INDICES, from_normalized, lhs_des
 from nemsim.geometry.profile import profile_metrics_batch
 from nemsim.geometry.soft_profile import soft_profile_metrics
 
-SMALL_SEARCH = {"screen": 6, "starts": 2, "iterations": 2, "batch": 4}
+SMALL_SEARCH = {"screen": 6, "starts": 2, "iterations": 2, "batch": 4, "method": "adam"}
 
 
 @pytest.fixture(scope="module")
@@ -150,3 +150,23 @@ def test_search_bookkeeping_bounds_and_integer_controls(ctx):
         assert r["training_data"]["flag"] in ("inside", "far")
         assert r["intervals"] is None  # the tiny checkpoint has no calibration file
     assert res["intervals"]["available"] is False
+
+
+def test_cma_refinement_counts_its_rollouts_and_keeps_the_bounds(ctx):
+    pytest.importorskip("cma")  # the optional extra nemsim[design]
+    lo, hi = 2e-3, 4e-3
+    spec = spec_from_dict(
+        {
+            "targets": {"etch_depth": 15.0},
+            "step": 2,
+            "k": 1,
+            "bounds": {"flux_cl": [lo, hi]},
+            "search": {"screen": 4, "batch": 4, "method": "cma", "cma_evals": 8},
+        }
+    )
+    res = search(ctx, spec)
+    cost = res["cost"]
+    assert cost["method"] == "cma" and cost["gradient_rollouts"] == 0
+    assert cost["forward_rollouts"] >= 4 + 8
+    assert len(cost["objective_trace"]) >= 3  # screening + one entry per generation
+    assert lo * (1 - 1e-9) <= res["recipes"][0]["controls"]["flux_cl"] <= hi * (1 + 1e-9)

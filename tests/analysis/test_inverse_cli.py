@@ -11,7 +11,7 @@ SPEC = {
     "targets": {"etch_depth": {"value": 10, "tol": 5}},
     "step": 2,
     "k": 2,
-    "search": {"screen": 4, "starts": 1, "iterations": 1, "batch": 4},
+    "search": {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"},
 }
 
 

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-SMALL_SEARCH = {"screen": 4, "starts": 1, "iterations": 1, "batch": 4}
+SMALL_SEARCH = {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}
 
 
 def _poll(client, location: str, timeout_s: float = 120.0) -> tuple[dict, list[float]]:
