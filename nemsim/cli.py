@@ -1656,8 +1656,9 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=7, help="seed of the held-out recipes (default 7)")
     p.add_argument("--unreachable", type=int, default=3,
                    help="deliberately unreachable targets to include, 0..3 (default 3)")
-    p.add_argument("--methods", default="adam",
-                   help="search methods to compare, comma-separated subset of adam, cma (default adam)")
+    p.add_argument("--methods", default="auto",
+                   help="search methods to compare, comma-separated subset of auto, adam, cma (default auto: "
+                   "cma when installed, else adam)")
     p.add_argument("--out", default="runs/bench/inverse", metavar="DIR",
                    help="output directory (default runs/bench/inverse)")
     p.set_defaults(handler=_cmd_bench_inverse)

@@ -131,9 +131,8 @@ def design_work(
             sub = _Share(job, share + span * counter["i"], span)
             counter["i"] += 1
             schedule = np.repeat(raw[None], steps, axis=0)  # (T, 14)
-            return run_simulator(sub, surrogate.scene, config, schedule, sim_seed, share=1.0).astype(
-                np.float32
-            )  # type: ignore[arg-type]
+            states = run_simulator(sub, surrogate.scene, config, schedule, sim_seed, share=1.0)  # type: ignore[arg-type]
+            return states.astype(np.float32)
 
         if skipped:
             result["verification"] = {"seed": sim_seed, "recipes": [], "skipped": skipped}

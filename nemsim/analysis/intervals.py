@@ -36,7 +36,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -134,7 +134,7 @@ class Calibration:
         lo, hi = off["lower"][step], off["upper"][step]
         return (None if lo is None else value + lo, None if hi is None else value + hi)
 
-    def intervals(self, metrics: dict[str, Sequence[float]], level: float) -> dict[str, dict[str, list]]:
+    def intervals(self, metrics: Mapping[str, Sequence[float]], level: float) -> dict[str, dict[str, list]]:
         """Per-step intervals of a metrics trajectory {name: (T+1,)}: {name: {"lo": [...], "hi": [...]}}.
         Steps past the calibrated horizon reuse the last calibrated step's offsets (flagged by callers)."""
         out: dict[str, dict[str, list]] = {}

@@ -246,7 +246,7 @@ def simulator_config(loaded: Any) -> Any:
     rec = (getattr(loaded, "raw", None) or {}).get("sim_config")
     if not isinstance(rec, dict) or not rec:
         return None
-    meta = rec.get("config") if isinstance(rec.get("config"), dict) else rec
+    meta: dict[str, Any] = rec["config"] if isinstance(rec.get("config"), dict) else rec
     return SimConfig.from_meta(meta)
 
 
@@ -616,7 +616,7 @@ def _final_recipes(
     with torch.no_grad():
         traj = rollout(ctx.model, ctx.x0[None].expand(len(ub), *ctx.x0.shape).contiguous(), ub, step)
     cost.forward_rollouts += len(ub)
-    out = []
+    out: list[dict[str, Any]] = []
     for i in range(len(ub)):
         mt = profile_metrics_batch(traj[i].numpy(), ctx.scene)  # {name: (step + 1,)}
         at = {k: float(v[step]) for k, v in mt.items()}

@@ -41,7 +41,7 @@ def run_bench(
     *,
     n_targets: int = 8,
     seed: int = 7,
-    methods: tuple[str, ...] = ("adam",),
+    methods: tuple[str, ...] = ("auto",),
     n_unreachable: int = len(UNREACHABLE),
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -61,9 +61,9 @@ def run_bench(
         raise ValueError(f"--targets must be >= 1, got {n_targets}")
     if not 0 <= n_unreachable <= len(UNREACHABLE):
         raise ValueError(f"--unreachable must be in 0..{len(UNREACHABLE)}, got {n_unreachable}")
-    bad = [m for m in methods if m not in ("adam", "cma")]
+    bad = [m for m in methods if m not in ("auto", "adam", "cma")]
     if bad or not methods:
-        raise ValueError(f"unknown methods {bad or methods}; expected a subset of ['adam', 'cma']")
+        raise ValueError(f"unknown methods {bad or methods}; expected a subset of ['auto', 'adam', 'cma']")
     ctx = load_design_context(checkpoint)
     scene = ctx.scene
     step = scene.n_transitions
@@ -77,13 +77,13 @@ def run_bench(
         )
         for i, raw in enumerate(raw_targets):
             m = truth.metrics(raw, TARGET_SEED)
-            spec = {"targets": {k: {"value": round(float(m[k][step]), 2)} for k in REACHABLE_METRICS}}
+            wanted = {"targets": {k: {"value": round(float(m[k][step]), 2)} for k in REACHABLE_METRICS}}
             oracle = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}
             cases.append(
                 {
                     "name": f"held-out {i + 1}",
                     "reachable": True,
-                    "spec": spec,
+                    "spec": wanted,
                     "recipe": {n: float(v) for n, v in zip(CONTROL_NAMES, raw, strict=True)},
                     "oracle": oracle,
                 }
