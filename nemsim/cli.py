@@ -1629,6 +1629,144 @@ def _cmd_bench_collect(args: argparse.Namespace) -> int:
     return 0
 
 
+# ==== section: inverse design, calibration, bench inverse (owner: inverse) =======================
+
+
+def _add_inverse(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "inverse",
+        help="recipes (controls) whose predicted profile meets target metrics, with intervals",
+        description=(
+            "Search the control box for recipes whose predicted profile metrics (etch depth, top width, "
+            "bottom width, mask loss, bowing; any subset, each with a tolerance, in nm) meet the targets "
+            "at a time step: screening of quasi-random recipes, then multi-start Adam on normalized "
+            "controls through the differentiable rollout; integer controls are rounded at the end and "
+            "re-evaluated. Prints K ranked recipes with predicted metrics, conformal intervals (from "
+            "<checkpoint stem>.calibration.json, see `nemsim calibrate`), a distance-to-training-data "
+            "flag and the search's cost; a target no recipe meets is reported as unreachable with the "
+            "closest recipe and its miss. Spec (JSON): {\"targets\": {\"etch_depth\": {\"value\": 100, "
+            "\"tol\": 5}, \"bottom_width\": {\"value\": 30, \"tol\": 3}}, \"step\": 100, \"fixed\": "
+            "{\"angle_cl\": 5}, \"bounds\": {\"flux_cl\": [0.002, 0.01]}, \"secondary\": {\"metric\": "
+            "\"mask_loss\", \"goal\": \"min\"}, \"k\": 3}. Example: nemsim inverse --checkpoint "
+            "checkpoints/nemsim-small.pt --spec target.json --verify"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="NEMSim checkpoint .pt")
+    p.add_argument("--spec", required=True, metavar="FILE.json",
+                   help="the design spec (JSON file, or - for stdin); see the description")
+    p.add_argument("--verify", action="store_true",
+                   help="also run the simulator on the top recipes (about 2.5 s each on small) and report "
+                   "achieved against target")
+    p.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    p.add_argument("--json", dest="json_out", default=None, metavar="FILE",
+                   help="write the full result as JSON to FILE (- for stdout, then no table)")
+    p.set_defaults(handler=_cmd_inverse)
+
+    p = sub.add_parser(
+        "calibrate",
+        help="conformal intervals of profile metrics for a checkpoint (writes <stem>.calibration.json)",
+        description=(
+            "Split-conformal calibration of a checkpoint's per-step profile-metric errors: roll the model "
+            "out on the validation cases of a setting, take the residuals predicted - simulated per metric "
+            "and step, and store the interval offsets for the nominal levels next to the checkpoint "
+            "(<stem>.calibration.json; the service and `nemsim inverse` read it), with the coverage "
+            "measured on the test cases and the training cases' controls (distance flag). Example: "
+            "nemsim calibrate --checkpoint checkpoints/nemsim-small.pt --data data/small.h5 --splits "
+            "data/splits"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
+    p.add_argument("--data", required=True, metavar="FILE.h5", help="trajectory file the checkpoint was "
+                   "trained on")
+    p.add_argument("--splits", default=None, metavar="DIR", help="split manifests directory (default: "
+                   "<data dir>/splits, else computed)")
+    p.add_argument("--setting", default="control-id", help="split setting (default control-id)")
+    p.add_argument("--levels", default="0.8,0.9", help="nominal coverages, comma-separated (default 0.8,0.9)")
+    p.add_argument("--max-cases", type=int, default=None, help="first N cases of each split (quick runs)")
+    p.add_argument("--out", default=None, metavar="FILE.json",
+                   help="output file (default: <checkpoint dir>/<stem>.calibration.json)")
+    p.set_defaults(handler=_cmd_calibrate)
+
+    p = _bench_subparsers(sub).add_parser(
+        "inverse",
+        help="inverse design judged by the simulator: held-out reachable targets and unreachable ones",
+        description=(
+            "Targets from simulator runs of held-out random recipes (fresh Latin-hypercube points, seed "
+            "--seed) plus deliberately unreachable targets; for each, `nemsim inverse` finds recipes and "
+            "the simulator runs the top-1. Success: the simulator's run meets every tolerance (depth +-5 "
+            "nm, widths +-3 nm, mask loss +-2 nm); an unreachable target must be reported as such. Writes "
+            "inverse.md and inverse.json to --out. Example: nemsim bench inverse --checkpoint "
+            "checkpoints/nemsim-small.pt --out benchmarks/small/inverse"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
+    p.add_argument("--targets", type=int, default=8, help="reachable targets (default 8)")
+    p.add_argument("--seed", type=int, default=7, help="seed of the held-out recipes (default 7)")
+    p.add_argument("--unreachable", type=int, default=3,
+                   help="deliberately unreachable targets to include, 0..3 (default 3)")
+    p.add_argument("--methods", default="auto",
+                   help="search methods to compare, comma-separated subset of auto, adam, cma (default auto: "
+                   "cma when installed, else adam)")
+    p.add_argument("--out", default="runs/bench/inverse", metavar="DIR",
+                   help="output directory (default runs/bench/inverse)")
+    p.set_defaults(handler=_cmd_bench_inverse)
+
+
+def _cmd_inverse(args: argparse.Namespace) -> int:
+    import json
+
+    from nemsim.analysis.inverse import format_result, load_design_context, run_design, spec_from_dict
+
+    text = sys.stdin.read() if args.spec == "-" else Path(args.spec).read_text()
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{args.spec}: not JSON: {exc}") from None
+    spec = spec_from_dict(data)
+    ctx = load_design_context(args.checkpoint)
+    result = run_design(ctx, spec, seed=args.seed, verify=args.verify, progress=args.json_out != "-")
+    if args.json_out == "-":
+        print(json.dumps(result, indent=2))  # noqa: T201
+        return 0
+    print(format_result(result))  # noqa: T201
+    if args.json_out:
+        _write_json(args.json_out, result)
+        print(f"wrote {args.json_out}")  # noqa: T201
+    return 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from nemsim.analysis.intervals import calibrate, calibration_path, format_coverage
+
+    try:
+        levels = tuple(float(v) for v in args.levels.split(","))
+    except ValueError:
+        raise UserError(f"--levels must be numbers in (0, 1) separated by commas, got {args.levels!r}"
+                        ) from None
+    if args.max_cases is not None and args.max_cases < 2:
+        raise UserError(f"--max-cases must be >= 2, got {args.max_cases}")
+    args.device = "cpu"
+    loaded, tf, manifest = _load_for_eval(args)
+    cal = calibrate(loaded, tf, manifest, args.checkpoint, levels=levels, max_cases=args.max_cases,
+                    progress=True)
+    out = cal.write(_output_path(args.out) if args.out else calibration_path(args.checkpoint))
+    print(format_coverage(cal))  # noqa: T201
+    print(f"wrote {out}")  # noqa: T201
+    return 0
+
+
+def _cmd_bench_inverse(args: argparse.Namespace) -> int:
+    from nemsim.evaluation.inverse_bench import format_bench, run_bench, write_bench
+
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    report = run_bench(args.checkpoint, n_targets=args.targets, seed=args.seed, methods=methods,
+                       n_unreachable=args.unreachable)
+    paths = write_bench(report, args.out)
+    print(format_bench(report))  # noqa: T201
+    print(f"wrote {paths['md']}, {paths['json']}")  # noqa: T201
+    return 0
+
+
 # ------------------------------------------------------------------------------------------------
 
 
@@ -1647,7 +1785,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in (_add_rules, _add_data, _add_sim, _add_model, _add_metrics, _add_service, _add_stress,
-                _add_truth_benches, _add_speed_error):
+                _add_truth_benches, _add_speed_error, _add_inverse):
         add(sub)
     _add_debug_option(parser)
     return parser

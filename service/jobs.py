@@ -40,6 +40,7 @@ from service.surrogate import ServiceBusy
 log = logging.getLogger(__name__)
 
 STATUSES = ("pending", "running", "done", "failed", "cancelled")
+KINDS = ("simulation", "design")  # simulator runs (routes/jobs.py), inverse design (routes/design.py)
 KEEP_ARTIFACTS = 4  # finished jobs whose trajectories are kept for GET /jobs/{id}/mesh
 
 

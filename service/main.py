@@ -30,7 +30,7 @@ from service.jobs import JobQueue
 from service.loading import CheckpointError
 from service.metrics import Metrics
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
-from service.routes import health, jobs, mechanisms, operations, page, rollouts
+from service.routes import design, health, jobs, mechanisms, operations, page, rollouts
 from service.scheduler import Gates
 from service.surrogate import Surrogate
 
@@ -177,5 +177,6 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     app.include_router(mechanisms.router)
     app.include_router(operations.router)
     app.include_router(jobs.router)
+    app.include_router(design.router)
     page.install(app)
     return app

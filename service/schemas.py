@@ -346,6 +346,7 @@ class RolloutRequest(ControlSource):
         max_length=64,
         description="surface meshes to return inline (server limit applies)",
     )
+    intervals: bool = Field(False, description="add per-step conformal intervals of the profile metrics")
 
     @model_validator(mode="after")
     def _meshes_in_range(self) -> RolloutRequest:
@@ -450,6 +451,7 @@ class RolloutResponse(BaseModel):
     clipped: bool = Field(False, description="controls were clipped to the training box (policy 'clip')")
     fields: FieldsPayload | None = None
     meshes: list[MeshPayload] = []
+    intervals: dict[str, Any] | None = Field(None, description="with intervals: per-step conformal intervals")
     timings: Timings
 
 

@@ -12,6 +12,7 @@ from fastapi.responses import Response
 from nemsim.geometry.mesh import MEDIA_TYPES
 from service import extrapolation
 from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
+from service.design import rollout_intervals
 from service.openapi import ErrorBody
 from service.scheduler import Gates
 from service.schemas import (
@@ -145,6 +146,7 @@ async def post_rollout(
         clipped=clipped,
         fields=fields,
         meshes=meshes,
+        intervals=rollout_intervals(surrogate, result.metrics) if body.intervals else None,
         timings=Timings(
             total_ms=1e3 * (time.perf_counter() - t_start),
             rollout_ms=0.0 if cached else result.rollout_ms,

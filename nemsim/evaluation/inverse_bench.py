@@ -1,0 +1,241 @@
+"""`nemsim bench inverse`: inverse design judged by the simulator.
+
+Reachable targets are the exact profile metrics (final step) of simulator runs (seed 1) of held-out recipes:
+fresh Latin-hypercube points of the control box (``lhs_unit(n, seed)``, a seed other than the design's, so
+no target recipe is a training case), with the default tolerances (depth +-5 nm, top and bottom width +-3
+nm, mask loss +-2 nm). Unreachable targets ask for what no recipe in the box gives (``UNREACHABLE``). For
+each target the search (``nemsim.analysis.inverse.search``, default configuration) returns recipes and the
+simulator runs the top-1 with another seed (2): success when that run meets every tolerance (reachable) or
+when the target is reported unreachable (unreachable). As a reference for the simulator's own noise, the
+target recipe itself is simulated with seed 2 too ("oracle": the true recipe judged the same way).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nemsim.controls import CONTROL_NAMES, from_unit, lhs_unit
+
+REACHABLE_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss")
+UNREACHABLE: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("deeper than the Si layer (160 nm)", {"etch_depth": {"value": 200.0, "tol": 5.0}}),
+    (
+        "top opening far wider than the mask opening",
+        {"etch_depth": {"value": 80.0, "tol": 5.0}, "top_width": {"value": 70.0, "tol": 3.0}},
+    ),
+    (
+        "bottom wider than the mask opening",
+        {"etch_depth": {"value": 100.0, "tol": 5.0}, "bottom_width": {"value": 50.0, "tol": 3.0}},
+    ),
+)
+TARGET_SEED, VERIFY_SEED = 1, 2
+
+
+def run_bench(
+    checkpoint: str | Path,
+    *,
+    n_targets: int = 8,
+    seed: int = 7,
+    methods: tuple[str, ...] = ("auto",),
+    n_unreachable: int = len(UNREACHABLE),
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the benchmark (module docstring); returns the JSON-ready report."""
+    from dataclasses import replace
+
+    from nemsim.analysis.inverse import (
+        TARGET_METRICS,
+        load_design_context,
+        search,
+        simulator_config,
+        spec_from_dict,
+    )
+    from nemsim.evaluation.truth import SimTruth
+
+    if n_targets < 1:
+        raise ValueError(f"--targets must be >= 1, got {n_targets}")
+    if not 0 <= n_unreachable <= len(UNREACHABLE):
+        raise ValueError(f"--unreachable must be in 0..{len(UNREACHABLE)}, got {n_unreachable}")
+    bad = [m for m in methods if m not in ("auto", "adam", "cma")]
+    if bad or not methods:
+        raise ValueError(f"unknown methods {bad or methods}; expected a subset of ['auto', 'adam', 'cma']")
+    ctx = load_design_context(checkpoint)
+    scene = ctx.scene
+    step = scene.n_transitions
+    raw_targets = from_unit(lhs_unit(n_targets, seed))  # (n, 14) held-out recipes
+    cases: list[dict[str, Any]] = []
+    t_start, c_start = time.perf_counter(), time.process_time()
+    with SimTruth(scene, ctx.loaded.rules, simulator_config(ctx.loaded), progress=progress) as truth:
+        truth.ensure(
+            [(r, TARGET_SEED) for r in raw_targets] + [(r, VERIFY_SEED) for r in raw_targets],
+            desc="target runs",
+        )
+        for i, raw in enumerate(raw_targets):
+            m = truth.metrics(raw, TARGET_SEED)
+            wanted = {"targets": {k: {"value": round(float(m[k][step]), 2)} for k in REACHABLE_METRICS}}
+            oracle = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}
+            cases.append(
+                {
+                    "name": f"held-out {i + 1}",
+                    "reachable": True,
+                    "spec": wanted,
+                    "recipe": {n: float(v) for n, v in zip(CONTROL_NAMES, raw, strict=True)},
+                    "oracle": oracle,
+                }
+            )
+        for name, targets in UNREACHABLE[:n_unreachable]:
+            cases.append({"name": name, "reachable": False, "spec": {"targets": targets}})
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=len(cases) * len(methods), unit="design", desc="inverse designs", dynamic_ncols=True
+            )
+        try:
+            for case in cases:
+                spec = spec_from_dict(case["spec"])
+                case["spec"] = {
+                    "targets": {k: {"value": t.value, "tol": t.tol} for k, t in spec.targets.items()}
+                }
+                if case["reachable"]:
+                    case["oracle_met"] = all(
+                        abs(case["oracle"][k] - t.value) <= t.tol for k, t in spec.targets.items()
+                    )
+                case["runs"] = {}
+                for method in methods:
+                    s = replace(spec, search=replace(spec.search, method=method))  # type: ignore[arg-type]
+                    res = search(ctx, s, seed=0)
+                    top = res["recipes"][0]
+                    raw = np.array([top["controls"][n] for n in CONTROL_NAMES])
+                    achieved = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}
+                    sim_met = all(abs(achieved[k] - t.value) <= t.tol for k, t in spec.targets.items())
+                    covered = {}
+                    for level, per in (top.get("intervals") or {}).items():
+                        covered[level] = {
+                            k: bool(
+                                per[k][0] is not None
+                                and per[k][1] is not None
+                                and per[k][0] <= achieved[k] <= per[k][1]
+                            )
+                            for k in spec.targets
+                            if k in per
+                        }
+                    success = sim_met if case["reachable"] else res["status"] == "unreachable"
+                    case["runs"][method] = {
+                        "status": res["status"],
+                        "success": bool(success),
+                        "simulator_met": bool(sim_met),
+                        "predicted": {k: top["predicted"][k] for k in TARGET_METRICS},
+                        "achieved": {k: round(achieved[k], 3) for k in TARGET_METRICS},
+                        "interval_covers": covered,
+                        "training_data": top["training_data"]["flag"],
+                        "controls": top["controls"],
+                        "cost": res["cost"],
+                    }
+                    if bar is not None:
+                        bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+        n_sim = truth.n_simulated
+        sim_s = truth.sim_wall_s
+    summary = {}
+    for method in methods:
+        reach = [c["runs"][method] for c in cases if c["reachable"]]
+        unreach = [c["runs"][method] for c in cases if not c["reachable"]]
+        costs = [c["runs"][method]["cost"] for c in cases]
+        summary[method] = {
+            "reachable_success": sum(r["success"] for r in reach),
+            "reachable": len(reach),
+            "unreachable_detected": sum(r["success"] for r in unreach),
+            "unreachable": len(unreach),
+            "false_unreachable": sum(r["status"] == "unreachable" for r in reach),
+            "design_cpu_s_mean": round(float(np.mean([c["cpu_s"] for c in costs])), 2),
+            "design_cpu_s_max": round(float(np.max([c["cpu_s"] for c in costs])), 2),
+            "design_wall_s_max": round(float(np.max([c["wall_s"] for c in costs])), 2),
+            "rollouts_mean": round(float(np.mean([c["rollouts"] for c in costs])), 1),
+        }
+    import platform
+
+    return {
+        "checkpoint": Path(checkpoint).name,
+        "model_id": ctx.model_id,
+        "scene": scene.name,
+        "step": step,
+        "targets_seed": seed,
+        "target_sim_seed": TARGET_SEED,
+        "verify_sim_seed": VERIFY_SEED,
+        "oracle_met": sum(bool(c.get("oracle_met")) for c in cases if c["reachable"]),
+        "summary": summary,
+        "cases": cases,
+        "simulations": n_sim,
+        "simulator_wall_s": round(sim_s, 1),
+        "total_wall_s": round(time.perf_counter() - t_start, 1),
+        "total_cpu_s": round(time.process_time() - c_start, 1),
+        "cpu": platform.processor() or platform.machine(),
+        "intervals": {"available": ctx.calibration is not None},
+    }
+
+
+def format_bench(rep: dict[str, Any]) -> str:
+    """Markdown report."""
+    lines = [
+        f"# Inverse design judged by the simulator ({rep['checkpoint']}, scene {rep['scene']})",
+        "",
+        f"{sum(c['reachable'] for c in rep['cases'])} reachable targets (final-step metrics of simulator "
+        f"runs, seed {rep['target_sim_seed']}, of held-out Latin-hypercube recipes, seed "
+        f"{rep['targets_seed']}) and {sum(not c['reachable'] for c in rep['cases'])} unreachable ones. "
+        f"Success: the simulator run (seed {rep['verify_sim_seed']}) of the top-1 recipe meets every "
+        "tolerance (depth +-5 nm, widths +-3 nm, mask loss +-2 nm); an unreachable target must be "
+        f"reported unreachable. Oracle: the target's own recipe, seed {rep['verify_sim_seed']}, meets "
+        f"{rep['oracle_met']} of the reachable targets (the simulator's seed noise).",
+        "",
+        "| method | reachable met (simulator) | unreachable detected | reachable called unreachable | "
+        "design CPU s (mean / max) | wall s max | rollouts (mean) |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for m, s in rep["summary"].items():
+        lines.append(
+            f"| {m} | {s['reachable_success']}/{s['reachable']} | {s['unreachable_detected']}/"
+            f"{s['unreachable']} | {s['false_unreachable']} | {s['design_cpu_s_mean']:.1f} / "
+            f"{s['design_cpu_s_max']:.1f} | {s['design_wall_s_max']:.1f} | {s['rollouts_mean']:.0f} |"
+        )
+    lines += [
+        "",
+        "Per target (predicted / simulated at the top-1 recipe, nm; targets in brackets):",
+        "",
+        "| target | method | status | success | etch depth | top width | bottom width | mask loss | data |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in rep["cases"]:
+        for m, r in c["runs"].items():
+            cells = []
+            for k in ("etch_depth", "top_width", "bottom_width", "mask_loss"):
+                t = c["spec"]["targets"].get(k)
+                tgt = f" ({t['value']:g})" if t else ""
+                cells.append(f"{r['predicted'][k]:.1f} / {r['achieved'][k]:.1f}{tgt}")
+            lines.append(
+                f"| {c['name']} | {m} | {r['status']} | {'yes' if r['success'] else 'NO'} | "
+                + " | ".join(cells)
+                + f" | {r['training_data']} |"
+            )
+    lines += [
+        "",
+        f"{rep['simulations']} simulator runs ({rep['simulator_wall_s']} s wall); whole benchmark "
+        f"{rep['total_wall_s']} s wall, {rep['total_cpu_s']} s CPU of this process (CPU: {rep['cpu']}).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def write_bench(rep: dict[str, Any], out_dir: str | Path) -> dict[str, str]:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "inverse.md").write_text(format_bench(rep))
+    (out / "inverse.json").write_text(json.dumps(rep, indent=1))
+    return {"md": str(out / "inverse.md"), "json": str(out / "inverse.json")}

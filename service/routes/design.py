@@ -1,0 +1,66 @@
+"""Inverse design: `POST /design` (202 + Location; `GET /jobs/{id}` for progress and the result)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import JSONResponse
+
+from nemsim.analysis.inverse import spec_from_dict
+from service.deps import SettingsDep, SurrogateDep, busy, reject
+from service.design import design_work
+from service.design_schemas import DesignRequest
+from service.jobs import JobQueue
+from service.openapi import ErrorBody
+from service.routes.jobs import get_jobs
+from service.schemas import JobCreated
+from service.surrogate import ServiceBusy
+
+router = APIRouter(tags=["design"])
+
+
+@router.post(
+    "/design",
+    status_code=202,
+    response_model=JobCreated,
+    responses={503: {"model": ErrorBody, "description": "the job queue is full (Retry-After)"}},
+)
+async def post_design(
+    body: DesignRequest,
+    surrogate: SurrogateDep,
+    settings: SettingsDep,
+    jobs: Annotated[JobQueue, Depends(get_jobs)],
+) -> JSONResponse:
+    """Find recipes whose predicted profile meets the targets (a job: poll its Location).
+
+    The result lists `k` ranked recipes with predicted metrics, conformal intervals, a distance-to-training-
+    data flag and the search's cost; `status` is `met` or `unreachable` (then the closest recipe and its
+    miss). With `verify`, the simulator runs the top recipes and the result reports achieved against target.
+    """
+    try:
+        spec = spec_from_dict(body.spec_dict())
+    except ValueError as exc:
+        reject(("body",), str(exc))
+    horizon = surrogate.horizon_steps
+    if spec.step is not None and spec.step > horizon:
+        reject(("body", "step"), f"step = {spec.step} is beyond the model's horizon of {horizon}")
+    try:
+        job = jobs.submit(
+            "design",
+            lambda j: design_work(
+                j,
+                surrogate,
+                spec,
+                seed=body.seed,
+                verify=body.verify,
+                verify_top=body.verify_top,
+                sim_seed=body.sim_seed,
+                sim_max_work=settings.sim_max_work,
+            ),
+        )
+    except ServiceBusy as exc:
+        busy(exc)
+    location = f"/jobs/{job.id}"
+    created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location)
+    return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})

@@ -1,0 +1,115 @@
+"""POST /design: 202 + Location, progress through GET /jobs/{id}, the result's recipes, 422 on a bad
+spec, verification by the simulator; opt-in intervals on POST /rollout with and without a calibration."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import numpy as np
+
+SMALL_SEARCH = {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}
+
+
+def _poll(client, location: str, timeout_s: float = 120.0) -> tuple[dict, list[float]]:
+    seen = []
+    deadline = time.monotonic() + timeout_s
+    while True:
+        body = client.get(location).json()
+        seen.append(body["progress"])
+        if body["status"] in ("done", "failed", "cancelled") or time.monotonic() > deadline:
+            return body, seen
+        time.sleep(0.02)
+
+
+def test_design_job_202_progress_and_result(make_client, monkeypatch):
+    import service.routes.design as route
+
+    real = route.spec_from_dict
+    monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": SMALL_SEARCH}))
+    client = make_client()
+    r = client.post(
+        "/design",
+        json={
+            "targets": {"etch_depth": {"value": 20, "tol": 5}, "mask_loss": 1.0},
+            "step": 3,
+            "k": 2,
+            "verify": True,
+        },
+    )
+    assert r.status_code == 202, r.text
+    created = r.json()
+    assert created["kind"] == "design" and r.headers["location"] == created["location"]
+    done, seen = _poll(client, created["location"])
+    assert done["status"] == "done", done
+    assert done["progress"] == 1.0 and all(0.0 <= p <= 1.0 for p in seen)
+    assert seen == sorted(seen)  # progress never goes back
+    res = done["result"]
+    assert res["status"] in ("met", "unreachable") and len(res["recipes"]) == 2
+    top = res["recipes"][0]
+    assert set(top["targets"]) == {"etch_depth", "mask_loss"}
+    assert top["training_data"]["flag"] in ("inside", "far")
+    assert res["cost"]["rollouts"] > 0 and res["cost"]["wall_s"] > 0
+    ver = res["verification"]["recipes"]
+    assert len(ver) == 1 and set(ver[0]["achieved"]) >= {"etch_depth", "mask_loss"}
+    assert isinstance(ver[0]["met"], bool)
+
+
+def test_bad_design_requests_are_422(make_client):
+    client = make_client()
+    for body, word in (
+        ({"targets": {}}, "targets"),
+        ({"targets": {"depth": 5}}, "targets"),
+        ({"targets": {"etch_depth": 5}, "fixed": {"flux_xx": 1.0}}, "unknown control"),
+        ({"targets": {"etch_depth": 5}, "step": 500}, "horizon"),
+    ):
+        r = client.post("/design", json=body)
+        assert r.status_code == 422, (body, r.text)
+        assert word in r.text
+
+
+def test_rollout_intervals_opt_in(make_client, tiny_checkpoint, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from nemsim.analysis.intervals import Calibration, file_digest, offsets_from_residuals
+    from service.config import Settings
+    from service.deps import get_surrogate
+    from service.main import create_app
+    from service.surrogate import Surrogate
+
+    client = make_client()
+    body = {"controls_normalized": [0.0] * 14, "steps": 3}
+    r = client.post("/rollout", json=body)
+    assert r.status_code == 200 and r.json()["intervals"] is None  # not asked
+    r = client.post("/rollout", json={**body, "intervals": True})
+    assert r.status_code == 200 and r.json()["intervals"]["available"] is False  # no calibration file
+
+    ckpt = tmp_path / "calibrated.pt"
+    shutil.copy(tiny_checkpoint, ckpt)
+    rng = np.random.default_rng(0)
+    res = {m: rng.normal(size=(30, 4)) for m in ("etch_depth", "mask_loss")}
+    Calibration(
+        checkpoint_sha256=file_digest(ckpt),
+        scene="tiny",
+        levels=(0.8, 0.9),
+        metrics=tuple(res),
+        offsets=offsets_from_residuals(res, (0.8, 0.9)),
+        calibration={"setting": "control-id", "split": "val", "cases": 30},
+    ).write(tmp_path / "calibrated.calibration.json")
+    surrogate = Surrogate.from_checkpoint(ckpt, cache_size=4)
+    app = create_app(Settings(warmup_steps=0, rate_limit_per_minute=0), surrogate=surrogate)
+    app.dependency_overrides[get_surrogate] = lambda: surrogate
+    with TestClient(app) as c:
+        out = c.post("/rollout", json={**body, "intervals": True}).json()
+    iv = out["intervals"]
+    assert iv["available"] is True and iv["levels"] == [0.8, 0.9]
+    for level in ("0.8", "0.9"):
+        depth = iv["by_level"][level]["etch_depth"]
+        pred = out["metrics"]["etch_depth"]
+        assert len(depth["lo"]) == len(pred) == 4
+        assert all(
+            lo <= p <= hi for lo, p, hi in zip(depth["lo"][1:], pred[1:], depth["hi"][1:], strict=True)
+        )
+    wide = iv["by_level"]["0.9"]["etch_depth"]
+    narrow = iv["by_level"]["0.8"]["etch_depth"]
+    assert all(w_lo <= n_lo for w_lo, n_lo in zip(wide["lo"][1:], narrow["lo"][1:], strict=True))
