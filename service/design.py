@@ -35,7 +35,7 @@ def calibration(surrogate: Any) -> Calibration | None:
         return _calibrations[surrogate.model_id]
 
 
-def rollout_intervals(surrogate: Any, metrics: dict[str, list[float]]) -> dict[str, Any]:
+def rollout_intervals(surrogate: Any, metrics: dict[str, list[float | None]]) -> dict[str, Any]:
     """Per-step conformal intervals of a rollout's metrics, or why there are none."""
     cal = calibration(surrogate)
     if cal is None:

@@ -134,14 +134,17 @@ class Calibration:
         lo, hi = off["lower"][step], off["upper"][step]
         return (None if lo is None else value + lo, None if hi is None else value + hi)
 
-    def intervals(self, metrics: Mapping[str, Sequence[float]], level: float) -> dict[str, dict[str, list]]:
+    def intervals(self, metrics: Mapping[str, Sequence[float | None]],
+                  level: float) -> dict[str, dict[str, list]]:
         """Per-step intervals of a metrics trajectory {name: (T+1,)}: {name: {"lo": [...], "hi": [...]}}.
-        Steps past the calibrated horizon reuse the last calibrated step's offsets (flagged by callers)."""
+        Steps past the calibrated horizon reuse the last calibrated step's offsets (flagged by callers); a
+        value that is undefined (None, e.g. no hole yet) has no interval (None, None)."""
         out: dict[str, dict[str, list]] = {}
         for name, values in metrics.items():
             if name not in self.metrics:
                 continue
-            pairs = [self.interval(name, min(t, self.steps), float(v), level) for t, v in enumerate(values)]
+            pairs = [(None, None) if v is None else self.interval(name, min(t, self.steps), float(v), level)
+                     for t, v in enumerate(values)]
             out[name] = {"lo": [p[0] for p in pairs], "hi": [p[1] for p in pairs]}
         return out
 
