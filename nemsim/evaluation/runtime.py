@@ -18,8 +18,10 @@ rule kinetics are not bf16-friendly) and feeds the graph. Which cache entries ar
 evaluating ``precompute`` at two random control vectors: entries that differ are inputs, the others (rule
 buffers, weight products) are folded into the graph as constants. Models without ``precompute``
 (baselines) are exported as ``forward(x, u)`` with ``u`` the input.
-Shapes are static: one OpenVINO model is converted and compiled per (state shape incl. batch, input shapes)
-on first use and kept, so a scene at batch 1 and 16 compiles twice. Infer requests (not thread-safe; the
+Shapes are static: one OpenVINO model is converted, reshaped to the call's input shapes (the trace alone
+leaves them dynamic, and the plugin then redoes shape arithmetic and memory planning on every call) and
+compiled per (state shape incl. batch, input shapes) on first use and kept, so a scene at batch 1 and 16
+compiles twice. Infer requests (not thread-safe; the
 compiled model is shared) come from a pool: a call takes an idle one or makes one, and gives it back, so
 there are as many as calls ever ran at once, not one per thread that ever called (a server's thread pool).
 Outputs are copied out of the request's buffers, so a kept trajectory is never overwritten by the next step.
@@ -118,14 +120,16 @@ def model_predict(model: nn.Module, x: torch.Tensor, cache: dict[str, Any]) -> t
 def _export_kernels() -> Iterator[None]:
     """Swap eager-tuned kernels for standard ops with the same values while tracing for export: the layers'
     direct oneDNN calls (``aten.mkldnn_convolution``, prepacked weights: not convertible) become
-    ``F.conv3d``, and the decoder's broadcast-copy 2x up-sampling becomes ``F.interpolate(nearest)``
-    (OpenVINO ran the 8-D broadcast as a slow element-wise multiply). Module globals are swapped for the
+    ``F.conv3d``, the decoder's broadcast-copy 2x up-sampling becomes ``F.interpolate(nearest)``
+    (OpenVINO ran the 8-D broadcast as a slow element-wise multiply), and GroupNorm runs on a 4-D view
+    (``_group_norm_4d``). Module globals are swapped for the
     duration of the trace (under the predictor's lock); an eager rollout running meanwhile in another
     thread takes the standard path too: same values, only slower for that moment."""
     from nemsim.model import decoder, layers
 
     swaps = [(mod, name, new) for mod, name, new in
-             ((decoder, "upsample2", _upsample_nearest), (layers, "_onednn_ok", _never))
+             ((decoder, "upsample2", _upsample_nearest), (layers, "_onednn_ok", _never),
+              (layers, "apply_group_norm", _group_norm_4d))
              if hasattr(mod, name)]  # fmt: skip
     originals = [getattr(mod, name) for mod, name, _ in swaps]
     for mod, name, new in swaps:
@@ -139,6 +143,16 @@ def _export_kernels() -> Iterator[None]:
 
 def _never(x: torch.Tensor) -> bool:
     return False
+
+
+def _group_norm_4d(gn: nn.GroupNorm, x: torch.Tensor) -> torch.Tensor:
+    """GroupNorm of a 5-D x (B, C, D, H, W) computed on its (B, C, D, H·W) view: the same statistics and
+    values. OpenVINO's CPU plugin fuses the per-channel affine with the SiLU that follows into one
+    element-wise kernel, which it ran several times slower on 5-D tensors than on 4-D ones (measured on
+    GroupNorm + SiLU of a (1, 12, 34, 14, 14) tensor; most of the step graph's normalization time)."""
+    if x.dim() != 5:
+        return F.group_norm(x, gn.num_groups, gn.weight, gn.bias, gn.eps)
+    return F.group_norm(x.flatten(3), gn.num_groups, gn.weight, gn.bias, gn.eps).view(x.shape)
 
 
 def _upsample_nearest(h: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
@@ -290,6 +304,9 @@ class OpenVINOPredictor(_Predictor):
             example = (x.detach().float().clone(), *(torch.from_numpy(a.copy()) for a in cache.inputs))
             with _export_kernels():
                 ov_model = ov.convert_model(graph, example_input=example)  # TorchScript trace
+            # the trace leaves every input dimension dynamic: fixing them lets the plugin fold the shape
+            # arithmetic and plan memory and kernels once instead of on every call
+            ov_model.reshape({i: ov.PartialShape([int(n) for n in t.shape]) for i, t in enumerate(example)})
         props = {
             "INFERENCE_NUM_THREADS": self.threads,
             "NUM_STREAMS": 1,
@@ -338,7 +355,12 @@ class OpenVINOPredictor(_Predictor):
         try:
             xin = x.detach().float().contiguous().numpy()
             out = req.infer([xin, *cache.inputs], share_inputs=True, share_outputs=True)[0]
-            return torch.from_numpy(out.copy())  # (B, k, 2, D, H, W); copied out of the request's buffer
+            # copied out of the request's buffer into memory from torch's allocator, which reuses freed
+            # blocks: numpy's ``out.copy()`` maps fresh pages for every multi-MB result (page faults cost
+            # several times the copy itself)
+            res = torch.empty(out.shape, dtype=torch.float32)  # (B, k, 2, D, H, W)
+            res.numpy()[...] = out
+            return res
         finally:
             self._release(key, req)
 

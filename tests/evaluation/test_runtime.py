@@ -28,8 +28,7 @@ needs_openvino = pytest.mark.skipif(not openvino_available(), reason="openvino n
 STEPS = 6
 
 
-@pytest.fixture(scope="module")
-def trained(tiny_scene):
+def _trained(tiny_scene, config: dict | None = None):
     """(model, x0 (2, 2, D, H, W), u (2, STEPS, 14)): NEMSim after 5 Adam steps; a recipe per case."""
     from nemsim.evaluation.stress import initial_state
     from nemsim.registry import build_model
@@ -37,7 +36,7 @@ def trained(tiny_scene):
     from nemsim.rules.schema import load_rules
 
     torch.manual_seed(0)
-    model = build_model("nemsim", tiny_scene, compile_rules(load_rules()))
+    model = build_model("nemsim", tiny_scene, compile_rules(load_rules()), config)
     zero = [n for n, p in model.named_parameters() if p.abs().max() == 0]
     x0 = torch.as_tensor(initial_state(tiny_scene))[None].repeat(2, 1, 1, 1, 1)  # (2, 2, D, H, W)
     g = torch.Generator().manual_seed(1)
@@ -45,7 +44,7 @@ def trained(tiny_scene):
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     for _ in range(5):
         u = torch.rand(2, 14, generator=g) * 2 - 1
-        loss = (model(x0, u) - target).pow(2).mean()
+        loss = (model(x0, u, all_steps=True) - target[:, None]).pow(2).mean()  # all k states
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -54,6 +53,18 @@ def trained(tiny_scene):
     u = torch.rand(2, 1, 14, generator=g).repeat(1, STEPS, 1) * 2 - 1  # (2, STEPS, 14)
     u[:, STEPS // 2 :] = torch.rand(2, 1, 14, generator=g) * 2 - 1  # the controls change mid-rollout
     return model, x0, u
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_scene):
+    return _trained(tiny_scene)
+
+
+@pytest.fixture(scope="module")
+def trained_multistep(tiny_scene):
+    """The served model's form: k = 4 states per call (STEPS = 6 with a control change at 3: chunks of 3),
+    flux gate on."""
+    return _trained(tiny_scene, {"steps_per_call": 4, "flux_gate": True})
 
 
 @pytest.mark.slow
@@ -81,6 +92,27 @@ def test_openvino_f32_matches_pytorch(trained):
     assert len(results) == 3 and all(torch.equal(r, out) for r in results)
     (idle,) = pred._idle.values()
     assert 1 <= len(idle) <= 3  # as many requests as calls ran at once, all returned to the pool
+
+
+@pytest.mark.slow
+@needs_openvino
+@pytest.mark.parametrize("precision", ["f32", "bf16"])
+def test_openvino_multistep_matches_pytorch(trained_multistep, precision):
+    """The exported multi-step graph (extra-step head, flux gate, GroupNorm on its 4-D view, static
+    shapes) against PyTorch eager on trained weights."""
+    model, x0, u = trained_multistep
+    ref = rollout(model, x0, u)
+    pred = compile_model(model, "openvino", precision)
+    out = rollout(pred, x0, u)
+    assert pred.backend == "openvino" and pred.k == 4 and out.shape == ref.shape
+    assert (out[:, 1:] - out[:, :1]).abs().max() > 1e-3
+    (compiled,) = pred._compiled.values()
+    assert all(i.get_partial_shape().is_static for i in compiled.inputs)  # compiled for the state's shape
+    d = out - ref
+    if precision == "f32":
+        assert d.abs().max() <= 1e-4
+    else:
+        assert d.abs().max() <= 0.05 and d.pow(2).mean().sqrt() <= 0.01
 
 
 @pytest.mark.slow
