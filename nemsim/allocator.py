@@ -57,11 +57,11 @@ def train_step_cost(checkpoint: str, batch: int, steps: int) -> dict[str, float]
 
     import torch
 
-    from nemsim.training.checkpoint import load_checkpoint
+    from nemsim.checkpoint import load_checkpoint
 
     torch.set_num_threads(1)
-    model = load_checkpoint(checkpoint).model
-    scene = load_checkpoint(checkpoint).scene
+    loaded = load_checkpoint(checkpoint)
+    model, scene = loaded.model, loaded.scene
     k = int(getattr(getattr(model, "config", None), "steps_per_call", 1))
     gen = torch.Generator().manual_seed(0)
     x = torch.rand(batch, *scene.state_shape, generator=gen) * 2 - 1  # (B, 2, D, H, W)
