@@ -200,3 +200,27 @@ def test_ruff_clean():
 def test_mypy_clean():
     res = subprocess.run([_tool("mypy"), "nemsim", "service"], cwd=ROOT, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def _is_module(dotted: str) -> bool:
+    base = ROOT.joinpath(*dotted.split("."))
+    return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
+
+
+def test_project_imports_name_existing_modules():
+    """Every ``import nemsim.x`` / ``from nemsim.x import y`` (function-level ones included) names a module
+    that exists: a moved module cannot hide behind a lazy import that only runs on a rare path."""
+    missing = []
+    files = [*PACKAGE.rglob("*.py"), *(ROOT / "service").rglob("*.py"), *(ROOT / "tests").rglob("*.py")]
+    for path in sorted(files):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            else:
+                continue
+            for name in names:
+                if name.split(".")[0] in ("nemsim", "service") and not _is_module(name):
+                    missing.append(f"{path.relative_to(ROOT)}:{node.lineno} {name}")
+    assert not missing, "imports of modules that do not exist:\n" + "\n".join(missing)
