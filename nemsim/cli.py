@@ -714,6 +714,7 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
                    help="trajectories rolled out together (default 1, the paper's per-trajectory timing)")
     p.add_argument("--no-cd", action="store_true", help="skip the Chamfer distance (the slowest metric)")
     p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N")
+    _add_monotone_option(p)
     p.set_defaults(handler=_cmd_evaluate)
 
     p = sub.add_parser(
@@ -792,6 +793,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.batch_size < 1:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
     loaded, tf, manifest = _load_for_eval(args)
+    _apply_monotone(args, loaded.model)
     horizon = loaded.scene.n_transitions
     if args.steps is not None and not 1 <= args.steps <= horizon:
         raise UserError(f"--steps must be in [1, {horizon}] (the scene's horizon), got {args.steps}")
@@ -1249,13 +1251,62 @@ def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="runs/bench/extrapolation", metavar="DIR",
                    help="output directory (default runs/bench/extrapolation)")
     p.set_defaults(handler=_cmd_bench_extrapolation)
+    p = bench_sub.add_parser(
+        "monotone-eps",
+        help="the monotone projection's eps: how far the data's SDF falls below its running maximum",
+        description=(
+            "Etching only removes material, so each voxel's SDF is non-decreasing in time; the simulator's "
+            "stored states are so up to sub-voxel noise. For each channel (mask, Si) print quantiles of the "
+            "fall of a voxel below its running maximum over the trajectories (voxels that change at some "
+            "step only): the slack eps of the rollouts' monotone projection (NEMSimConfig.monotone_eps). "
+            "Example: nemsim bench monotone-eps --data data/small.h5 --splits data/splits --max-cases 40"
+        ),
+    )
+    p.add_argument("--data", required=True, metavar="FILE.h5", help="design data file (nemsim generate)")
+    p.add_argument("--setting", default="control-id", help="split setting (default control-id)")
+    p.add_argument("--splits", default=None, metavar="DIR", help="split manifests directory")
+    p.add_argument("--split", default="train", help="split whose cases are read (default train)")
+    p.add_argument("--max-cases", type=int, default=40, help="first N cases of the split (default 40)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the quantiles to this JSON file")
+    p.set_defaults(handler=_cmd_bench_monotone_eps)
+
+
+def _cmd_bench_monotone_eps(args: argparse.Namespace) -> int:
+    import json
+
+    import numpy as np
+
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.data.splits import resolve_manifest
+    from nemsim.model.monotone import measure_eps
+
+    if args.max_cases < 1:
+        raise UserError(f"--max-cases must be >= 1, got {args.max_cases}")
+    if not Path(args.data).is_file():
+        raise UserError(f"{args.data} does not exist")
+    with open_trajectories(args.data) as tf:
+        case_ids = np.asarray(tf.case_ids)
+        try:
+            manifest, _ = resolve_manifest(args.setting, args.data, case_ids, tf.controls_raw,
+                                           tf.scene.n_transitions, args.splits)  # fmt: skip
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+    ids = [int(c) for c in manifest.get(args.split, [])][: args.max_cases]
+    if not ids:
+        raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
+    rows = [int(np.flatnonzero(case_ids == c)[0]) for c in ids]
+    rep = {"setting": args.setting, "split": args.split, "case_ids": ids, **measure_eps(args.data, rows)}
+    print(json.dumps({k: v for k, v in rep.items() if k != "case_ids"}, indent=2))  # noqa: T201
+    if args.json_out:
+        _write_json(args.json_out, rep)
+    return 0
 
 
 def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
     from nemsim.evaluation import extrapolation as ex
     from nemsim.evaluation.stress import initial_state
 
-    loaded = _load_truth_checkpoint(args.checkpoint)
+    loaded = _load_truth_checkpoint(args.checkpoint, args)
     try:
         distances = tuple(float(v) for v in args.distances.split(",") if v.strip())
     except ValueError:
@@ -1277,20 +1328,23 @@ def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_truth_checkpoint(path: str):
+def _load_truth_checkpoint(path: str, args: argparse.Namespace | None = None):
     from nemsim.checkpoint import load_checkpoint
 
     try:
-        return load_checkpoint(path)
+        loaded = load_checkpoint(path)
     except (FileNotFoundError, ValueError) as exc:
         raise UserError(str(exc)) from exc
+    if args is not None:
+        _apply_monotone(args, loaded.model)
+    return loaded
 
 
 def _cmd_bench_physics(args: argparse.Namespace) -> int:
     from nemsim.evaluation import physics
     from nemsim.evaluation.stress import initial_state
 
-    loaded = _load_truth_checkpoint(args.checkpoint)
+    loaded = _load_truth_checkpoint(args.checkpoint, args)
     try:
         cfg = physics.PhysicsConfig(levels=args.levels, heldout=args.heldout, corners=args.corners,
                                     seeds=_parse_seeds(args.seeds))
@@ -1340,6 +1394,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
         loaded = load_checkpoint(args.checkpoint)
     except (FileNotFoundError, ValueError) as exc:
         raise UserError(str(exc)) from exc
+    _apply_monotone(args, loaded.model)
     cfg = StressConfig(steps=args.steps, max_corners=args.max_corners, noise_cases=args.noise_cases,
                        batch_size=args.batch_size, seed=args.seed, abs_bound=args.abs_bound)
     x0 = initial_state(loaded.scene)
@@ -1389,7 +1444,23 @@ def _add_truth_options(p: argparse.ArgumentParser) -> None:
                    help="keep the simulator runs here and reuse them on a rerun (default: a temporary "
                    "directory)")
     _add_sim_overrides(p)
+    _add_monotone_option(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_monotone_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-monotone", action="store_true",
+                   help="roll out without the monotone projection (each state lifted to at least its running "
+                   "maximum minus the model's monotone_eps; on for NEMSim checkpoints), e.g. to compare")
+
+
+def _apply_monotone(args: argparse.Namespace, model: typing.Any) -> None:
+    """--no-monotone: the model's rollouts skip the projection (its config's ``monotone_eps`` set to None)."""
+    import dataclasses
+
+    cfg: typing.Any = getattr(model, "config", None)
+    if args.no_monotone and getattr(cfg, "monotone_eps", None) is not None:
+        model.config = dataclasses.replace(cfg, monotone_eps=None)
 
 
 def _parse_seeds(text: str) -> tuple[int, int]:

@@ -253,8 +253,8 @@ def simulator_config(loaded: Any) -> Any:
 def load_design_context(checkpoint: str | Path) -> DesignContext:
     """Load a checkpoint, its initial state (its simulator configuration) and its calibration file."""
     from nemsim.analysis.intervals import calibration_for, file_digest
-    from nemsim.sim import initial_state
     from nemsim.checkpoint import load_checkpoint
+    from nemsim.sim import initial_state
 
     path = Path(checkpoint)
     if not path.is_file():

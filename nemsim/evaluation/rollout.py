@@ -1,7 +1,10 @@
 """The autoregressive rollout protocol of [supp_protocols] (eq. supp_autoregressive_rollout).
 
 x̂_0 = x_0 (ground truth), x̂_{t+1} = G_θ(x̂_t, u_t) for t = 0..T-1. Every prediction is fed back as it
-is: no teacher forcing, no correction, no reinitialization, no clipping of states or controls.
+is: no teacher forcing, no correction, no reinitialization, no clipping of states or controls -- except
+the monotone projection of a model that asks for it (``monotone``; ``nemsim.model.monotone``): each
+predicted state is lifted to at least its running maximum minus a per-channel slack, because etching only
+removes material. It is part of the model's prediction (the next call reads the projected state).
 Controls may vary per transition (a recipe); a constant control is the same vector repeated.
 
 Fast path ("model only what a scene needs"): a model with ``precompute(u) -> cache`` and
@@ -26,6 +29,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from nemsim.model.monotone import MonotoneProjection, monotone_eps_of
+
 StepCallback = Callable[[int, torch.Tensor], None]
 
 
@@ -40,6 +45,7 @@ def rollout(
     on_step: StepCallback | None = None,
     window: bool = False,
     stats: dict[str, Any] | None = None,
+    monotone: bool | None = None,
 ) -> torch.Tensor:
     """Roll a one-step model forward from x0.
 
@@ -58,6 +64,10 @@ def rollout(
             faster on ``small`` (see there): off by default.
         stats: if given, filled with {"calls", "full_calls", "fraction_computed", "start"} of the window
             (``fraction_computed`` = mean share of the voxels computed per call), or {"calls"} without one.
+        monotone: project every predicted state onto x >= (running maximum) - eps
+            (``nemsim.model.monotone.MonotoneProjection``). None (default) follows the model's
+            ``config.monotone_eps`` (NEMSim: on; baselines: off); False: off; True: on (``MONOTONE_EPS``
+            for a model without its own eps).
 
     Returns:
         (B, steps + 1, 2, D, H, W) with x0 first, or (B, 2, D, H, W) (the last state) if keep=False.
@@ -90,6 +100,7 @@ def rollout(
             raise ValueError(f"window=True needs a NEMSim model (precompute/predict); "
                              f"got {type(model).__name__}")
         depth_window = DepthWindow(model)
+    project = _projection(model, x0, monotone)
     cache = None
     t = calls = 0
     while t < T:
@@ -108,7 +119,7 @@ def rollout(
                 n = _chunk_length(changed, t, k, T)
                 chunk = model.predict(x, cache)[:, :n]  # type: ignore[operator]  # (B, n, 2, D, H, W)
         for j in range(chunk.shape[1]):
-            x = chunk[:, j]  # (B, 2, D, H, W)
+            x = chunk[:, j] if project is None else project(chunk[:, j])  # (B, 2, D, H, W)
             t += 1
             if keep:
                 traj.append(x)  # type: ignore[union-attr]
@@ -119,6 +130,12 @@ def rollout(
     if keep:
         return torch.stack(traj, dim=1)  # type: ignore[arg-type]  # (B, T+1, 2, D, H, W)
     return x
+
+
+def _projection(model: nn.Module, x0: torch.Tensor, monotone: bool | None) -> MonotoneProjection | None:
+    """The monotone projection of this rollout, or None (``rollout``'s ``monotone``)."""
+    eps = monotone_eps_of(model, monotone)
+    return None if eps is None else MonotoneProjection(x0, eps)
 
 
 def steps_per_call(model: nn.Module) -> int:

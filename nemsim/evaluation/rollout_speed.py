@@ -36,11 +36,13 @@ VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last", "openvino-f32", "op
 
 
 class _PerCall(nn.Module):
-    """Hides ``precompute``/``step`` so ``rollout`` calls ``model(x, u_t)`` every step."""
+    """Hides ``precompute``/``step`` so ``rollout`` calls ``model(x, u_t)`` every step (the model's config
+    stays visible, so the rollout projects as it does for the model)."""
 
     def __init__(self, model: nn.Module) -> None:
         super().__init__()
         self.model = model
+        self.config = getattr(model, "config", None)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return self.model(x, u)

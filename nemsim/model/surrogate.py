@@ -31,6 +31,10 @@ Choices where the paper is silent:
     bound; with it they stay bounded, at a small cost in rollout error inside the trained horizon (measured
     in checkpoints/README.md and benchmarks/small/README.md).
     Default on; checkpoints written before the flag existed load with it on (set false to reproduce them).
+  * ``monotone_eps``: not used by ``forward``; ``nemsim.evaluation.rollout`` reads it and projects every
+    predicted state onto x >= (the rollout's running maximum) - eps, since etching only removes material
+    (``nemsim.model.monotone``). Checkpoints written before the key existed load with the default (on); set
+    it to None (``null``) to turn the projection off.
 
 Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
 the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,
@@ -64,6 +68,7 @@ from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredInte
 from nemsim.model.encoder import EncoderConfig, StateEncoder
 from nemsim.model.gate import ion_flux_gate
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
+from nemsim.model.monotone import MONOTONE_EPS
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
 from nemsim.model.window import WindowRun, splice_latent
@@ -88,6 +93,8 @@ class NEMSimConfig:
     kinetics: Literal["paper", "physical"] = "paper"  # rule kinetics of EIC (nemsim.rules.kinetics)
     flux_gate: bool = False  # scale the update by the ion-flux gate (nemsim.model.gate): no ions, no change
     steps_per_call: int = 1  # k states predicted per call (1 = the paper's model; see "Multi-step" below)
+    # rollouts project each state onto x >= running max - eps, (mask, Si); None: off (nemsim.model.monotone)
+    monotone_eps: tuple[float, float] | None = MONOTONE_EPS
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths

@@ -1,0 +1,110 @@
+"""Monotone projection of rollouts (``nemsim.model.monotone``): no voxel falls more than eps below its
+running maximum, on every rollout path; zero flux is still exactly no change."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nemsim.controls import FLUX_INDICES, HIGH, LOW, to_normalized
+from nemsim.evaluation.rollout import rollout
+from nemsim.evaluation.runtime import compile_model, openvino_available
+from nemsim.evaluation.stress import initial_state
+from nemsim.model import NEMSim, NEMSimConfig
+from nemsim.model.monotone import MONOTONE_EPS, MonotoneProjection, running_max_drop
+from nemsim.scenes import TINY
+
+T = 12
+
+
+def _model(rules, **cfg) -> NEMSim:
+    """Untrained weights perturbed so every head is non-zero: a rollout that wanders (up and down)."""
+    torch.manual_seed(0)
+    model = NEMSim(rules, NEMSimConfig(**cfg)).eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return model
+
+
+def _inputs() -> tuple[torch.Tensor, torch.Tensor]:
+    """x0 (2, 2, D, H, W) the tiny scene's initial state; u (2, T, 14) a recipe changing at T // 2."""
+    x0 = torch.as_tensor(initial_state(TINY))[None].repeat(2, 1, 1, 1, 1).float()
+    g = torch.Generator().manual_seed(3)
+    u = torch.rand(2, 1, 14, generator=g).repeat(1, T, 1) * 2 - 1  # (2, T, 14)
+    u[:, T // 2 :] = torch.rand(2, 1, 14, generator=g) * 2 - 1
+    return x0, u
+
+
+def _worst_fall(traj: torch.Tensor, eps: tuple[float, ...]) -> float:
+    """max over voxels and t of (running max over s < t) - eps_c - x_t: > 0 where the bound is broken."""
+    prior = torch.cummax(traj, dim=1).values[:, :-1]  # (B, T, 2, D, H, W) max over s <= t - 1
+    e = torch.tensor(eps).view(1, 1, -1, 1, 1, 1)
+    return float((prior - e - traj[:, 1:]).max())
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_rollout_never_falls_below_running_max(rules, k):
+    model = _model(rules, steps_per_call=k)
+    assert model.config.monotone_eps == MONOTONE_EPS  # on by default
+    x0, u = _inputs()
+    on = rollout(model, x0, u)
+    off = rollout(model, x0, u, monotone=False)
+    assert _worst_fall(off, MONOTONE_EPS) > 0.05  # without it these weights do run backwards
+    assert _worst_fall(on, MONOTONE_EPS) <= 0.0
+    # the first state is the projection of the model's own prediction (nothing else changes)
+    floor = x0 - torch.tensor(MONOTONE_EPS).view(1, 2, 1, 1, 1)
+    torch.testing.assert_close(on[:, 1], torch.maximum(off[:, 1], floor))
+    assert (on[:, 1:] != off[:, 1:]).any() and torch.equal(on[:, 0], x0)
+    assert torch.equal(rollout(model, x0, u, keep=False), on[:, -1])
+
+
+def test_every_runtime_backend_projects(rules):
+    model = _model(rules, steps_per_call=3)
+    x0, u = _inputs()
+    ref = rollout(model, x0, u)
+    backends = ["torch"] + (["openvino"] if openvino_available() else [])
+    for backend in backends:
+        pred = compile_model(model, backend, "f32")
+        with torch.inference_mode():  # as the service calls it
+            out = rollout(pred, x0, u)
+        assert _worst_fall(out, MONOTONE_EPS) <= 0.0
+        assert (out - ref).abs().max() <= 1e-4
+
+
+def test_zero_flux_is_still_exactly_no_change(rules):
+    model = _model(rules, flux_gate=True)
+    x0, _ = _inputs()
+    raw = 0.5 * (LOW + HIGH)
+    raw[list(FLUX_INDICES)] = 0.0
+    u = torch.from_numpy(to_normalized(raw[None])).float()  # (1, 14)
+    traj = rollout(model, x0[:1], u, 30)
+    assert (traj - x0[:1, None]).abs().max() <= 1e-6
+
+
+def test_config_switches(rules):
+    x0, u = _inputs()
+    off_cfg = _model(rules, monotone_eps=None)
+    on = _model(rules)
+    assert torch.equal(rollout(off_cfg, x0, u), rollout(on, x0, u, monotone=False))
+    assert torch.equal(rollout(off_cfg, x0, u, monotone=True), rollout(on, x0, u))  # True: MONOTONE_EPS
+    # checkpoints written before the key existed load with the projection on
+    assert NEMSimConfig.from_dict({"steps_per_call": 3}).monotone_eps == MONOTONE_EPS
+    assert NEMSimConfig.from_dict({"monotone_eps": [0.0, 0.1]}).monotone_eps == (0.0, 0.1)
+    wide = _model(rules, monotone_eps=(2.0, 2.0))  # states lie in [-1, 1]: a slack of 2 is never active
+    assert torch.equal(rollout(wide, x0, u), rollout(on, x0, u, monotone=False))
+
+
+def test_projection_keeps_monotone_states_and_rejects_bad_eps():
+    g = torch.Generator().manual_seed(0)
+    steps = torch.rand(5, 1, 2, 3, 3, 3, generator=g).cumsum(0) * 0.1 - 0.5  # non-decreasing in time
+    proj = MonotoneProjection(steps[0], (0.0, 0.0))
+    for s in steps[1:]:
+        assert torch.equal(proj(s), s)
+    assert torch.equal(proj(steps[0]), steps[-1])  # eps = 0: a fall is lifted to the running maximum
+    assert np.all(running_max_drop(steps[:, 0].numpy()) == 0)
+    with pytest.raises(ValueError, match="one per channel"):
+        MonotoneProjection(steps[0], (0.1,))
+    with pytest.raises(ValueError, match=">= 0"):
+        MonotoneProjection(steps[0], (0.1, -0.1))
