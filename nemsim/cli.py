@@ -1827,7 +1827,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_inverse(args: argparse.Namespace) -> int:
-    from nemsim.evaluation.inverse_bench import format_bench, run_bench, write_bench
+    from nemsim.analysis.inverse_bench import format_bench, run_bench, write_bench
 
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     report = run_bench(args.checkpoint, n_targets=args.targets, seed=args.seed, methods=methods,
