@@ -285,21 +285,30 @@ def rollout_to(model: torch.nn.Module, x0: torch.Tensor, u: torch.Tensor, step: 
         (B, 2, D, H, W).
     """
     from nemsim.evaluation.rollout import steps_per_call
+    from nemsim.model.monotone import monotone_eps_of, project
 
     B = u.shape[0]
     x = x0[None].expand(B, *x0.shape).to(u.dtype)  # (B, 2, D, H, W)
     fast = callable(getattr(model, "precompute", None))
     k = steps_per_call(model)
     cache = model.precompute(u) if fast else None  # type: ignore[operator]
+    eps_of = monotone_eps_of(model, None)  # the rollout's monotone projection, if the model has one
+    eps = None if eps_of is None else torch.tensor(eps_of, dtype=x.dtype).view(1, -1, 1, 1, 1)
+    running_max = x
     t = 0
     while t < step:
         n = min(k, step - t)
         if k > 1:
-            x = model.predict(x, cache)[:, n - 1]  # type: ignore[operator]
+            states = model.predict(x, cache)[:, :n]  # type: ignore[operator]  # (B, n, 2, D, H, W)
         elif fast:
-            x = model.step(x, cache)  # type: ignore[operator]
+            states = model.step(x, cache)[:, None]  # type: ignore[operator]
         else:
-            x = model(x, u)
+            states = model(x, u)[:, None]
+        if eps is None:
+            x = states[:, -1]
+        else:  # every state of the chunk updates the running maximum, as in the rollout
+            for j in range(n):
+                x, running_max = project(states[:, j], running_max, eps)
         t += n
     return x
 

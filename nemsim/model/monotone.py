@@ -60,6 +60,14 @@ class MonotoneProjection:
         return x
 
 
+def project(x: torch.Tensor, running_max: torch.Tensor,
+            eps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The same projection without in-place updates, so gradients flow through it (inverse design):
+    (projected x, new running maximum), all (B, 2, D, H, W); eps (1, 2, 1, 1, 1)."""
+    x = torch.maximum(x, running_max - eps)
+    return x, torch.maximum(running_max, x)
+
+
 def monotone_eps_of(model: object, monotone: bool | None) -> tuple[float, ...] | None:
     """The eps a rollout of ``model`` projects with, or None for no projection.
 
