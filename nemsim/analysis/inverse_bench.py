@@ -46,15 +46,7 @@ def run_bench(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Run the benchmark (module docstring); returns the JSON-ready report."""
-    from dataclasses import replace
-
-    from nemsim.analysis.inverse import (
-        TARGET_METRICS,
-        load_design_context,
-        search,
-        simulator_config,
-        spec_from_dict,
-    )
+    from nemsim.analysis.inverse import load_design_context, simulator_config, spec_from_dict
     from nemsim.evaluation.truth import SimTruth
 
     if n_targets < 1:
@@ -109,35 +101,7 @@ def run_bench(
                     )
                 case["runs"] = {}
                 for method in methods:
-                    s = replace(spec, search=replace(spec.search, method=method))  # type: ignore[arg-type]
-                    res = search(ctx, s, seed=0)
-                    top = res["recipes"][0]
-                    raw = np.array([top["controls"][n] for n in CONTROL_NAMES])
-                    achieved = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}
-                    sim_met = all(abs(achieved[k] - t.value) <= t.tol for k, t in spec.targets.items())
-                    covered = {}
-                    for level, per in (top.get("intervals") or {}).items():
-                        covered[level] = {
-                            k: bool(
-                                per[k][0] is not None
-                                and per[k][1] is not None
-                                and per[k][0] <= achieved[k] <= per[k][1]
-                            )
-                            for k in spec.targets
-                            if k in per
-                        }
-                    success = sim_met if case["reachable"] else res["status"] == "unreachable"
-                    case["runs"][method] = {
-                        "status": res["status"],
-                        "success": bool(success),
-                        "simulator_met": bool(sim_met),
-                        "predicted": {k: top["predicted"][k] for k in TARGET_METRICS},
-                        "achieved": {k: round(achieved[k], 3) for k in TARGET_METRICS},
-                        "interval_covers": covered,
-                        "training_data": top["training_data"]["flag"],
-                        "controls": top["controls"],
-                        "cost": res["cost"],
-                    }
+                    case["runs"][method] = _design_run(ctx, spec, method, case["reachable"], truth, step)
                     if bar is not None:
                         bar.update(1)
         finally:
@@ -145,22 +109,7 @@ def run_bench(
                 bar.close()
         n_sim = truth.n_simulated
         sim_s = truth.sim_wall_s
-    summary = {}
-    for method in methods:
-        reach = [c["runs"][method] for c in cases if c["reachable"]]
-        unreach = [c["runs"][method] for c in cases if not c["reachable"]]
-        costs = [c["runs"][method]["cost"] for c in cases]
-        summary[method] = {
-            "reachable_success": sum(r["success"] for r in reach),
-            "reachable": len(reach),
-            "unreachable_detected": sum(r["success"] for r in unreach),
-            "unreachable": len(unreach),
-            "false_unreachable": sum(r["status"] == "unreachable" for r in reach),
-            "design_cpu_s_mean": round(float(np.mean([c["cpu_s"] for c in costs])), 2),
-            "design_cpu_s_max": round(float(np.max([c["cpu_s"] for c in costs])), 2),
-            "design_wall_s_max": round(float(np.max([c["wall_s"] for c in costs])), 2),
-            "rollouts_mean": round(float(np.mean([c["rollouts"] for c in costs])), 1),
-        }
+    summary = {method: _summary(cases, method) for method in methods}
     import platform
 
     return {
@@ -180,6 +129,60 @@ def run_bench(
         "total_cpu_s": round(time.process_time() - c_start, 1),
         "cpu": platform.processor() or platform.machine(),
         "intervals": {"available": ctx.calibration is not None},
+    }
+
+
+def _design_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any,
+                step: int) -> dict[str, Any]:
+    """One inverse design of ``spec`` with ``method``, its top recipe simulated (verification seed) and
+    judged: a reachable target succeeds when the simulator meets every tolerance, an unreachable one when the
+    search says unreachable."""
+    from dataclasses import replace
+
+    from nemsim.analysis.inverse import TARGET_METRICS, search
+
+    s = replace(spec, search=replace(spec.search, method=method))  # type: ignore[arg-type]
+    res = search(ctx, s, seed=0)
+    top = res["recipes"][0]
+    raw = np.array([top["controls"][n] for n in CONTROL_NAMES])
+    achieved = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}
+    sim_met = all(abs(achieved[k] - t.value) <= t.tol for k, t in spec.targets.items())
+    covered = {}
+    for level, per in (top.get("intervals") or {}).items():
+        covered[level] = {
+            k: bool(per[k][0] is not None and per[k][1] is not None and per[k][0] <= achieved[k] <= per[k][1])
+            for k in spec.targets
+            if k in per
+        }
+    success = sim_met if reachable else res["status"] == "unreachable"
+    return {
+        "status": res["status"],
+        "success": bool(success),
+        "simulator_met": bool(sim_met),
+        "predicted": {k: top["predicted"][k] for k in TARGET_METRICS},
+        "achieved": {k: round(achieved[k], 3) for k in TARGET_METRICS},
+        "interval_covers": covered,
+        "training_data": top["training_data"]["flag"],
+        "controls": top["controls"],
+        "cost": res["cost"],
+    }
+
+
+def _summary(cases: list[dict[str, Any]], method: str) -> dict[str, Any]:
+    """Successes, detections and design cost of one method over the cases."""
+    reach = [c["runs"][method] for c in cases if c["reachable"]]
+    unreach = [c["runs"][method] for c in cases if not c["reachable"]]
+    costs = [c["runs"][method]["cost"] for c in cases]
+    return {
+        "reachable_success": sum(r["success"] for r in reach),
+        "reachable": len(reach),
+        "unreachable_detected": sum(r["success"] for r in unreach),
+        "unreachable": len(unreach),
+        "false_unreachable": sum(r["status"] == "unreachable" for r in reach),
+        "design_cpu_s_mean": round(float(np.mean([c["cpu_s"] for c in costs])), 2),
+        "design_cpu_s_max": round(float(np.max([c["cpu_s"] for c in costs])), 2),
+        "design_wall_s_max": round(float(np.max([c["wall_s"] for c in costs])), 2),
+        "rollouts_mean": round(float(np.mean([c["rollouts"] for c in costs])), 1),
     }
 
 
