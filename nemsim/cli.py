@@ -463,9 +463,8 @@ def _cmd_bench_bowing(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_allocator(args: argparse.Namespace) -> int:
-    import platform
-
     from nemsim.allocator import bench
+    from nemsim.machine import cpu_name
 
     for name in ("batch", "steps", "rounds"):
         if getattr(args, name) < 1:
@@ -474,7 +473,7 @@ def _cmd_bench_allocator(args: argparse.Namespace) -> int:
         raise UserError(f"checkpoint {args.checkpoint} does not exist")
     rows = bench(args.checkpoint, batch=args.batch, steps=args.steps, rounds=args.rounds)
     print(f"{Path(args.checkpoint).name}, batch {args.batch}, {args.steps} steps per process, "  # noqa: T201
-          f"one thread, {platform.processor() or platform.machine()}")
+          f"one thread, {cpu_name()}")
     print("| allocator | round | wall s/step | user s/step | sys s/step | CPU s/step |")  # noqa: T201
     print("|---|---:|---:|---:|---:|---:|")  # noqa: T201
     for r in rows:
@@ -483,7 +482,7 @@ def _cmd_bench_allocator(args: argparse.Namespace) -> int:
               f"{r['sys_s']:.2f} | {cpu:.2f} |")
     if args.json_out:
         _write_json(args.json_out, {"checkpoint": Path(args.checkpoint).name, "batch": args.batch,
-                                    "steps": args.steps, "rows": rows})
+                                    "steps": args.steps, "cpu": cpu_name(), "rows": rows})
     return 0
 
 

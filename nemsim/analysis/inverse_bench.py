@@ -110,7 +110,7 @@ def run_bench(
         n_sim = truth.n_simulated
         sim_s = truth.sim_wall_s
     summary = {method: _summary(cases, method) for method in methods}
-    import platform
+    from nemsim.machine import cpu_name
 
     return {
         "checkpoint": Path(checkpoint).name,
@@ -127,7 +127,7 @@ def run_bench(
         "simulator_wall_s": round(sim_s, 1),
         "total_wall_s": round(time.perf_counter() - t_start, 1),
         "total_cpu_s": round(time.process_time() - c_start, 1),
-        "cpu": platform.processor() or platform.machine(),
+        "cpu": cpu_name(),
         "intervals": {"available": ctx.calibration is not None},
     }
 

@@ -1,0 +1,28 @@
+"""What CPU a benchmark ran on, for its report: figures differ between machines (AMX or not, AVX-512 BF16 or
+not), so every timed result names the CPU it came from."""
+
+from __future__ import annotations
+
+import platform
+from pathlib import Path
+
+# instruction-set extensions that change the speed of bf16 inference and training
+_FLAGS = ("avx512_bf16", "amx_bf16", "amx_tile")
+
+
+def cpu_name() -> str:
+    """e.g. "AMD EPYC (2 logical CPUs; avx512_bf16)"; the bare architecture where /proc/cpuinfo is absent."""
+    import os
+
+    info = Path("/proc/cpuinfo")
+    if not info.is_file():
+        return platform.processor() or platform.machine()
+    model, flags = "", set[str]()
+    for line in info.read_text(errors="replace").splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and not model:
+            model = value.strip()
+        elif key.strip() == "flags" and not flags:
+            flags = set(value.split())
+    present = [f for f in _FLAGS if f in flags] or ["no AVX-512 BF16, no AMX"]
+    return f"{model or platform.machine()} ({os.cpu_count()} logical CPUs; {', '.join(present)})"
