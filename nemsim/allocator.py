@@ -10,6 +10,9 @@ measures it). The cost is that the resident size stays at the process's high-wat
 How: the settings are environment variables that glibc reads once, at process start, so the console script
 re-executes itself once with them set (``reexec_tuned``) before any work is done. Values the user has set
 are kept; ``NEMSIM_ALLOCATOR=default`` turns the re-execution off. Other C libraries ignore the variables.
+`nemsim serve` keeps glibc's defaults: a server runs indefinitely and its resident size is bounded by its
+settings, which a heap that never shrinks would undo (`benchmarks/service/README.md`: the 2-minute soak peaked
+higher with the settings, for a few percent more throughput).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ TUNED = {
     "MALLOC_TOP_PAD_": str(1 << 30),
 }
 OPT_OUT = "NEMSIM_ALLOCATOR"  # "default": keep glibc's defaults
+EXEMPT_COMMANDS = ("serve",)  # long-running: resident size matters more than speed (module docstring)
 
 
 def tuned_environ(environ: dict[str, str]) -> dict[str, str] | None:
@@ -39,11 +43,12 @@ def tuned_environ(environ: dict[str, str]) -> dict[str, str] | None:
 
 def reexec_tuned(argv: list[str] | None = None) -> None:
     """Replace this process by ``python -m nemsim.cli ARGS`` with the tuned allocator (no return), unless
-    ``tuned_environ`` says nothing needs to change (then return at once)."""
-    env = tuned_environ(dict(os.environ))
-    if env is None:
-        return
+    ``tuned_environ`` says nothing needs to change or the command is exempt (then return at once)."""
     args = sys.argv[1:] if argv is None else argv
+    command = next((a for a in args if not a.startswith("-")), None)
+    env = tuned_environ(dict(os.environ))
+    if env is None or command in EXEMPT_COMMANDS:
+        return
     sys.stdout.flush()
     sys.stderr.flush()
     os.execve(sys.executable, [sys.executable, "-m", "nemsim.cli", *args], env)

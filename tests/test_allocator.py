@@ -40,3 +40,12 @@ def test_reexec_runs_the_cli_with_the_settings():
     assert out.returncode == 0 and "usage: nemsim" in out.stdout and "not re-executed" not in out.stdout
     out = _probe({**base, OPT_OUT: "default"})
     assert out.returncode == 0 and out.stdout.strip() == "not re-executed"
+
+
+@linux_only
+def test_serve_keeps_the_default_allocator():
+    base = {k: v for k, v in os.environ.items() if k not in TUNED and k != OPT_OUT}
+    code = ("from nemsim.allocator import reexec_tuned; reexec_tuned(['--debug', 'serve', '--help']); "
+            "print('not re-executed')")
+    out = subprocess.run([sys.executable, "-c", code], env=base, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == "not re-executed"
