@@ -1478,8 +1478,7 @@ def _sim_truth(args: argparse.Namespace, loaded):
     from nemsim.evaluation.truth import SimTruth
     from nemsim.sim import SimConfig
 
-    meta = loaded.raw.get("sim_config")
-    config = SimConfig.from_meta(meta) if isinstance(meta, dict) else None
+    config = SimConfig.from_record(loaded.raw.get("sim_config"))
     if args.overrides:
         import dataclasses
 

@@ -185,9 +185,8 @@ def checkpoint_sim_config(raw: dict[str, Any]) -> tuple[Any, str]:
     recorded = raw.get("sim_config")
     if not isinstance(recorded, dict) or not recorded:
         return None, "simulator defaults (the checkpoint records no simulator configuration)"
-    meta = recorded.get("config") if isinstance(recorded.get("config"), dict) else recorded
     try:
-        return SimConfig.from_meta(meta), "the checkpoint's simulator configuration (sim_config)"  # type: ignore[arg-type]
+        return SimConfig.from_record(recorded), "the checkpoint's simulator configuration (sim_config)"
     except (TypeError, ValueError) as exc:
         log.warning("checkpoint sim_config unreadable (%s): initial state from the simulator defaults", exc)
         return None, "simulator defaults (the checkpoint's simulator configuration could not be read)"

@@ -243,11 +243,7 @@ def simulator_config(loaded: Any) -> Any:
     the simulator defaults."""
     from nemsim.sim import SimConfig
 
-    rec = (getattr(loaded, "raw", None) or {}).get("sim_config")
-    if not isinstance(rec, dict) or not rec:
-        return None
-    meta: dict[str, Any] = rec["config"] if isinstance(rec.get("config"), dict) else rec
-    return SimConfig.from_meta(meta)
+    return SimConfig.from_record((getattr(loaded, "raw", None) or {}).get("sim_config"))
 
 
 def load_design_context(checkpoint: str | Path) -> DesignContext:

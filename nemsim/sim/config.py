@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 from nemsim.scenes import Scene
 
@@ -181,6 +182,16 @@ class SimConfig:
         if scene is not None:
             out["particle_rate_per_flux"] = self.particle_rate_per_flux(scene)
         return out
+
+    @classmethod
+    def from_record(cls, record: Any) -> SimConfig | None:
+        """The configuration a checkpoint's ``sim_config`` records: a data file's ``generator`` record (its
+        ``config`` entry is ``to_meta``) or a bare ``to_meta`` dict; None when nothing is recorded. The one
+        reader of that record (the service, the simulator-judged benchmarks and inverse design use it)."""
+        if not isinstance(record, dict) or not record:
+            return None
+        meta = record["config"] if isinstance(record.get("config"), dict) else record
+        return cls.from_meta(meta)
 
     @classmethod
     def from_meta(cls, meta: dict) -> SimConfig:
