@@ -3,6 +3,7 @@ not), so every timed result names the CPU it came from."""
 
 from __future__ import annotations
 
+import os
 import platform
 from pathlib import Path
 
@@ -12,8 +13,6 @@ _FLAGS = ("avx512_bf16", "amx_bf16", "amx_tile")
 
 def cpu_name() -> str:
     """e.g. "AMD EPYC (2 logical CPUs; avx512_bf16)"; the bare architecture where /proc/cpuinfo is absent."""
-    import os
-
     info = Path("/proc/cpuinfo")
     if not info.is_file():
         return platform.processor() or platform.machine()

@@ -17,7 +17,6 @@ rollouts per second; the server's RSS, peak RSS and CPU seconds.
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -25,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from service.protocol import free_port
 
 
 def _percentiles(samples_s: list[float]) -> dict[str, float]:
@@ -148,9 +149,7 @@ def _start_server(checkpoint: str | Path, port: int | None,
                   env: dict[str, str] | None) -> tuple[subprocess.Popen, str]:
     """`nemsim serve` on a loopback port (a free one if None); (process, base URL)."""
     if port is None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
+        port = free_port()
     server_env = {
         **os.environ,
         "NEMSIM_RATE_LIMIT_PER_MINUTE": "0",  # one address for every client: the limit would measure itself

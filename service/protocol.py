@@ -32,6 +32,15 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from service.errors import error_body
 
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port on ``host`` that the OS reports free now (for a test or benchmark server)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
 LINGER_S = 2.0  # read-and-drop window after an early error answer
 LINGER_MAX_BYTES = 8 << 20  # ... and at most this much
 

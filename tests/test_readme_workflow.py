@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import shlex
-import socket
 import subprocess
 import sys
 import time
@@ -21,6 +20,8 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+
+from service.protocol import free_port
 
 ROOT = Path(__file__).parents[1]
 BEGIN, END = "<!-- toy-workflow:begin -->", "<!-- toy-workflow:end -->"
@@ -34,11 +35,6 @@ def readme_commands(text: str) -> list[list[str]]:
     joined = body.replace("\\\n", " ")
     return [words for line in joined.splitlines() if (words := shlex.split(line, comments=True))]
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _curl(words: list[str]) -> bytes:
@@ -83,7 +79,7 @@ def _curl(words: list[str]) -> bytes:
 def test_readme_toy_workflow(tmp_path):
     commands = readme_commands((ROOT / "README.md").read_text())
     assert [c[1] for c in commands if c[0] == "nemsim"][:4] == ["design", "generate", "data", "splits"]
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
     background: list[subprocess.Popen] = []
     server_log = tmp_path / "server.log"

@@ -11,11 +11,7 @@ import time
 import pytest
 import uvicorn
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from service.protocol import free_port
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +30,7 @@ def server(surrogate):
         max_connections=8,
     )
     app = create_app(settings, surrogate=surrogate)
-    port = _free_port()
+    port = free_port()
     config = uvicorn.Config(
         app, host="127.0.0.1", port=port, log_level="warning", lifespan="on", **uvicorn_options(settings)
     )

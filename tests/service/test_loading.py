@@ -118,15 +118,13 @@ def test_model_info_hides_paths_and_case_lists(surrogate, make_client, monkeypat
 
 
 def _serve(checkpoint: Path):
-    import socket
     import subprocess
     import sys
 
     from service.config import REPO_ROOT
+    from service.protocol import free_port
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
     return subprocess.run(
         [sys.executable, "-m", "nemsim.cli", "serve", "--checkpoint", str(checkpoint), "--port", str(port)],

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import threading
 import time
 
 import httpx
 import pytest
+
+from service.protocol import free_port
 
 sync_api = pytest.importorskip(
     "playwright.sync_api", reason="playwright is not installed (pip install -e .[test])"
@@ -29,11 +30,6 @@ ARGS = [
 ]  # fmt: skip
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 @pytest.fixture(scope="module")
 def server(tiny_checkpoint):
@@ -45,7 +41,7 @@ def server(tiny_checkpoint):
     app = create_app(
         Settings(checkpoint=tiny_checkpoint, warmup_steps=1, rate_limit_per_minute=0, runtime_backend="torch")
     )
-    port = _free_port()
+    port = free_port()
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=srv.run, daemon=True)
     thread.start()

@@ -2,25 +2,20 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 
 import httpx
 import uvicorn
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from service.protocol import free_port
 
 
 def test_real_uvicorn(tiny_checkpoint, default_controls):
     from service.config import Settings
     from service.main import create_app
 
-    port = _free_port()
+    port = free_port()
     app = create_app(Settings(checkpoint=tiny_checkpoint, warmup_steps=1, max_body_bytes=4096))
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="on")
