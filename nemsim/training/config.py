@@ -61,6 +61,8 @@ class TrainConfig:
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
     warmup_steps: int | None = None  # warm-up length in steps; overrides warmup_epochs when set
     checkpoint_every: int | None = None  # also write last.pt every N steps (mid-epoch resume); None: epochs
+    batches_per_epoch: int | None = None  # end each epoch after N batches (a random sample of the shuffled
+    # training set): a large data set still validates, and keeps best.pt, every N steps; None = all of it
     # --- validation / model selection ([supp_evaluation]) ---
     val_every: int = 10  # epochs between validation rollouts
     patience: int = 20  # validation rounds without improvement before early stop
@@ -85,7 +87,8 @@ class TrainConfig:
         for name in ("batch_size", "unroll_steps", "max_epochs", "val_every", "patience", "val_batch_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("max_steps", "warmup_steps", "checkpoint_every", "val_cases", "test_cases"):
+        for name in ("max_steps", "warmup_steps", "checkpoint_every", "batches_per_epoch", "val_cases",
+                     "test_cases"):
             value = getattr(self, name)
             low = 0 if name == "warmup_steps" else 1
             if value is not None and value < low:

@@ -175,19 +175,21 @@ def _set_rng_state(state: dict[str, Any]) -> None:
 class _ResumableSampler(Sampler):
     """DistributedSampler whose epoch can start ``skip`` indices in: a mid-epoch resume reads only the
     batches still to train (the shuffled order itself is unchanged, so the remaining batches are
-    identical)."""
+    identical). ``cap`` ends every epoch after that many indices (``TrainConfig.batches_per_epoch``): each
+    epoch is then a fresh random sample of the shuffled training set."""
 
-    def __init__(self, base: DistributedSampler) -> None:
+    def __init__(self, base: DistributedSampler, cap: int | None = None) -> None:
         self.base, self.skip = base, 0
+        self.cap = len(base) if cap is None else min(cap, len(base))
 
     def set_epoch(self, epoch: int) -> None:
         self.base.set_epoch(epoch)
 
     def __iter__(self):
-        return itertools.islice(iter(self.base), self.skip, None)
+        return itertools.islice(iter(self.base), self.skip, self.cap)
 
     def __len__(self) -> int:
-        return len(self.base) - self.skip
+        return self.cap - self.skip
 
 
 def _write_csv(path: Path, history: list[dict[str, Any]]) -> None:
@@ -257,8 +259,9 @@ def _train_loader(train_set: Dataset, cfg: TrainConfig, rank: int, world: int,
     if cfg.batch_size % world:
         log.warning("batch_size %d is not divisible by world size %d", cfg.batch_size, world)
     per_rank_batch = max(1, cfg.batch_size // world)
+    cap = None if cfg.batches_per_epoch is None else cfg.batches_per_epoch * per_rank_batch
     sampler = _ResumableSampler(
-        DistributedSampler(train_set, num_replicas=world, rank=rank, shuffle=True, seed=cfg.seed))
+        DistributedSampler(train_set, num_replicas=world, rank=rank, shuffle=True, seed=cfg.seed), cap)
     loader = DataLoader(
         train_set,
         batch_size=per_rank_batch,
