@@ -325,13 +325,8 @@ class Surrogate:
         try:
             t0 = time.perf_counter()
             traj_t = buf[: steps + 1]  # (T+1, 2, D, H, W)
-
-            def keep(t: int, x: torch.Tensor) -> None:  # x: (1, 2, D, H, W), the state after t transitions
-                traj_t[t].copy_(x[0])
-
-            with torch.inference_mode():
-                traj_t[0] = x0[0]
-                rollout(self.predictor, x0, u, steps, keep=False, on_step=keep)  # type: ignore[arg-type]
+            with torch.inference_mode():  # the states are written straight into the buffer
+                rollout(self.predictor, x0, u, steps, out=buf[None])  # type: ignore[arg-type]
             t1 = time.perf_counter()
             traj = traj_t.numpy()
             metrics = {

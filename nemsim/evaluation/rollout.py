@@ -46,6 +46,7 @@ def rollout(
     window: bool = False,
     stats: dict[str, Any] | None = None,
     monotone: bool | None = None,
+    out: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Roll a one-step model forward from x0.
 
@@ -57,8 +58,10 @@ def rollout(
             (then ``steps`` is required).
         steps: number of transitions to run (default T); must be <= T when u is (B, T, 14).
         keep: return the whole trajectory; with keep=False only the last state is returned
-            (memory stays at one state -- use ``on_step`` to stream the others).
-        on_step: called as on_step(t, x̂_t) for t = 1..steps with the freshly predicted state.
+            (memory stays at two calls' states -- use ``on_step`` to stream the others).
+        on_step: called as on_step(t, x̂_t) for t = 1..steps with the freshly predicted state. x̂_t is a
+            view of the rollout's buffer: with keep=False it stays valid until on_step(t + 1) has returned
+            (copy it to keep it longer).
         window: compute each call on the depth slab that can change (``nemsim.model.window.DepthWindow``;
             NEMSim only); it agrees with the full rollout within a tolerance, not exactly, and measured no
             faster on ``small`` (see there): off by default.
@@ -68,10 +71,18 @@ def rollout(
             (``nemsim.model.monotone.MonotoneProjection``). None (default) follows the model's
             ``config.monotone_eps`` (NEMSim: on; baselines: off); False: off; True: on (``MONOTONE_EPS``
             for a model without its own eps).
+        out: optional (B, >= steps + 1, 2, D, H, W) buffer (x0's dtype and device) the trajectory is written
+            into and returned from (its first steps + 1 states), so a caller running many rollouts reuses
+            one allocation; only with keep=True.
 
     Returns:
         (B, steps + 1, 2, D, H, W) with x0 first, or (B, 2, D, H, W) (the last state) if keep=False.
         Same device and dtype as x0.
+
+    How (speed, same values): the states are written in place into one preallocated trajectory buffer (or,
+    with keep=False, into two alternating buffers of one call's states): a predictor with ``predict_into``
+    (``nemsim.evaluation.runtime``) writes its output there directly, others are copied once; the monotone
+    projection runs in place on the buffer; the next call reads its input state from the buffer.
     """
     if x0.ndim != 5:
         raise ValueError(f"x0 must be (B, 2, D, H, W), got shape {tuple(x0.shape)}")
@@ -86,8 +97,6 @@ def rollout(
     if T > u.shape[1]:
         raise ValueError(f"steps={T} exceeds the {u.shape[1]} control vectors supplied")
     u = u.to(device=x0.device, dtype=x0.dtype)
-    traj = [x0] if keep else None
-    x = x0
     fast = callable(getattr(model, "precompute", None)) and callable(getattr(model, "step", None))
     k = steps_per_call(model)
     # steps whose controls differ from the previous step's (recipes); one comparison up front
@@ -101,35 +110,64 @@ def rollout(
                              f"got {type(model).__name__}")
         depth_window = DepthWindow(model)
     project = _projection(model, x0, monotone)
+    traj = _trajectory_buffer(x0, T, keep, out)  # (B, T+1, 2, D, H, W) or None
+    # keep=False: two buffers of one call's states, alternating, so the previous call's states stay valid
+    # while this call's are predicted (the next input, and on_step's contract)
+    spare = None if keep else [x0.new_empty((B, k, *x0.shape[1:])) for _ in range(2)]
+    into = getattr(model, "predict_into", None) if fast and depth_window is None else None
     cache = None
+    x = x0
     t = calls = 0
     while t < T:
+        n = _chunk_length(changed, t, k, T) if fast else 1
+        dst = traj[:, t + 1 : t + 1 + n] if traj is not None else spare[calls % 2][:, :n]  # type: ignore[index]
         calls += 1
         if not fast:
-            chunk = model(x, u[:, t])[:, None]  # (B, 1, 2, D, H, W)
+            dst[:, 0] = model(x, u[:, t])  # (B, 2, D, H, W)
         else:
             if changed[t]:
                 cache = model.precompute(u[:, t])  # type: ignore[operator]
-            if depth_window is not None:
-                n = _chunk_length(changed, t, k, T)
-                chunk = depth_window.predict(x, cache)[:, :n]  # type: ignore[arg-type]  # (B, n, 2, D, H, W)
+            if into is not None:
+                into(x, cache, dst)  # (B, n, 2, D, H, W) written in place
+            elif depth_window is not None:
+                dst.copy_(depth_window.predict(x, cache)[:, :n])  # type: ignore[arg-type]
             elif k == 1:
-                chunk = model.step(x, cache)[:, None]  # type: ignore[operator]  # (B, 1, 2, D, H, W)
+                dst[:, 0] = model.step(x, cache)  # type: ignore[operator]
             else:
-                n = _chunk_length(changed, t, k, T)
-                chunk = model.predict(x, cache)[:, :n]  # type: ignore[operator]  # (B, n, 2, D, H, W)
-        for j in range(chunk.shape[1]):
-            x = chunk[:, j] if project is None else project(chunk[:, j])  # (B, 2, D, H, W)
+                dst.copy_(model.predict(x, cache)[:, :n])  # type: ignore[operator]
+        for j in range(n):
+            x = dst[:, j]  # (B, 2, D, H, W)
+            if project is not None:
+                project.project_(x)
             t += 1
-            if keep:
-                traj.append(x)  # type: ignore[union-attr]
             if on_step is not None:
                 on_step(t, x)
     if stats is not None:
         stats.update(depth_window.stats() if depth_window is not None else {"calls": calls})
-    if keep:
-        return torch.stack(traj, dim=1)  # type: ignore[arg-type]  # (B, T+1, 2, D, H, W)
+    if traj is not None:
+        return traj
     return x
+
+
+def _trajectory_buffer(x0: torch.Tensor, T: int, keep: bool, out: torch.Tensor | None) -> torch.Tensor | None:
+    """The (B, T+1, 2, D, H, W) buffer a kept trajectory is written into, x0 first (``rollout``'s ``out``)."""
+    if out is None:
+        if not keep:
+            return None
+        traj = x0.new_empty((x0.shape[0], T + 1, *x0.shape[1:]))
+    else:
+        if not keep:
+            raise ValueError("out= needs keep=True (keep=False returns only the last state)")
+        want = (x0.shape[0], T + 1, *x0.shape[1:])
+        if (out.dim() != 6 or out.shape[0] != want[0] or out.shape[1] < want[1]
+                or tuple(out.shape[2:]) != want[2:]):
+            raise ValueError(f"out must be (B, >= T+1, 2, D, H, W) = {want}, got {tuple(out.shape)}")
+        if out.dtype != x0.dtype or out.device != x0.device:
+            raise ValueError(f"out must be {x0.dtype} on {x0.device} like x0, "
+                             f"got {out.dtype} on {out.device}")
+        traj = out[:, : T + 1]
+    traj[:, 0] = x0
+    return traj
 
 
 def _projection(model: nn.Module, x0: torch.Tensor, monotone: bool | None) -> MonotoneProjection | None:

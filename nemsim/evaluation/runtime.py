@@ -24,7 +24,9 @@ compiled per (state shape incl. batch, input shapes) on first use and kept, so a
 compiles twice. Infer requests (not thread-safe; the
 compiled model is shared) come from a pool: a call takes an idle one or makes one, and gives it back, so
 there are as many as calls ever ran at once, not one per thread that ever called (a server's thread pool).
-Outputs are copied out of the request's buffers, so a kept trajectory is never overwritten by the next step.
+Outputs are copied out of the request's buffers, so a kept trajectory is never overwritten by the next step:
+``predict_into(x, cache, out)`` copies them straight into the caller's memory (``rollout``'s trajectory
+buffer), ``predict`` into a fresh tensor.
 
 Threads (choice): ``threads`` is OpenVINO's ``INFERENCE_NUM_THREADS`` with one stream and CPU pinning off
 (pinned single-thread streams of concurrent requests can land on the same core; unpinned, the OS spreads
@@ -178,6 +180,13 @@ class _Predictor:
     def predict(self, x: torch.Tensor, cache: Any) -> torch.Tensor:
         raise NotImplementedError
 
+    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
+        """The first n = out.shape[1] <= k predicted states written into out (B, n, 2, D, H, W), which is
+        returned (``rollout`` passes a slice of its trajectory buffer)."""
+        _check_out(out, x, self.k)
+        out.copy_(self.predict(x, cache)[:, : out.shape[1]])
+        return out
+
     def step(self, x: torch.Tensor, cache: Any) -> torch.Tensor:
         """One transition (B, 2, D, H, W); only for k = 1 (use ``predict`` for k states per call)."""
         if self.k != 1:
@@ -251,6 +260,7 @@ class OpenVINOPredictor(_Predictor):
     # OpenVINO 2026.4's CPU plugin crashed (SIGSEGV in compile_model) on the f32 NEMSim step graph at batch
     # > 1 with its subgraph "snippets" on; disabling them fixed it (speed: module docstring).
     extra_properties: dict[str, Any] = {"SNIPPETS_MODE": "DISABLE"}
+    fuse_depth_to_space = True  # ``_fuse_depth_to_space`` on the converted graph
 
     def __init__(self, model: nn.Module, precision: str = "f32", threads: int = 1) -> None:
         import openvino as ov
@@ -263,6 +273,7 @@ class OpenVINOPredictor(_Predictor):
         self._compiled: dict[tuple, Any] = {}
         self._lock = threading.Lock()
         self._idle: dict[tuple, list[Any]] = {}  # shape key -> infer requests not in use
+        self._scratches: dict[int, Any] = {}  # id(request) -> its output scratch array (``_scratch``)
         self._fallback: TorchPredictor | None = None
         self._spec, self._variable = self._cache_layout()
 
@@ -302,6 +313,8 @@ class OpenVINOPredictor(_Predictor):
             # the trace leaves every input dimension dynamic: fixing them lets the plugin fold the shape
             # arithmetic and plan memory and kernels once instead of on every call
             ov_model.reshape({i: ov.PartialShape([int(n) for n in t.shape]) for i, t in enumerate(example)})
+            if self.fuse_depth_to_space:
+                _fuse_depth_to_space(ov_model)
         props = {
             "INFERENCE_NUM_THREADS": self.threads,
             "NUM_STREAMS": 1,
@@ -333,12 +346,23 @@ class OpenVINOPredictor(_Predictor):
             self._idle[key].append(req)
 
     def predict(self, x: torch.Tensor, cache: Any) -> torch.Tensor:
+        # memory from torch's allocator, which reuses freed blocks: numpy's ``out.copy()`` maps fresh pages
+        # for every multi-MB result (page faults cost several times the copy itself)
+        res = torch.empty((x.shape[0], self.k, *x.shape[1:]), dtype=torch.float32)  # (B, k, 2, D, H, W)
+        return self.predict_into(x, cache, res)
+
+    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
+        """The first n = out.shape[1] <= k states copied straight from the request's output buffer into out
+        (B, n, 2, D, H, W): no intermediate copy; x is read in place when it is contiguous float32."""
         if not isinstance(cache, _OVCache):
             raise TypeError(f"cache must come from this predictor's precompute(), got {type(cache).__name__}")
         if x.shape[0] != cache.batch:
             raise ValueError(f"the cache holds controls for batch {cache.batch}, x has batch {x.shape[0]}")
+        _check_out(out, x, self.k)
+        n = out.shape[1]
         if self._fallback is not None:
-            return self._fallback.predict(x, cache.torch_cache)
+            out.copy_(self._fallback.predict(x, cache.torch_cache)[:, :n])
+            return out
         try:
             key, req = self._acquire(x, cache)
         except Exception as exc:  # noqa: BLE001 -- an export failure falls back to the reference path
@@ -346,18 +370,75 @@ class OpenVINOPredictor(_Predictor):
             log.warning("runtime: using torch instead of openvino: %s", self.fallback_reason)
             self._fallback = TorchPredictor(self.model, self.precision, self.threads)
             self.backend = "torch"
-            return self._fallback.predict(x, cache.torch_cache)
+            out.copy_(self._fallback.predict(x, cache.torch_cache)[:, :n])
+            return out
         try:
-            xin = x.detach().float().contiguous().numpy()
-            out = req.infer([xin, *cache.inputs], share_inputs=True, share_outputs=True)[0]
-            # copied out of the request's buffer into memory from torch's allocator, which reuses freed
-            # blocks: numpy's ``out.copy()`` maps fresh pages for every multi-MB result (page faults cost
-            # several times the copy itself)
-            res = torch.empty(out.shape, dtype=torch.float32)  # (B, k, 2, D, H, W)
-            res.numpy()[...] = out
-            return res
+            ov = self._ov
+            # inputs and output are the caller's memory (no copies by the Python bindings): x as it is when
+            # contiguous float32 (the rollout's buffer), out when it takes all k states contiguously
+            # (the rollout's trajectory buffer at batch 1), else the request's own scratch and one copy
+            direct = n == self.k and out.dtype == torch.float32 and out.is_contiguous()
+            dst = out.detach().numpy() if direct else self._scratch(req, out.shape[0])  # (B, k, 2, D, H, W)
+            # a shared ov.Tensor does not keep its array alive: xin is held until the call has returned
+            xin = x.detach().float().contiguous().numpy()  # (B, 2, D, H, W)
+            req.set_input_tensor(0, ov.Tensor(xin, shared_memory=True))
+            for i, a in enumerate(cache.inputs, start=1):
+                req.set_input_tensor(i, ov.Tensor(a, shared_memory=True))
+            req.set_output_tensor(0, ov.Tensor(dst, shared_memory=True))
+            req.start_async()
+            req.wait()
+            if not direct:
+                out.detach().numpy()[...] = dst[:, :n]
+            return out
         finally:
             self._release(key, req)
+
+    def _scratch(self, req: Any, batch: int) -> Any:
+        """The request's own output array (B, k, 2, D, H, W) float32 for calls that keep fewer than k states
+        or write to non-contiguous memory (made on first use, kept with the request)."""
+        arr = self._scratches.get(id(req))
+        if arr is None:
+            shape = tuple(int(d) for d in req.get_output_tensor(0).shape)
+            arr = self._scratches[id(req)] = torch.empty(shape, dtype=torch.float32).numpy()
+        assert arr.shape[0] == batch
+        return arr
+
+
+def _fuse_depth_to_space(ov_model: Any) -> int:
+    """Replace the decoder's voxel shuffle (``nemsim.model.decoder.depth_to_space``: Reshape to 8-D,
+    Transpose (0, 1, 5, 2, 6, 3, 7, 4), Reshape back to 5-D) in a converted graph by OpenVINO's DepthToSpace
+    (mode depth_first, block 2: the same index map, so the same values). The CPU plugin ran the 8-D
+    Transpose with a generic kernel and a layout reorder before it; DepthToSpace has its own kernel on the
+    plugin's blocked layouts. Returns the number of shuffles replaced."""
+    import openvino.opset13 as ops
+
+    replaced = 0
+    for op in ov_model.get_ordered_ops():
+        if op.get_type_name() != "Transpose":
+            continue
+        perm = op.input_value(1).get_node()
+        pre = op.input_value(0).get_node()
+        consumers = list(op.output(0).get_target_inputs())
+        if (perm.get_type_name() != "Constant" or list(perm.get_vector()) != [0, 1, 5, 2, 6, 3, 7, 4]
+                or pre.get_type_name() != "Reshape" or len(consumers) != 1
+                or consumers[0].get_node().get_type_name() != "Reshape"):
+            continue
+        post = consumers[0].get_node()
+        d2s = ops.depth_to_space(pre.input_value(0), "depth_first", 2)
+        if d2s.get_output_partial_shape(0) != post.get_output_partial_shape(0):
+            continue
+        post.output(0).replace(d2s.output(0))
+        replaced += 1
+    ov_model.validate_nodes_and_infer_types()
+    return replaced
+
+
+def _check_out(out: torch.Tensor, x: torch.Tensor, k: int) -> None:
+    """ValueError unless out is a (B, n <= k, 2, D, H, W) destination for the states after x."""
+    if (out.dim() != x.dim() + 1 or out.shape[0] != x.shape[0] or not 1 <= out.shape[1] <= k
+            or out.shape[2:] != x.shape[1:]):
+        raise ValueError(f"out must be (B, n <= {k}, *{tuple(x.shape[1:])}) for x {tuple(x.shape)}, "
+                         f"got {tuple(out.shape)}")
 
 
 def compile_model(

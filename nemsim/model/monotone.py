@@ -52,10 +52,21 @@ class MonotoneProjection:
         self.running_max = x0.clone()  # (B, 2, D, H, W)
         eps_t = torch.tensor([float(e) for e in eps], dtype=x0.dtype, device=x0.device)
         self.eps = eps_t.view(1, -1, 1, 1, 1)  # (1, 2, 1, 1, 1)
+        self._floor: torch.Tensor | None = None  # (B, 2, D, H, W) scratch of project_
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """The projection of the next state x (B, 2, D, H, W); updates the running maximum."""
         x = torch.maximum(x, self.running_max - self.eps)  # (B, 2, D, H, W)
+        torch.maximum(self.running_max, x, out=self.running_max)
+        return x
+
+    def project_(self, x: torch.Tensor) -> torch.Tensor:
+        """``__call__`` in place: x (B, 2, D, H, W) is overwritten by its projection (the same values, no
+        allocation per state: the rollout projects its trajectory buffer)."""
+        if self._floor is None:
+            self._floor = torch.empty_like(self.running_max)
+        torch.sub(self.running_max, self.eps, out=self._floor)  # (B, 2, D, H, W) M - eps
+        torch.maximum(x, self._floor, out=x)
         torch.maximum(self.running_max, x, out=self.running_max)
         return x
 

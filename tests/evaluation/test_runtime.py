@@ -108,6 +108,9 @@ def test_openvino_multistep_matches_pytorch(trained_multistep, precision):
     assert (out[:, 1:] - out[:, :1]).abs().max() > 1e-3
     (compiled,) = pred._compiled.values()
     assert all(i.get_partial_shape().is_static for i in compiled.inputs)  # compiled for the state's shape
+    # the decoder's voxel shuffle runs as the plugin's DepthToSpace (runtime._fuse_depth_to_space)
+    layers = {op.get_rt_info()["layerType"].astype(str) for op in compiled.get_runtime_model().get_ops()}
+    assert "DepthToSpace" in layers
     d = out - ref
     if precision == "f32":
         assert d.abs().max() <= 1e-4
