@@ -373,10 +373,13 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
         description=(
             "Simulate the median recipe with the three ions' angular exponent, mean energy and flux "
             "set on a grid, and write the final-time bowing (profile metric, and the same metric without "
-            "Psi's smoothing), depth, widths and mask loss per point to OUT.md and OUT.json (refuses to "
-            "overwrite). --before also runs each point without the excess-probability yield. "
-            "Example: nemsim bench bowing --m 50,300,3000 --energies 160,330,500 --ion-q 0.5,0.8 "
-            "--out runs/bowing/map"
+            "Psi's smoothing, and on the rows' equivalent diameters), depth, widths and mask loss per point "
+            "to OUT.md and OUT.json (refuses to overwrite). --before also runs each point without the "
+            "excess-probability yield; --variant NAME:KEY=VALUE,... also runs it with optional simulator "
+            "mechanisms switched on (SimConfig fields: resist_sputter_scale, ion_reflect_spread_deg, "
+            "ion_reflect_diffuse, ion_reflect_energy, ion_wing_fraction, ion_wing_m, sputter_calibration). "
+            "Example: nemsim bench bowing --m 50 --energies 500 --ion-q 0.8 --seed 0,1 "
+            "--variant facet3:resist_sputter_scale=3 --out runs/bowing/facet"
         ),
     )
     _add_scene_option(p)
@@ -384,8 +387,12 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--energies", default="160,330,500", help="ion mean energies [eV], comma-separated")
     p.add_argument("--ion-q", default="0.5,0.8",
                    help="ion-flux unit coordinates in the design range (0 low .. 1 high), comma-separated")
-    p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
-    p.add_argument("--before", action="store_true", help="also run every point without this change set")
+    p.add_argument("--seed", default="0", help="simulator seeds, comma-separated: one run each (default 0)")
+    p.add_argument("--before", action="store_true",
+                   help="also run every point without the excess-probability yield (variants after/before)")
+    p.add_argument("--variant", dest="variants", action="append", default=[], metavar="NAME:KEY=VALUE,...",
+                   help="also run every point with these SimConfig fields changed (repeatable), e.g. "
+                        "facet3:resist_sputter_scale=3 or wing:ion_wing_fraction=0.1,ion_wing_m=5")
     p.add_argument("--design-rows", default=None, metavar="I,J,...",
                    help="instead of the grid, run these rows of the 500-case design (e.g. 0,100,200)")
     p.add_argument("--out", default="runs/bowing/map", help="output path without extension")
@@ -428,7 +435,7 @@ def _cmd_bench_bowing(args: argparse.Namespace) -> int:
 
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
-    from nemsim.sim.bowing import bowing_map, design_points, to_markdown
+    from nemsim.sim.bowing import before_variants, bowing_map, design_points, to_markdown
 
     try:
         scene = get_scene(args.scene)
@@ -443,19 +450,25 @@ def _cmd_bench_bowing(args: argparse.Namespace) -> int:
         if os.path.exists(path):
             raise UserError(f"{path} exists; choose another --out (this command never overwrites)")
     rules, config = compile_rules(load_rules()), _sim_config(args.overrides)
-    show = lambda r: print(r, flush=True)  # noqa: E731, T201
+    seeds = tuple(int(v) for v in _floats(args.seed, "--seed"))
+    variants = before_variants(config) if args.before else [("base", config)]
+    variants += [_variant(text, config) for text in args.variants]
+    if len({name for name, _ in variants}) != len(variants):
+        raise UserError(f"--variant names must be unique and not after/before/base, got {args.variants}")
+    show = lambda r: print({k: v for k, v in r.items() if k != "diameter_profile"}, flush=True)  # noqa: E731, T201
     if args.design_rows is not None:
         idx = tuple(int(v) for v in _floats(args.design_rows, "--design-rows"))
         if any(not 0 <= i < 500 for i in idx):
             raise UserError(f"--design-rows must be in [0, 499], got {args.design_rows}")
-        rows = design_points(scene, rules, config, idx, args.seed, args.before, log=show)
+        rows = design_points(scene, rules, variants, idx, seeds, log=show)
         what = f"--design-rows {args.design_rows}"
     else:
-        rows = bowing_map(scene, rules, config, ms, energies, qs, args.seed, args.before, log=show)
+        rows = bowing_map(scene, rules, variants, ms, energies, qs, seeds, log=show)
         what = f"--m {args.m} --energies {args.energies} --ion-q {args.ion_q}"
     os.makedirs(os.path.dirname(md_path) or ".", exist_ok=True)
     cmd = f"nemsim bench bowing --scene {args.scene} {what} --seed {args.seed}"
     cmd += " --before" if args.before else ""
+    cmd += "".join(f" --set {o}" for o in args.overrides) + "".join(f" --variant {v}" for v in args.variants)
     with open(md_path, "w") as fh:
         fh.write(f"Command: {cmd}\n\n" + to_markdown(rows))
     _write_json(json_path, {"command": cmd, "rows": rows})
@@ -506,33 +519,58 @@ def _cmd_bench_yields(args: argparse.Namespace) -> int:
     print(text, end="")  # noqa: T201
     os.makedirs(os.path.dirname(md_path) or ".", exist_ok=True)
     with open(md_path, "w") as fh:
-        fh.write(f"Command: nemsim bench yields --n {args.n} --seed {args.seed}\n\n" + text)
+        sets = "".join(f" --set {o}" for o in args.overrides)
+        fh.write(f"Command: nemsim bench yields --n {args.n} --seed {args.seed}{sets}\n\n" + text)
     _write_json(json_path, {"points": [dataclasses.asdict(p) for p in points], "comparison": rows})
     return 0
 
 
 def _sim_config(overrides: list[str]):
-    """SimConfig with ``KEY=VALUE`` overrides (values parsed as int, float, or left as text)."""
+    """SimConfig with ``KEY=VALUE`` overrides (values parsed as int or float; text for text fields such as
+    ``sputter_calibration``)."""
+    from nemsim.sim import SimConfig
+
+    try:
+        return SimConfig(**_config_values(overrides, "--set"))  # type: ignore[arg-type]
+    except (TypeError, ValueError) as exc:
+        raise UserError(f"--set: {exc}") from exc
+
+
+def _config_values(items: list[str], option: str) -> dict[str, object]:
+    """{field: value} of ``KEY=VALUE`` items naming SimConfig fields (numbers; text for text fields)."""
     import dataclasses
 
     from nemsim.sim import SimConfig
 
     fields = {f.name: f for f in dataclasses.fields(SimConfig)}
-    kwargs = {}
-    for item in overrides:
+    kwargs: dict[str, object] = {}
+    for item in items:
         key, sep, text = item.partition("=")
         key = key.strip()
         if not sep or key not in fields:
-            raise UserError(f"--set {item!r}: expected KEY=VALUE with KEY one of {sorted(fields)}")
+            raise UserError(f"{option} {item!r}: expected KEY=VALUE with KEY one of {sorted(fields)}")
+        if fields[key].type in ("str", str):
+            kwargs[key] = text.strip()
+            continue
         try:
-            value = int(text) if text.strip().lstrip("-").isdigit() else float(text)
+            kwargs[key] = int(text) if text.strip().lstrip("-").isdigit() else float(text)
         except ValueError:
-            raise UserError(f"--set {item!r}: value must be a number") from None
-        kwargs[key] = value
+            raise UserError(f"{option} {item!r}: value must be a number") from None
+    return kwargs
+
+
+def _variant(text: str, base):
+    """``NAME:KEY=VALUE,KEY=VALUE`` -> (NAME, ``base`` with those SimConfig fields replaced)."""
+    import dataclasses
+
+    name, sep, body = text.partition(":")
+    if not sep or not name.strip() or not body.strip():
+        raise UserError(f"--variant {text!r}: expected NAME:KEY=VALUE[,KEY=VALUE...]")
+    values = _config_values([v for v in body.split(",") if v.strip()], "--variant")
     try:
-        return SimConfig(**kwargs)  # type: ignore[arg-type]
+        return name.strip(), dataclasses.replace(base, **values)
     except (TypeError, ValueError) as exc:
-        raise UserError(f"--set: {exc}") from exc
+        raise UserError(f"--variant {text!r}: {exc}") from exc
 
 
 def _parse_range(text: str, n: int) -> tuple[int, int]:

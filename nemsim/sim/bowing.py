@@ -12,9 +12,16 @@ so the flux ratio Gamma(Cl) / sum Gamma(ions) is reported per point. Metrics at 
     above the top Si row as vacuum, so the smoothed top row reads ~2-3 nm wider than the voxels are; the
     bowing metric takes that row as its reference and so hides a bulge of that size (measured: see the
     committed table under benchmarks/small/).
-Optionally each point is also run with ``before`` = the simulator without this change set's mechanisms
-(``excess_probability_yield=False``; the reflection law is off by default in both). ``design_points``
-runs the same measurement on rows of the 500-case design (m and energy columns: the Cl+ values).
+  * ``bowing_area``: the same "widest row minus the narrowest row above it" on the equivalent diameter
+    d(z) = 2 sqrt(A(z) / pi) of every Si row, A(z) the open (non-Si) area of the row from the final voxel
+    fractions, from the top Si row down. It averages over the whole perimeter instead of the four points
+    of the x and y lines, so it sees a bulge of a fraction of a voxel that the line metrics lose in the
+    sidewall roughness; ``bow_depth``: depth below the initial Si top of the row where it peaks (0 when
+    there is no bulge). The profile d(z) (nm, top Si row first) is kept in the JSON rows.
+Every point is run for each of a list of named simulator configurations (variants: e.g. ``before_variants``
+= with and without the excess-probability yield, or the optional mechanisms of ``SimConfig``) and seeds.
+``design_points`` runs the same measurement on rows of the 500-case design (m and energy columns: the Cl+
+values).
 """
 
 from __future__ import annotations
@@ -51,6 +58,26 @@ def grid_controls(m: float, energy_ev: float, ion_q: float) -> np.ndarray:
     return raw
 
 
+def equivalent_diameters(si: np.ndarray, scene: Scene) -> np.ndarray:
+    """(si_top,) equivalent diameter [nm] of the open area of every Si row, top Si row first.
+
+    si: (nx, ny, nz) Si-class volume fractions of the voxels (``Domain.fractions``)."""
+    rows = si[:, :, : scene.si_top][:, :, ::-1]  # top Si row first
+    area = (1.0 - rows.astype(np.float64)).sum(axis=(0, 1)) * scene.voxel_nm**2  # (si_top,) nm^2
+    return 2.0 * np.sqrt(area / np.pi)
+
+
+def bulge(diam: np.ndarray, voxel_nm: float) -> tuple[float, float]:
+    """(largest excess of a row's diameter over the narrowest row above it [nm], its depth below the
+    initial Si top [nm], 0 when there is no bulge) for a profile that starts at the top Si row."""
+    neck = np.minimum.accumulate(diam)  # narrowest row at or above each row
+    excess = diam - neck
+    i = int(np.argmax(excess))
+    if excess[i] <= 0.0:
+        return 0.0, 0.0
+    return float(excess[i]), (i + 0.5) * voxel_nm
+
+
 def run_point(scene: Scene, rules: RuleTensors, raw: np.ndarray, config: SimConfig, seed: int) -> dict:
     """Final-time metrics (module docstring), flux ratio and CPU seconds of one trajectory."""
     t0 = time.process_time()
@@ -59,61 +86,71 @@ def run_point(scene: Scene, rules: RuleTensors, raw: np.ndarray, config: SimConf
     m = profile_metrics(res.states[-1], scene)
     m0 = profile_metrics(psi(*res.domain.fractions(), scene, 0.0), scene)
     ions = sum(raw[CONTROL_INDEX[n]] for n in ION_FLUX)
+    diam = equivalent_diameters(res.domain.fractions()[1], scene)
+    bow, depth = bulge(diam, scene.voxel_nm)
     return {
         **{k: round(float(v), 3) for k, v in m.items()},
         "bowing_unsmoothed": round(float(m0["bowing"]), 3),
         "top_width_unsmoothed": round(float(m0["top_width"]), 3),
+        "bowing_area": round(bow, 3),
+        "bow_depth": round(depth, 1),
+        "diameter_profile": [round(float(d), 2) for d in diam],
         "flux_ratio": round(float(raw[CONTROL_INDEX["flux_cl"]] / ions), 3),
         "cpu_s": round(cpu, 2),
         "wall_s": round(res.wall_s, 2),
     }
 
 
+Variant = tuple[str, SimConfig]  # (name, simulator configuration) compared at every point
+
+
+def before_variants(config: SimConfig) -> list[Variant]:
+    """``after`` = ``config``, ``before`` = ``config`` without the excess-probability yield."""
+    return [("after", config), ("before", replace(config, excess_probability_yield=False))]
+
+
 def bowing_map(
-    scene: Scene, rules: RuleTensors, config: SimConfig, ms: tuple[float, ...], energies: tuple[float, ...],
-    ion_qs: tuple[float, ...], seed: int = 0, before: bool = False, log=None,
+    scene: Scene, rules: RuleTensors, variants: list[Variant], ms: tuple[float, ...],
+    energies: tuple[float, ...], ion_qs: tuple[float, ...], seeds: tuple[int, ...] = (0,), log=None,
 ) -> list[dict]:  # fmt: skip
-    """One row per grid point (and per variant ``after`` / ``before`` when ``before``)."""
-    variants = [("after", config)]
-    if before:
-        variants.append(("before", replace(config, excess_probability_yield=False)))
+    """One row per grid point, variant and seed (module docstring)."""
     rows = []
     for m in ms:
         for e in energies:
             for q in ion_qs:
                 raw = grid_controls(m, e, q)
                 for name, cfg in variants:
-                    row = {"variant": name, "m": m, "energy_ev": e, "ion_q": q,
-                           **run_point(scene, rules, raw, cfg, seed)}  # fmt: skip
-                    rows.append(row)
-                    if log is not None:
-                        log(row)
+                    for seed in seeds:
+                        row = {"variant": name, "seed": seed, "m": m, "energy_ev": e, "ion_q": q,
+                               **run_point(scene, rules, raw, cfg, seed)}  # fmt: skip
+                        rows.append(row)
+                        if log is not None:
+                            log(row)
     return rows
 
 
 def design_points(
-    scene: Scene, rules: RuleTensors, config: SimConfig, design_rows: tuple[int, ...], seed: int = 0,
-    before: bool = False, log=None,
+    scene: Scene, rules: RuleTensors, variants: list[Variant], design_rows: tuple[int, ...],
+    seeds: tuple[int, ...] = (0,), log=None,
 ) -> list[dict]:  # fmt: skip
     """The same metrics on rows of the 500-case design (calibration figures: depth range, mask loss)."""
     from nemsim.controls import lhs_design
 
     design = lhs_design()
-    variants = [("after", config)]
-    if before:
-        variants.append(("before", replace(config, excess_probability_yield=False)))
     rows = []
     for i in design_rows:
         raw = design[i]
         for name, cfg in variants:
-            row = {
-                "variant": name, "design_row": i, "m": float(raw[CONTROL_INDEX["angle_cl_plus"]]),
-                "energy_ev": round(float(raw[CONTROL_INDEX["energy_mean_cl_plus"]]), 1), "ion_q": None,
-                **run_point(scene, rules, raw, cfg, seed),
-            }  # fmt: skip
-            rows.append(row)
-            if log is not None:
-                log(row)
+            for seed in seeds:
+                row = {
+                    "variant": name, "seed": seed, "design_row": i,
+                    "m": float(raw[CONTROL_INDEX["angle_cl_plus"]]),
+                    "energy_ev": round(float(raw[CONTROL_INDEX["energy_mean_cl_plus"]]), 1), "ion_q": None,
+                    **run_point(scene, rules, raw, cfg, seed),
+                }  # fmt: skip
+                rows.append(row)
+                if log is not None:
+                    log(row)
     return rows
 
 
@@ -121,8 +158,8 @@ def to_markdown(rows: list[dict]) -> str:
     """The map as a markdown table."""
     lead = ("design_row",) if rows and "design_row" in rows[0] else ()
     cols = lead + (
-        "variant", "m", "energy_ev", "ion_q", "flux_ratio", "bowing", "bowing_unsmoothed", "etch_depth",
-        "top_width", "top_width_unsmoothed", "mask_loss", "cpu_s",
+        "variant", "seed", "m", "energy_ev", "ion_q", "flux_ratio", "bowing", "bowing_unsmoothed",
+        "bowing_area", "bow_depth", "etch_depth", "top_width", "top_width_unsmoothed", "mask_loss", "cpu_s",
     )  # fmt: skip
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:

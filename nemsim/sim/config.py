@@ -35,6 +35,12 @@ channel probability sum P > 1 multiplies the chosen event's yield by P instead o
 and the ion reflection law ``ion_absorb_below_deg`` / ``ion_reflect_above_deg`` (off: 0, 0). Both are
 written into ``to_meta``, so a data file made before they existed is not resumed with them.
 
+Optional mechanisms (``OPTIONAL_MECHANISMS``, all off by default and left out of ``to_meta`` while off,
+so today's data files stay resumable and read back with them off): the literature-calibrated Ar+ -> Si
+sputtering and the resist sputter scale (``calibration`` module), diffuse / lobed ion reflection, a fixed
+retained energy of reflected ions and a broad-angle wing of the ion angular distribution (``kernels``
+module docstring). What they do to bowing and yields: benchmarks/small/bowing.md.
+
 Particle budget (``particle_budget`` = b, used by ``nemsim bench speed-error``): the simulator traces b
 times the calibrated number of particles, and every simulated particle becomes a *super-particle* of
 weight w = 1/b: it stands for w particles of the full-budget run. The weight is applied to what a surface
@@ -78,6 +84,13 @@ _PROJECTILE_MASS_AMU = (
 _TARGET_MASS_AMU = (("Si", 28.09), ("SiCl", 63.54), ("SiCl2", 98.99), ("SiCl3", 134.44), ("Resist", 14.03))
 
 
+# Optional surface and transport mechanisms (off by default; kernels module docstring, ``calibration``)
+OPTIONAL_MECHANISMS = (
+    "sputter_calibration", "resist_sputter_scale", "ion_reflect_diffuse", "ion_reflect_spread_deg",
+    "ion_reflect_energy", "ion_wing_fraction", "ion_wing_m",
+)  # fmt: skip
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Constants of the Monte Carlo feature-profile simulator (defaults = the calibrated data set).
@@ -108,6 +121,22 @@ class SimConfig:
     # excess-probability yield (kernels module docstring): when the competing channels' unsaturated
     # probabilities sum to P > 1, the chosen event's yield is multiplied by P (was: normalized away)
     excess_probability_yield: bool = True
+    # ---- optional mechanisms, all off by default (``OPTIONAL_MECHANISMS``; not written into ``to_meta``
+    # at their defaults, so files made before they existed stay resumable). Kernels module docstring.
+    # Literature calibration of the rules' physical-sputtering laws (``calibration.SPUTTER_CALIBRATIONS``):
+    # "paper" = the rule library as written; "laegreid_wehner" = Ar+ -> Si fitted to Laegreid & Wehner 1961.
+    sputter_calibration: str = "paper"
+    # mask faceting: multiplies p0 of the ion sputtering rules whose target is the resist
+    resist_sputter_scale: float = 1.0
+    # ion reflection: fraction of reflecting ions scattered diffusely (cosine about the normal) instead of
+    # specularly; rms angular spread [deg] of the specular lobe; retained energy fraction (0 = mass law)
+    ion_reflect_diffuse: float = 0.0
+    ion_reflect_spread_deg: float = 0.0
+    ion_reflect_energy: float = 0.0
+    # broad-angle wing of the ion angular distribution: this fraction of the ions is launched from
+    # cos^ion_wing_m instead of the control's cos^m (collisional-sheath tail)
+    ion_wing_fraction: float = 0.0
+    ion_wing_m: float = 5.0
     queue_capacity: int = 1 << 15  # FIFO ring buffer for secondary products (drained after each primary)
     projectile_mass_amu: tuple[tuple[str, float], ...] = _PROJECTILE_MASS_AMU
     target_mass_amu: tuple[tuple[str, float], ...] = _TARGET_MASS_AMU
@@ -134,6 +163,23 @@ class SimConfig:
             )
         if self.psi_sigma_vox < 0:
             raise ValueError(f"psi_sigma_vox must be >= 0, got {self.psi_sigma_vox}")
+        from .calibration import SPUTTER_CALIBRATIONS
+
+        if self.sputter_calibration not in SPUTTER_CALIBRATIONS:
+            choices = sorted(SPUTTER_CALIBRATIONS)
+            raise ValueError(f"sputter_calibration is one of {choices}, got {self.sputter_calibration!r}")
+        for name in ("ion_reflect_diffuse", "ion_wing_fraction", "ion_reflect_energy"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {value}")
+        scale = self.resist_sputter_scale
+        if not (scale >= 0 and math.isfinite(scale)):
+            raise ValueError(f"resist_sputter_scale must be a finite number >= 0, got {scale}")
+        if not 0.0 <= self.ion_reflect_spread_deg <= 45.0:
+            spread = self.ion_reflect_spread_deg
+            raise ValueError(f"ion_reflect_spread_deg must be in [0, 45] degrees, got {spread}")
+        if not self.ion_wing_m >= 0:
+            raise ValueError(f"ion_wing_m must be >= 0, got {self.ion_wing_m}")
 
     def resolved(self, scene: Scene) -> SimConfig:
         """This config with ``capacity`` and ``resist_capacity`` filled in for ``scene``."""
@@ -175,8 +221,11 @@ class SimConfig:
         """JSON-able record of every constant (resolved for ``scene`` when given)."""
         cfg = self.resolved(scene) if scene is not None else self
         out = asdict(cfg)
-        if cfg.particle_budget == 1.0:  # keeps files generated before the field existed resumable
-            del out["particle_budget"]
+        # fields at their defaults that files generated before the field existed do not record: omitted,
+        # so those files stay resumable (``from_meta`` reads a missing key as the default)
+        for name in ("particle_budget", *OPTIONAL_MECHANISMS):
+            if out[name] == SimConfig.__dataclass_fields__[name].default:
+                del out[name]
         out["projectile_mass_amu"] = dict(cfg.projectile_mass_amu)
         out["target_mass_amu"] = dict(cfg.target_mass_amu)
         if scene is not None:

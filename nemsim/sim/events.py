@@ -14,6 +14,8 @@ arrays the numba kernels index, and says what each rule *does* to a voxel:
 k is the rule's yield turned into an integer by stochastic rounding. The effect comes from the compiled
 meta flags (``phi`` columns ``react/etch/sputter/deposit``); an event without an ``effect`` is treated as
 removal when it is primary and as deposition otherwise. Dropped events (``event_mask = 0``) never fire.
+The probability parameters are the rules' unless a ``SimConfig`` option re-parameterizes some of them
+(``calibration``: literature-fitted sputtering, resist sputter scale; off by default).
 
 Incident sources: the projectiles that drive primary events with a flux control (Cl, Cl+, Cl2+, Ar+);
 their flux, angle, energy-mean and energy-std control indices are read from the rules' ``ctrl_idx``.
@@ -29,6 +31,7 @@ import numpy as np
 from nemsim.rules.compile import META_FLAGS, RuleTensors
 from nemsim.rules.vocab import ION_PROJECTILES, PROJECTILES, TARGETS
 
+from .calibration import calibrated_prob_params
 from .config import SimConfig
 
 ACT_NONE, ACT_REACT, ACT_REMOVE, ACT_DEPOSIT = 0, 1, 2, 3
@@ -170,7 +173,7 @@ def build_event_tables(rules: RuleTensors, config: SimConfig) -> EventTables:
         action=action,
         conv_to=conv_to,
         prob_model=np.asarray(rules.prob_model, dtype=np.int64),
-        prob_params=np.ascontiguousarray(rules.prob_params, dtype=np.float64),
+        prob_params=np.ascontiguousarray(calibrated_prob_params(rules, config)),  # config's options applied
         angle_kind=np.asarray(rules.angle_kind, dtype=np.int64),
         yield_model=np.asarray(rules.yield_model, dtype=np.int64),
         yield_params=np.ascontiguousarray(rules.yield_params, dtype=np.float64),

@@ -51,6 +51,21 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
     ``small`` (median recipe with m = 50, 500 eV, high ion flux), absorbing the near-normal and
     intermediate-angle ions (45-75 deg) removes the mask-facet-reflected ions that drive the sidewall
     bulge: lateral width -10 nm and the unsmoothed bow 4.6 -> 2.1 nm; kept as an option for studies.
+  * optional mechanisms (``SimConfig``, all off by default, no extra random draws when off; measured in
+    benchmarks/small/bowing.md):
+      - diffuse ion reflection (``ion_reflect_diffuse`` = f): a reflecting ion scatters with probability
+        f cosine-distributed about the local normal instead of specularly (rough or amorphized
+        surfaces);
+      - specular lobe (``ion_reflect_spread_deg`` = sigma): the reflected direction is drawn from a
+        cos^k lobe about the specular one, k = 1 / sigma^2 (sigma in radians = the rms deviation per
+        transverse direction), redrawn until it leaves the surface;
+      - retained energy (``ion_reflect_energy`` = e): a reflected ion keeps the fraction e of its energy
+        instead of the mass-ratio law above (inelastic losses the binary-collision law leaves out);
+      - broad-angle wing (``ion_wing_fraction`` = w, ``ion_wing_m``): a fraction w of the ions is
+        launched from cos^ion_wing_m instead of the control's cos^m (the wide tail of a collisional
+        sheath's ion angular distribution);
+      - ``sputter_calibration`` and ``resist_sputter_scale`` change rule parameters, not the kernels
+        (``calibration`` module).
   * products: ``product_energy_ev`` (2 eV), cosine-distributed about the local normal, launched from the
     vacuum voxel in front of the hit face; on a solid voxel they stick with the rule's p_stick (adding one
     unit of their species to the hit voxel, or to the vacuum voxel in front of it when the hit voxel is
@@ -109,14 +124,24 @@ class TransportParams(NamedTuple):
     refl_cos_full: float = 1.0
     refl_cos_zero: float = 1.0
     excess_yield: bool = False  # the excess-probability yield (module docstring)
+    # optional ion mechanisms (module docstring, "Optional mechanisms"; all off at these values)
+    refl_diffuse: float = 0.0  # fraction of reflecting ions scattered diffusely instead of specularly
+    refl_lobe_k: float = 0.0  # cos^k lobe about the specular direction (0: exactly specular)
+    refl_energy: float = 0.0  # retained energy fraction of a reflected ion (0: the mass-ratio law)
+    wing_fraction: float = 0.0  # fraction of ions launched from cos^wing_m instead of the control's cos^m
+    wing_m: float = 5.0
 
 
 def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportParams:
     """The transport settings of ``config``; ``cap``/``rcap``: the resolved voxel capacities."""
     cos_full, cos_zero = config.reflection_cosines
+    spread = math.radians(config.ion_reflect_spread_deg)
+    lobe_k = 1.0 / (spread * spread) if spread > 0.0 else 0.0  # rms transverse deviation = spread
     return TransportParams(float(cap), float(rcap), float(config.product_energy_ev), int(config.max_steps),
                            float(config.particle_weight), float(cos_full), float(cos_zero),
-                           bool(config.excess_probability_yield))  # fmt: skip
+                           bool(config.excess_probability_yield), float(config.ion_reflect_diffuse),
+                           float(lobe_k), float(config.ion_reflect_energy), float(config.ion_wing_fraction),
+                           float(config.ion_wing_m))  # fmt: skip
 
 
 class WorkBuffers(NamedTuple):
@@ -187,9 +212,22 @@ def cos_power_polar(m: float) -> float:
 def cosine_about(nx_: float, ny_: float, nz_: float) -> tuple[float, float, float]:
     """Direction drawn from the cosine-weighted hemisphere about the unit vector n."""
     u1 = np.random.random()
+    return _polar_about(math.sqrt(u1), math.sqrt(max(0.0, 1.0 - u1)), nx_, ny_, nz_)
+
+
+@numba.njit(cache=True)
+def lobe_about(k: float, nx_: float, ny_: float, nz_: float) -> tuple[float, float, float]:
+    """Direction drawn from p(Omega) ~ cos^k (angle to the unit vector n): a lobe about n (rms transverse
+    deviation 1/sqrt(k) rad for large k)."""
+    ct = cos_power_polar(k)
+    return _polar_about(ct, math.sqrt(max(0.0, 1.0 - ct * ct)), nx_, ny_, nz_)
+
+
+@numba.njit(cache=True)
+def _polar_about(ct: float, st: float, nx_: float, ny_: float, nz_: float) -> tuple[float, float, float]:
+    """Unit direction at polar cosine ``ct`` (sine ``st``) from the unit vector n, uniform azimuth (one
+    random draw)."""
     u2 = np.random.random()
-    ct = math.sqrt(u1)
-    st = math.sqrt(max(0.0, 1.0 - u1))
     ph = 2.0 * math.pi * u2
     a = st * math.cos(ph)
     b = st * math.sin(ph)
@@ -204,6 +242,22 @@ def cosine_about(nx_: float, ny_: float, nz_: float) -> tuple[float, float, floa
     t2y = sign + ny_ * ny_ * e
     t2z = -ny_
     return (a * t1x + b * t2x + ct * nx_, a * t1y + b * t2y + ct * ny_, a * t1z + b * t2z + ct * nz_)
+
+
+@numba.njit(cache=True)
+def diffuse_direction(
+    nnx: float, nny: float, nnz: float, fnx: float, fny: float, fnz: float
+) -> tuple[float, float, float]:
+    """Cosine-distributed direction about the surface normal n that leaves through the entry face f
+    (8 redraws, then cosine about f)."""
+    ex, ey, ez = cosine_about(nnx, nny, nnz)
+    for _try in range(8):
+        if ex * fnx + ey * fny + ez * fnz > 0.0:
+            break
+        ex, ey, ez = cosine_about(nnx, nny, nnz)
+    if ex * fnx + ey * fny + ez * fnz <= 0.0:
+        ex, ey, ez = cosine_about(fnx, fny, fnz)
+    return ex, ey, ez
 
 
 @numba.njit(cache=True)
@@ -256,6 +310,34 @@ def reflection_probability(cos_inc: float, cos_full: float, cos_zero: float) -> 
     th_full = math.acos(cos_full)
     th_zero = math.acos(cos_zero)
     return (th - th_zero) / (th_full - th_zero)
+
+
+@numba.njit(cache=True)
+def _specular(
+    dx: float, dy: float, dz: float, ddotn: float, nnx: float, nny: float, nnz: float, fnx: float, fny: float,
+    fnz: float, lobe_k: float,
+) -> tuple[float, float, float]:  # fmt: skip
+    """Specular reflection of d about the normal n (about the entry face f if that would not leave through
+    it); with ``lobe_k`` > 0 a direction from the cos^k lobe about it that leaves through f (8 draws, else
+    the exact specular direction)."""
+    rx = dx - 2.0 * ddotn * nnx
+    ry = dy - 2.0 * ddotn * nny
+    rz = dz - 2.0 * ddotn * nnz
+    if rx * fnx + ry * fny + rz * fnz <= 1e-9:
+        dotf = dx * fnx + dy * fny + dz * fnz
+        rx = dx - 2.0 * dotf * fnx
+        ry = dy - 2.0 * dotf * fny
+        rz = dz - 2.0 * dotf * fnz
+    norm = math.sqrt(rx * rx + ry * ry + rz * rz)
+    rx /= norm
+    ry /= norm
+    rz /= norm
+    if lobe_k > 0.0:
+        for _try in range(8):
+            ex, ey, ez = lobe_about(lobe_k, rx, ry, rz)
+            if ex * fnx + ey * fny + ez * fnz > 1e-9:
+                return ex, ey, ez
+    return rx, ry, rz
 
 
 @numba.njit(cache=True)
@@ -532,13 +614,7 @@ def fly(
                         amount = 0.0
                     n_emit = stochastic_round(amount)
                     for _ in range(n_emit):
-                        ex, ey, ez = cosine_about(nnx, nny, nnz)
-                        for _try in range(8):
-                            if ex * fnx + ey * fny + ez * fnz > 0.0:
-                                break
-                            ex, ey, ez = cosine_about(nnx, nny, nnz)
-                        if ex * fnx + ey * fny + ez * fnz <= 0.0:
-                            ex, ey, ez = cosine_about(fnx, fny, fnz)
+                        ex, ey, ez = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz)
                         new_tail = _push(
                             queue, tail, head, x, y, z, ex, ey, ez, tab.product_species[j], prm.product_energy
                         )
@@ -562,34 +638,20 @@ def fly(
                     counters[C_STEPS] += steps
                     counters[C_ABSORBED] += 1
                     return tail
-            m1 = tab.proj_mass[species]
-            m2 = tab.target_mass[tgt]
-            ratio = (m1 - m2) / (m1 + m2)
-            c2 = cos_inc * cos_inc
-            energy *= (1.0 - c2) + c2 * ratio * ratio
-            rx = dx - 2.0 * ddotn * nnx
-            ry = dy - 2.0 * ddotn * nny
-            rz = dz - 2.0 * ddotn * nnz
-            if rx * fnx + ry * fny + rz * fnz <= 1e-9:
-                dotf = dx * fnx + dy * fny + dz * fnz
-                rx = dx - 2.0 * dotf * fnx
-                ry = dy - 2.0 * dotf * fny
-                rz = dz - 2.0 * dotf * fnz
-            norm = math.sqrt(rx * rx + ry * ry + rz * rz)
-            dx = rx / norm
-            dy = ry / norm
-            dz = rz / norm
+            if prm.refl_energy > 0.0:
+                energy *= prm.refl_energy
+            else:
+                m1 = tab.proj_mass[species]
+                m2 = tab.target_mass[tgt]
+                ratio = (m1 - m2) / (m1 + m2)
+                c2 = cos_inc * cos_inc
+                energy *= (1.0 - c2) + c2 * ratio * ratio
+            if prm.refl_diffuse > 0.0 and np.random.random() < prm.refl_diffuse:
+                dx, dy, dz = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz)
+            else:
+                dx, dy, dz = _specular(dx, dy, dz, ddotn, nnx, nny, nnz, fnx, fny, fnz, prm.refl_lobe_k)
         else:
-            ex, ey, ez = cosine_about(nnx, nny, nnz)
-            for _try in range(8):
-                if ex * fnx + ey * fny + ez * fnz > 0.0:
-                    break
-                ex, ey, ez = cosine_about(nnx, nny, nnz)
-            if ex * fnx + ey * fny + ez * fnz <= 0.0:
-                ex, ey, ez = cosine_about(fnx, fny, fnz)
-            dx = ex
-            dy = ey
-            dz = ez
+            dx, dy, dz = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz)
         if steps >= max_steps:
             counters[C_STEPS] += steps
             counters[C_STEP_LIMIT] += 1
@@ -634,7 +696,10 @@ def run_particles(
             energy = neutral_energy
         if not count_ions:
             done += 1
-        ct = cos_power_polar(src.m[ks])
+        m_launch = src.m[ks]
+        if prm.wing_fraction > 0.0 and tab.is_ion[s] and np.random.random() < prm.wing_fraction:
+            m_launch = prm.wing_m  # broad-angle wing (module docstring, "Optional mechanisms")
+        ct = cos_power_polar(m_launch)
         st = math.sqrt(max(0.0, 1.0 - ct * ct))
         ph = 2.0 * math.pi * np.random.random()
         x0 = np.random.random() * nx

@@ -36,6 +36,9 @@ The rule library's yield law (``kinetics.yield_physical``) has no energy depende
 its probability law saturates in the paper's form; the simulator's energy dependence is
 p0 ((E - E_th)/(E_ref - E_th))^n with n = 0.5 (``kernels`` module docstring), i.e. sqrt(E - E_th), which
 is the published shape; the absolute scale is set by p0 and flux_scale, and is what the table checks.
+For Ar+ -> Si the paper's rule (p0 = 0.05, n = 0.5) gives 0.6 x 0.05 x sqrt((E - 25)/75): 3-6x below
+Laegreid & Wehner, whose yields grow almost linearly in E; ``SimConfig(sputter_calibration=
+"laegreid_wehner")`` refits that rule (``calibration`` module) and is what ``--set`` compares.
 """
 
 from __future__ import annotations

@@ -127,6 +127,15 @@ def test_bench_bowing_cli_on_tiny(tmp_path):
     assert "Command: nemsim bench bowing --scene tiny" in (tmp_path / "b.md").read_text()
     assert main([*args, "--out", str(out)]) == 2  # never overwrites
     assert main([*args, "--ion-q", "2", "--out", str(tmp_path / "c")]) == 2
+    # optional mechanisms as named variants; every row carries the equivalent-diameter bulge and profile
+    var = ["--variant", "facet:resist_sputter_scale=3,ion_reflect_spread_deg=9", "--out", str(tmp_path / "v")]
+    assert main([*args, "--seed", "0", *var]) == 0
+    rows = json.loads((tmp_path / "v.json").read_text())["rows"]
+    assert [r["variant"] for r in rows] == ["base", "facet"]
+    assert all(r["bowing_area"] >= 0 and len(r["diameter_profile"]) == 20 for r in rows)
+    assert "--variant facet:resist_sputter_scale=3" in (tmp_path / "v.md").read_text()
+    for bad in ("facet", "x:nope=1", "x:ion_reflect_diffuse=3", "base:ion_reflect_diffuse=0.5"):
+        assert main([*args, "--variant", bad, "--out", str(tmp_path / "w")]) == 2
 
 
 def test_config_meta_round_trip_and_records_made_before_the_mechanisms():
