@@ -13,6 +13,11 @@ Policies:
   refuse  422 naming the controls outside the box and the box.
 
 The box is the one recorded in the checkpoint (`control_ranges`), else the current design range.
+
+A NEMSim model with `control_saturation` (knee, limit) has its network read every control saturated
+beyond `knee` half-widths past the edge, towards at most `limit` (`nemsim.model.saturation`; the
+ion-flux gate reads the value given). Under `allow` each excursion then also says where the network
+reads it (`network_half_widths_outside`), so a far request is visibly answered as a nearer one.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from typing import Literal
 import numpy as np
 
 from nemsim.controls import CONTROL_SPECS, EPS_U
+from nemsim.model.saturation import saturation_point
 
 Policy = Literal["allow", "clip", "refuse"]
 POLICIES: tuple[str, ...] = ("allow", "clip", "refuse")
@@ -40,14 +46,19 @@ class Excursion:
     high: float
     side: Literal["below", "above"]
     half_widths: float  # distance past the nearest edge, in box half-widths (transformed coordinate)
+    network_half_widths: float | None = None  # where the network reads it (saturated controls), else None
 
     def describe(self) -> str:
         scale = ", on the log scale the model uses" if _is_log(self.name) else ""
-        return (
+        text = (
             f"{self.name} = {self.value:g} {self.unit} is outside the training range "
             f"{self.low:g}..{self.high:g} by {self.half_widths:.3g} box half-widths ({self.side}{scale}): "
             "the prediction is an extrapolation"
         )
+        if self.network_half_widths is not None and self.network_half_widths < self.half_widths:
+            text += (f"; the network reads it saturated, at {self.network_half_widths:.3g} box half-widths "
+                     "(the ion-flux gate uses the value given)")
+        return text
 
     def as_dict(self) -> dict[str, float | str]:
         return {
@@ -58,6 +69,7 @@ class Excursion:
             "train_max": self.high,
             "side": self.side,
             "half_widths_outside": self.half_widths,
+            "network_half_widths_outside": self.network_half_widths,
         }
 
 
@@ -69,9 +81,10 @@ def _t(x: np.ndarray | float, log: bool) -> np.ndarray:
     return np.log10(np.asarray(x, dtype=np.float64) + EPS_U) if log else np.asarray(x, dtype=np.float64)
 
 
-def excursions(raw: np.ndarray, box: dict[str, tuple[float, float]]) -> list[Excursion]:
+def excursions(raw: np.ndarray, box: dict[str, tuple[float, float]],
+               saturation: tuple[float, float] | None = None) -> list[Excursion]:
     """Controls of `raw` (T, 14) or (14,) physical units outside `box` {name: (low, high)}, the worst
-    value of each."""
+    value of each; `saturation`: the model's (knee, limit), if it saturates its controls."""
     rows = np.atleast_2d(np.asarray(raw, dtype=np.float64))  # (T, 14)
     out: list[Excursion] = []
     for i, spec in enumerate(CONTROL_SPECS):
@@ -87,7 +100,8 @@ def excursions(raw: np.ndarray, box: dict[str, tuple[float, float]]) -> list[Exc
             ("below", k_lo, below[k_lo]) if below[k_lo] >= above[k_hi] else ("above", k_hi, above[k_hi])
         )
         dist = float(d / half) if half > 0 else math.inf
-        out.append(Excursion(spec.name, spec.unit, float(rows[k, i]), lo, hi, side, dist))  # type: ignore[arg-type]
+        seen = None if saturation is None else saturation_point(dist, *saturation)
+        out.append(Excursion(spec.name, spec.unit, float(rows[k, i]), lo, hi, side, dist, seen))  # type: ignore[arg-type]
     return out
 
 
@@ -122,12 +136,14 @@ class Refused(ValueError):
 
 
 def apply(
-    raw: np.ndarray, box: dict[str, tuple[float, float]], policy: str
+    raw: np.ndarray, box: dict[str, tuple[float, float]], policy: str,
+    saturation: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, list[str], list[Excursion], bool]:
-    """(controls to use, warnings, excursions of the given controls, clipped?) under `policy`."""
+    """(controls to use, warnings, excursions of the given controls, clipped?) under `policy`;
+    `saturation`: the model's control saturation (knee, limit), if any (module docstring)."""
     if policy not in POLICIES:
         raise ValueError(f"extrapolation policy {policy!r}; expected one of {list(POLICIES)}")
-    found = excursions(raw, box)
+    found = excursions(raw, box, saturation)
     if not found:
         return raw, [], [], False
     if policy == "refuse":

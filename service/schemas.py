@@ -430,6 +430,12 @@ class ExtrapolationInfo(BaseModel):
         description="distance past the nearest edge of the box, in box half-widths, in the coordinate the "
         "model sees (log10 for fluxes)"
     )
+    network_half_widths_outside: float | None = Field(
+        None,
+        description="where the network reads this control, in box half-widths past the edge: a model with "
+        "control saturation holds far controls near the box (the ion-flux gate uses the value given); "
+        "null: it reads the value as given",
+    )
 
 
 class RolloutResponse(BaseModel):

@@ -269,11 +269,18 @@ class Surrogate:
     def horizon_steps(self) -> int:
         return int(self.scene.n_transitions)
 
+    @property
+    def control_saturation(self) -> tuple[float, float] | None:
+        """The model's control saturation (knee, limit) in box half-widths, None if it reads controls as
+        given (``nemsim.model.saturation``)."""
+        sat = getattr(getattr(self.loaded.model, "config", None), "control_saturation", None)
+        return None if sat is None else (float(sat[0]), float(sat[1]))
+
     def warnings_for(self, controls_raw: np.ndarray) -> list[str]:
         """Readable warnings for controls outside the training range. controls_raw: (T, 14) or (14,)."""
         from service.extrapolation import excursions
 
-        return [e.describe() for e in excursions(controls_raw, self.train_range)]
+        return [e.describe() for e in excursions(controls_raw, self.train_range, self.control_saturation)]
 
     @staticmethod
     def rollout_id(model_id: str, u_norm: np.ndarray, steps: int) -> str:

@@ -281,7 +281,7 @@ def rollout_to(model: torch.nn.Module, x0: torch.Tensor, u: torch.Tensor, step: 
         (B, 2, D, H, W).
     """
     from nemsim.evaluation.rollout import steps_per_call
-    from nemsim.model.monotone import monotone_eps_of, project
+    from nemsim.model.monotone import axis_eps_of, eps_field, monotone_eps_of, project
 
     B = u.shape[0]
     x = x0[None].expand(B, *x0.shape).to(u.dtype)  # (B, 2, D, H, W)
@@ -289,7 +289,7 @@ def rollout_to(model: torch.nn.Module, x0: torch.Tensor, u: torch.Tensor, step: 
     k = steps_per_call(model)
     cache = model.precompute(u) if fast else None  # type: ignore[operator]
     eps_of = monotone_eps_of(model, None)  # the rollout's monotone projection, if the model has one
-    eps = None if eps_of is None else torch.tensor(eps_of, dtype=x.dtype).view(1, -1, 1, 1, 1)
+    eps = None if eps_of is None else eps_field(x.shape, eps_of, axis_eps_of(model), x.dtype, x.device)
     running_max = x
     t = 0
     while t < step:

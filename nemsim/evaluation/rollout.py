@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from nemsim.model.monotone import MonotoneProjection, monotone_eps_of
+from nemsim.model.monotone import MonotoneProjection, projection_of
 
 StepCallback = Callable[[int, torch.Tensor], None]
 
@@ -172,8 +172,7 @@ def _trajectory_buffer(x0: torch.Tensor, T: int, keep: bool, out: torch.Tensor |
 
 def _projection(model: nn.Module, x0: torch.Tensor, monotone: bool | None) -> MonotoneProjection | None:
     """The monotone projection of this rollout, or None (``rollout``'s ``monotone``)."""
-    eps = monotone_eps_of(model, monotone)
-    return None if eps is None else MonotoneProjection(x0, eps)
+    return projection_of(model, x0, monotone)
 
 
 def steps_per_call(model: nn.Module) -> int:

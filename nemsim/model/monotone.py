@@ -18,6 +18,19 @@ zero-mean noise into an upward ratchet (it cost accuracy on control-id). What ep
 stays within eps of its running maximum, no surface can move back by more than about eps * d_max nm, so the
 rollout's etch depth and mask loss can never fall by more than that, at any horizon.
 
+The hole axis (``axis_eps``, ``NEMSimConfig.monotone_axis_eps``): the etch depth is read from one line of
+the Si channel, the hole axis, interpolated between the (up to) 2 x 2 voxel columns around it
+(``nemsim.geometry.profile``). Those columns get their own, smaller slack. With axis_eps = 0 the depth is
+non-decreasing by construction at every step (up to the rounding of the readout's own float64 arithmetic,
+far below a nanometre): each axis column is then pointwise non-decreasing in time, so is their fixed
+convex combination (the interpolated axis line), and the first vacuum->Si crossing scanning that line
+downward can only move down (a vacuum sample stays vacuum; between the same two samples the interpolated
+crossing fraction v0 / (v0 - v1) grows with both v0 > 0 and v1 <= 0). The rest of the state keeps
+``eps``: the widths are read from the sidewalls, and a tight slack there turns their sub-voxel noise into
+a bias (a tight Si eps everywhere cost top-width accuracy, ``benchmarks/small/monotone.md``). The axis is
+the domain's centre line (every scene's opening is centred, ``Scene.opening_centre``), so it is found from
+the state's shape alone.
+
 How ``MONOTONE_EPS`` (mask, Si) was chosen (figures in ``benchmarks/small/monotone.md``): the Si value is
 the 99.9th percentile of the data's fall below the running maximum over the ``small`` design's control-id
 training cases (``nemsim bench monotone-eps``); the mask value is the smaller of that percentile and the
@@ -29,6 +42,7 @@ lacks the key loads with this default.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -36,6 +50,40 @@ import torch
 
 # (mask, Si) in normalized SDF units: see the module docstring for how it was measured
 MONOTONE_EPS: tuple[float, float] = (0.005, 0.034)
+# Si slack on the hole-axis columns (the etch depth's readout): 0 makes the depth non-decreasing exactly
+MONOTONE_AXIS_EPS: float = 0.0
+SI_CHANNEL = 1
+
+
+def axis_columns(h: int, w: int) -> tuple[list[int], list[int]]:
+    """(y indices, x indices) of the padded voxel columns the hole-axis readout interpolates between, for a
+    state of padded size (H, W) = (h, w): the axis sits at index (n - 1) / 2 of an axis of padded size n
+    (native centre (n_native - 1) / 2, plus the one-voxel pad), so one column when n is odd, two when even."""
+    def cols(n: int) -> list[int]:
+        a = (n - 1) / 2.0
+        return sorted({math.floor(a), math.ceil(a)})
+
+    return cols(h), cols(w)
+
+
+def eps_field(shape: Sequence[int], eps: Sequence[float], axis_eps: float | None,
+              dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
+    """The per-voxel slack of the projection, (1, C, 1, H, W) (broadcast over batch and depth): ``eps`` per
+    channel, and ``axis_eps`` on the Si channel's hole-axis columns (None: no separate axis slack).
+
+    shape: a state's (..., C, D, H, W) shape."""
+    c, h, w = int(shape[-4]), int(shape[-2]), int(shape[-1])
+    if len(eps) != c or any(not float(e) >= 0.0 for e in eps):
+        raise ValueError(f"eps must be {c} values >= 0 (one per channel), got {tuple(eps)}")
+    field = torch.tensor([float(e) for e in eps], dtype=dtype, device=device).view(1, c, 1, 1, 1)
+    field = field.expand(1, c, 1, h, w).clone()  # (1, C, 1, H, W)
+    if axis_eps is not None:
+        if not float(axis_eps) >= 0.0 or c <= SI_CHANNEL:
+            raise ValueError(f"axis_eps must be >= 0 on a state with a Si channel, got {axis_eps!r}")
+        ys, xs = axis_columns(h, w)
+        for y in ys:
+            field[0, SI_CHANNEL, 0, y, xs] = float(axis_eps)
+    return field
 
 
 class MonotoneProjection:
@@ -44,14 +92,12 @@ class MonotoneProjection:
     Args:
         x0: (B, 2, D, H, W) the initial states (the first running maximum; not modified).
         eps: per-channel slack (C values, C = x0.shape[1]).
+        axis_eps: the Si slack on the hole-axis columns (``eps_field``); None: ``eps`` there too.
     """
 
-    def __init__(self, x0: torch.Tensor, eps: Sequence[float]) -> None:
-        if len(eps) != x0.shape[1] or any(not float(e) >= 0.0 for e in eps):
-            raise ValueError(f"eps must be {x0.shape[1]} values >= 0 (one per channel), got {tuple(eps)}")
+    def __init__(self, x0: torch.Tensor, eps: Sequence[float], axis_eps: float | None = None) -> None:
+        self.eps = eps_field(x0.shape, eps, axis_eps, x0.dtype, x0.device)  # (1, 2, 1, H, W)
         self.running_max = x0.clone()  # (B, 2, D, H, W)
-        eps_t = torch.tensor([float(e) for e in eps], dtype=x0.dtype, device=x0.device)
-        self.eps = eps_t.view(1, -1, 1, 1, 1)  # (1, 2, 1, 1, 1)
         self._floor: torch.Tensor | None = None  # (B, 2, D, H, W) scratch of project_
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
@@ -74,7 +120,7 @@ class MonotoneProjection:
 def project(x: torch.Tensor, running_max: torch.Tensor,
             eps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The same projection without in-place updates, so gradients flow through it (inverse design):
-    (projected x, new running maximum), all (B, 2, D, H, W); eps (1, 2, 1, 1, 1)."""
+    (projected x, new running maximum), all (B, 2, D, H, W); eps (1, 2, 1, H, W) from ``eps_field``."""
     x = torch.maximum(x, running_max - eps)
     return x, torch.maximum(running_max, x)
 
@@ -94,6 +140,20 @@ def monotone_eps_of(model: object, monotone: bool | None) -> tuple[float, ...] |
     return None if eps is None else tuple(float(e) for e in eps)
 
 
+def axis_eps_of(model: object) -> float | None:
+    """The hole-axis Si slack of ``model``'s rollouts: ``model.config.monotone_axis_eps`` (None: the Si
+    ``eps`` there too), ``MONOTONE_AXIS_EPS`` for a model whose config has no such key."""
+    value = getattr(getattr(model, "config", None), "monotone_axis_eps", MONOTONE_AXIS_EPS)
+    return None if value is None else float(value)
+
+
+def projection_of(model: object, x0: torch.Tensor, monotone: bool | None) -> MonotoneProjection | None:
+    """The monotone projection of a rollout of ``model`` from x0 (B, 2, D, H, W), or None (``monotone``
+    as in ``monotone_eps_of``)."""
+    eps = monotone_eps_of(model, monotone)
+    return None if eps is None else MonotoneProjection(x0, eps, axis_eps_of(model))
+
+
 def running_max_drop(states: np.ndarray) -> np.ndarray:
     """Per voxel and step, how far each state lies below its running maximum: (T+1, C, D, H, W) <= 0.
 
@@ -106,10 +166,11 @@ def measure_eps(path: str, rows: Sequence[int], quantiles: Sequence[float] = (0.
                 ) -> dict[str, object]:
     """Quantiles of the fall below the running maximum, per channel, over the trajectories in ``rows`` of a
     design file (``states`` rows); only voxels whose value changes at some step count (a static voxel never
-    falls). Returns {"file", "cases", "mask": {"q0.999": ...}, "si": {...}} in normalized SDF units."""
+    falls). Returns {"file", "cases", "mask": {"q0.999": ...}, "si": {...}, "si_axis": {...}} in normalized
+    SDF units; "si_axis" is the Si channel on the hole-axis columns alone (``axis_columns``)."""
     import h5py
 
-    falls: list[list[np.ndarray]] = [[], []]
+    falls: list[list[np.ndarray]] = [[], [], []]  # mask, Si, Si on the hole-axis columns
     with h5py.File(path, "r") as f:
         for row in rows:
             states = np.asarray(f["states"][int(row)], dtype=np.float32)  # (T+1, 2, D, H, W)
@@ -117,8 +178,12 @@ def measure_eps(path: str, rows: Sequence[int], quantiles: Sequence[float] = (0.
             moving = (states.max(axis=0) > states.min(axis=0))  # (2, D, H, W)
             for c in range(states.shape[1]):
                 falls[c].append(drop[:, c][:, moving[c]].ravel())
+            on_axis = np.zeros(moving.shape[1:], dtype=bool)  # (D, H, W)
+            ys, xs = axis_columns(*moving.shape[2:])
+            on_axis[:, ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1] = True
+            falls[2].append(drop[:, SI_CHANNEL][:, moving[SI_CHANNEL] & on_axis].ravel())
     out: dict[str, object] = {"file": str(path), "cases": len(rows)}
-    for c, name in enumerate(("mask", "si")):
+    for c, name in enumerate(("mask", "si", "si_axis")):
         v = np.concatenate(falls[c])
-        out[name] = {f"q{q:g}": float(np.quantile(v, q)) for q in quantiles}
+        out[name] = {f"q{q:g}": float(np.quantile(v, q)) for q in quantiles} if v.size else {}
     return out

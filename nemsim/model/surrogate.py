@@ -34,7 +34,14 @@ Choices where the paper is silent:
   * ``monotone_eps``: not used by ``forward``; ``nemsim.evaluation.rollout`` reads it and projects every
     predicted state onto x >= (the rollout's running maximum) - eps, since etching only removes material
     (``nemsim.model.monotone``). Checkpoints written before the key existed load with the default (on); set
-    it to None (``null``) to turn the projection off.
+    it to None (``null``) to turn the projection off. ``monotone_axis_eps``: the Si slack on the hole-axis
+    columns, where the etch depth is read (default 0: the depth never decreases, by construction); None:
+    ``monotone_eps`` there too.
+  * ``control_saturation`` (knee, limit): every learned part reads the controls saturated beyond ``knee``
+    box half-widths past the box edge, towards at most ``limit`` (``nemsim.model.saturation``); the
+    ion-flux gate reads the true controls. The identity on in-box controls, bit for bit, so training and
+    in-box predictions are unchanged. Checkpoints written before the key existed load with it on; None
+    turns it off (the network reads the controls as given).
 
 Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
 the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,
@@ -68,9 +75,10 @@ from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredInte
 from nemsim.model.encoder import EncoderConfig, StateEncoder
 from nemsim.model.gate import ion_flux_gate
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
-from nemsim.model.monotone import MONOTONE_EPS
+from nemsim.model.monotone import MONOTONE_AXIS_EPS, MONOTONE_EPS
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
+from nemsim.model.saturation import CONTROL_SATURATION, check_saturation, saturate_controls
 from nemsim.model.window import WindowRun, splice_latent
 
 
@@ -95,6 +103,10 @@ class NEMSimConfig:
     steps_per_call: int = 1  # k states predicted per call (1 = the paper's model; see "Multi-step" below)
     # rollouts project each state onto x >= running max - eps, (mask, Si); None: off (nemsim.model.monotone)
     monotone_eps: tuple[float, float] | None = MONOTONE_EPS
+    # Si slack on the hole-axis columns (the depth readout); None: monotone_eps there too
+    monotone_axis_eps: float | None = MONOTONE_AXIS_EPS
+    # (knee, limit) box half-widths: the learned parts read saturated controls; None: off (saturation.py)
+    control_saturation: tuple[float, float] | None = CONTROL_SATURATION
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -144,6 +156,7 @@ class NEMSim(nn.Module):
         cfg = config or NEMSimConfig()
         if int(cfg.steps_per_call) != cfg.steps_per_call or cfg.steps_per_call < 1:
             raise ValueError(f"steps_per_call must be an integer >= 1, got {cfg.steps_per_call!r}")
+        check_saturation(cfg.control_saturation)
         self.config = cfg
         self.rules = RuleBuffers(rules)  # fixed buffers, never parameters
         E = self.rules.n_events
@@ -198,16 +211,23 @@ class NEMSim(nn.Module):
 
         ``fused`` (inference): ``step`` computes the MRC increment from the trunk's Gram matrix instead of
         materializing the M·R mode fields (``MechanismResponseCompiler.fused_increment``; equal up to
-        float rounding). ``forward`` uses ``fused=False``, the paper's literal form."""
+        float rounding). ``forward`` uses ``fused=False``, the paper's literal form.
+
+        With ``control_saturation`` the learned parts (and ``cache["u"]``) get the saturated controls, the
+        ion-flux gate the true ones (``nemsim.model.saturation``)."""
         if u.dim() != 2 or u.shape[1] != N_CONTROLS:
             raise ValueError(f"u must be (B, {N_CONTROLS}) normalized controls, got {tuple(u.shape)}")
+        u_true = u
+        sat = check_saturation(self.config.control_saturation)
+        if sat is not None:  # the learned parts read saturated controls (the identity in the box)
+            u = saturate_controls(u, *sat)  # (B, 14)
         return {
-            "u": u,
+            "u": u,  # what the learned parts read
             "eic": self.eic.precompute(u, self.rules),  # type: ignore[operator]
             "mac": self.mac.precompute(self.rules),
             "mrc": self.mrc.precompute(self.rules, fused=fused),
             # flux_gate: g (B, 1, 1, 1, 1) scaling the update (nemsim.model.gate)
-            "gate": ion_flux_gate(u)[:, None, None, None, None] if self.config.flux_gate else None,
+            "gate": ion_flux_gate(u_true)[:, None, None, None, None] if self.config.flux_gate else None,
         }
 
     def predict(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False,

@@ -42,7 +42,8 @@ async def get_mechanisms(
         )
     try:
         raw, warnings, found, clipped = extrapolation.apply(
-            controls_to_array(query), surrogate.train_range, settings.extrapolation
+            controls_to_array(query), surrogate.train_range, settings.extrapolation,
+            surrogate.control_saturation,
         )  # raw: (14,) physical units
     except extrapolation.Refused as exc:
         reject(("query",), str(exc))

@@ -85,7 +85,8 @@ async def post_rollout(
     source = next(n for n in ("controls", "controls_normalized", "recipe") if getattr(body, n) is not None)
     try:
         schedule, warnings, found, clipped = extrapolation.apply(
-            body.schedule_raw(), surrogate.train_range, settings.extrapolation
+            body.schedule_raw(), surrogate.train_range, settings.extrapolation,
+            surrogate.control_saturation,
         )  # schedule: (T, 14) physical units
     except extrapolation.Refused as exc:
         reject(("body", source), str(exc))

@@ -11,9 +11,17 @@ from nemsim.controls import FLUX_INDICES, HIGH, LOW, to_normalized
 from nemsim.evaluation.rollout import rollout
 from nemsim.evaluation.runtime import compile_model, openvino_available
 from nemsim.evaluation.stress import initial_state
+from nemsim.geometry.profile import profile_metrics_batch
 from nemsim.model import NEMSim, NEMSimConfig
-from nemsim.model.monotone import MONOTONE_EPS, MonotoneProjection, running_max_drop
-from nemsim.scenes import TINY
+from nemsim.model.monotone import (
+    MONOTONE_AXIS_EPS,
+    MONOTONE_EPS,
+    MonotoneProjection,
+    axis_columns,
+    eps_field,
+    running_max_drop,
+)
+from nemsim.scenes import SCENES, TINY
 
 T = 12
 
@@ -54,7 +62,7 @@ def test_rollout_never_falls_below_running_max(rules, k):
     assert _worst_fall(off, MONOTONE_EPS) > 0.05  # without it these weights do run backwards
     assert _worst_fall(on, MONOTONE_EPS) <= 0.0
     # the first state is the projection of the model's own prediction (nothing else changes)
-    floor = x0 - torch.tensor(MONOTONE_EPS).view(1, 2, 1, 1, 1)
+    floor = x0 - eps_field(x0.shape, MONOTONE_EPS, MONOTONE_AXIS_EPS)
     torch.testing.assert_close(on[:, 1], torch.maximum(off[:, 1], floor))
     assert (on[:, 1:] != off[:, 1:]).any() and torch.equal(on[:, 0], x0)
     assert torch.equal(rollout(model, x0, u, keep=False), on[:, -1])
@@ -92,7 +100,8 @@ def test_config_switches(rules):
     # checkpoints written before the key existed load with the projection on
     assert NEMSimConfig.from_dict({"steps_per_call": 3}).monotone_eps == MONOTONE_EPS
     assert NEMSimConfig.from_dict({"monotone_eps": [0.0, 0.1]}).monotone_eps == (0.0, 0.1)
-    wide = _model(rules, monotone_eps=(2.0, 2.0))  # states lie in [-1, 1]: a slack of 2 is never active
+    # states lie in [-1, 1]: a slack of 2 is never active
+    wide = _model(rules, monotone_eps=(2.0, 2.0), monotone_axis_eps=None)
     assert torch.equal(rollout(wide, x0, u), rollout(on, x0, u, monotone=False))
 
 
@@ -108,3 +117,54 @@ def test_projection_keeps_monotone_states_and_rejects_bad_eps():
         MonotoneProjection(steps[0], (0.1,))
     with pytest.raises(ValueError, match=">= 0"):
         MonotoneProjection(steps[0], (0.1, -0.1))
+
+
+def test_axis_columns_are_the_depth_readout():
+    """The Si columns the etch depth is read from are exactly ``axis_columns``: changing any other voxel of
+    the Si channel leaves the depth as it is; changing an axis voxel at the floor moves it."""
+    for scene in SCENES.values():
+        ys, xs = axis_columns(*scene.field_shape[1:])
+        cx, cy = scene.opening_centre
+        assert xs == sorted({int(np.floor(cx + 1)), int(np.ceil(cx + 1))})
+        assert ys == sorted({int(np.floor(cy + 1)), int(np.ceil(cy + 1))})
+    x = initial_state(TINY).astype(np.float32)  # (2, D, H, W): flat Si surface, depth 0
+    base = profile_metrics_batch(x[None], TINY)["etch_depth"][0]
+    ys, xs = axis_columns(*x.shape[2:])
+    row = TINY.si_top  # the top Si row (padded index)
+    off_axis = x.copy()
+    keep = np.zeros(x.shape[2:], dtype=bool)
+    keep[ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1] = True
+    off_axis[1, row - 3 : row + 3, ~keep] = 1.0  # vacuum everywhere around the axis
+    assert profile_metrics_batch(off_axis[None], TINY)["etch_depth"][0] == base
+    on_axis = x.copy()
+    on_axis[1, row, ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1] = 0.5  # the axis voxel at the floor etched
+    assert profile_metrics_batch(on_axis[None], TINY)["etch_depth"][0] > base
+
+
+class _Jitter(torch.nn.Module):
+    """A stand-in surrogate whose every step adds seeded zero-mean noise: a state that wanders both ways."""
+
+    def __init__(self, **cfg) -> None:
+        super().__init__()
+        self.config = NEMSimConfig(**cfg)
+        self.gen = torch.Generator().manual_seed(11)
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return (x + 0.04 * torch.randn(x.shape, generator=self.gen)).clamp(-1, 1)
+
+
+def test_depth_never_decreases_with_the_axis_projection():
+    """With the default axis slack (0) a rollout's etch depth is non-decreasing at every step, whatever the
+    network predicts; with the Si slack on the axis too, the same predictions make it fall."""
+    x0, u = _inputs()
+    tight = _Jitter()
+    assert tight.config.monotone_axis_eps == MONOTONE_AXIS_EPS == 0.0
+    traj = rollout(tight, x0, u)
+    loose = rollout(_Jitter(monotone_axis_eps=None), x0, u)  # the same noise draws
+    assert _worst_fall(traj, MONOTONE_EPS) <= 0.0
+    falls = []
+    for b in range(x0.shape[0]):
+        depth = profile_metrics_batch(traj[b], TINY)["etch_depth"]
+        assert np.all(np.diff(depth) >= -1e-9)  # nm: only the readout's float64 rounding
+        falls.append(np.diff(profile_metrics_batch(loose[b], TINY)["etch_depth"]).min())
+    assert min(falls) < -0.05  # nm: the per-channel slack alone lets the depth run backwards

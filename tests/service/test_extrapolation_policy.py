@@ -36,6 +36,23 @@ def test_zero_flux_is_below_the_box(client, default_controls):
     assert ex["control"] == "flux_cl" and ex["side"] == "below" and ex["half_widths_outside"] > 10
 
 
+def test_allow_says_where_the_network_reads_a_saturated_control(client, default_controls):
+    """The served model saturates its controls (``control_saturation``): each excursion says at what
+    distance its network reads the control, and the warning says so when that is nearer than given."""
+    from nemsim.model.saturation import CONTROL_SATURATION, saturation_point
+
+    knee, limit = CONTROL_SATURATION
+    r = client.post("/rollout", json={"controls": {**default_controls, "flux_cl": 0.0}, "steps": 1})
+    (ex,) = r.json()["extrapolation"]
+    assert ex["network_half_widths_outside"] == pytest.approx(limit, abs=1e-6)  # zero flux: at the limit
+    assert any("saturated" in w and "ion-flux gate" in w for w in r.json()["warnings"])
+    r = client.post("/rollout", json={"controls": _outside(default_controls), "steps": 1})
+    for e in r.json()["extrapolation"]:
+        seen = saturation_point(e["half_widths_outside"], knee, limit)
+        assert e["network_half_widths_outside"] == pytest.approx(seen)
+        assert e["network_half_widths_outside"] <= e["half_widths_outside"]
+
+
 def test_clip(make_client, default_controls):
     c = make_client(extrapolation="clip")
     r = c.post("/rollout", json={"controls": _outside(default_controls), "steps": 1})
