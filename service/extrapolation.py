@@ -60,7 +60,7 @@ class Excursion:
                      "(the ion-flux gate uses the value given)")
         return text
 
-    def as_dict(self) -> dict[str, float | str]:
+    def as_dict(self) -> dict[str, float | str | None]:
         return {
             "control": self.name,
             "value": self.value,

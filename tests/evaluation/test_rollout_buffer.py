@@ -12,7 +12,7 @@ from nemsim.evaluation.rollout import rollout
 from nemsim.evaluation.runtime import compile_model, openvino_available
 from nemsim.evaluation.stress import initial_state
 from nemsim.model import NEMSim, NEMSimConfig
-from nemsim.model.monotone import MonotoneProjection
+from nemsim.model.monotone import MonotoneProjection, axis_eps_of
 from nemsim.scenes import TINY
 
 T = 8  # with k = 3 and the change at 5: calls at t = 0 (3 states), 3 (2), 5 (3)
@@ -39,7 +39,7 @@ def _plain(model, x0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """The protocol without buffers: (B, T+1, 2, D, H, W). The controls' cache is computed where they change
     (t = 0, 5), as the rollout does (``precompute`` of equal controls at another address can differ in the
     last bit)."""
-    project = MonotoneProjection(x0, model.config.monotone_eps)
+    project = MonotoneProjection(x0, model.config.monotone_eps, axis_eps_of(model))
     states, x, cache = [x0], x0, None
     with torch.no_grad():
         for t, n in CHUNKS:
