@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from nemsim.model.monotone import MonotoneProjection, projection_of
+from nemsim.model.monotone import projection_of
 
 StepCallback = Callable[[int, torch.Tensor], None]
 
@@ -109,7 +109,7 @@ def rollout(
             raise ValueError(f"window=True needs a NEMSim model (precompute/predict); "
                              f"got {type(model).__name__}")
         depth_window = DepthWindow(model)
-    project = _projection(model, x0, monotone)
+    project = projection_of(model, x0, monotone)
     traj = _trajectory_buffer(x0, T, keep, out)  # (B, T+1, 2, D, H, W) or None
     # keep=False: two buffers of one call's states, alternating, so the previous call's states stay valid
     # while this call's are predicted (the next input, and on_step's contract)
@@ -168,11 +168,6 @@ def _trajectory_buffer(x0: torch.Tensor, T: int, keep: bool, out: torch.Tensor |
         traj = out[:, : T + 1]
     traj[:, 0] = x0
     return traj
-
-
-def _projection(model: nn.Module, x0: torch.Tensor, monotone: bool | None) -> MonotoneProjection | None:
-    """The monotone projection of this rollout, or None (``rollout``'s ``monotone``)."""
-    return projection_of(model, x0, monotone)
 
 
 def steps_per_call(model: nn.Module) -> int:
