@@ -5,6 +5,7 @@ equivalent-diameter bulge of ``bench bowing``."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -79,7 +80,7 @@ def _landings(rules, config, n, energy=60.0, seed=0):
 def test_specular_ion_lands_where_geometry_says(floor_rules):
     # wall x = 6 reached after 3 voxels sideways, at z = 24 - 3 * 0.954 / 0.3 = 14.46; mirrored, it falls
     # 13.46 voxels to the floor top (z = 1) and moves 13.46 * 0.3 / 0.954 = 4.23 back: x = 1.77, y = 8.5
-    hits = _landings(floor_rules, SimConfig(), 20)
+    hits = _landings(floor_rules, SimConfig(ion_reflect_spread_deg=0.0), 20)  # a mirror, no lobe
     assert hits == [(1, 8)] * 20
 
 
@@ -109,8 +110,9 @@ def test_diffuse_reflection_sends_ions_back_up(floor_rules):
 def test_retained_energy_decides_whether_the_reflected_ion_still_etches(floor_rules):
     # 30 eV ion, grazing the wall (incidence cosine 0.3): the mass-ratio law keeps 91 % (27 eV > E_th =
     # 20 eV, etches the floor); keeping 50 % leaves 15 eV, below threshold: it reflects off the floor
-    mass_law = _landings(floor_rules, SimConfig(), 10, energy=30.0)
-    half = _landings(floor_rules, SimConfig(ion_reflect_energy=0.5), 10, energy=30.0)
+    mirror = SimConfig(ion_reflect_spread_deg=0.0)
+    mass_law = _landings(floor_rules, mirror, 10, energy=30.0)
+    half = _landings(floor_rules, replace(mirror, ion_reflect_energy=0.5), 10, energy=30.0)
     assert mass_law == [(1, 8)] * 10 and half == [None] * 10
 
 
@@ -176,6 +178,9 @@ def test_options_are_validated_recorded_and_absent_from_default_records():
     meta = SimConfig().to_meta()
     for key in ("sputter_calibration", "resist_sputter_scale", "ion_reflect_diffuse", "ion_wing_fraction"):
         assert key not in meta  # files made before the options existed stay resumable
+    assert meta["ion_reflect_spread_deg"] == 10.0  # the lobe is on by default and recorded
+    old = {k: v for k, v in meta.items() if k != "ion_reflect_spread_deg"}  # a file made before the lobe
+    assert SimConfig.from_meta(old).ion_reflect_spread_deg == 0.0
     cfg = SimConfig(sputter_calibration="laegreid_wehner", ion_reflect_spread_deg=8.0, resist_sputter_scale=2)
     assert SimConfig.from_meta(cfg.to_meta()) == cfg
     for bad in ({"sputter_calibration": "nope"}, {"ion_reflect_diffuse": 1.5}, {"ion_reflect_spread_deg": 60},
