@@ -233,6 +233,47 @@ def _add_data(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--allow-incomplete", action="store_true",
                    help="unfinished cases are a warning, not a failure (e.g. while generation runs)")
     c.set_defaults(handler=_cmd_data_check)
+    st = dsub.add_parser(
+        "stats",
+        help="profile metrics of the final states over the design (calibration figures), optionally paired",
+        description=(
+            "Compute the profile metrics (etch depth, top / bottom width, bowing, mask loss, nm) of the last "
+            "state of every complete case and print their distribution over the design and the number of "
+            "cases bowed by more than one voxel. With --against OTHER.h5 (the same design made with another "
+            "simulator configuration) also print the paired change on the common case ids. Reads only the "
+            "final states. Example: nemsim data stats data/small.h5 --against data/v1/small.h5 --json "
+            "runs/stats.json"
+        ),
+    )
+    st.add_argument("file", metavar="FILE", help="trajectory .h5 (from `nemsim generate`)")
+    st.add_argument("--against", metavar="OTHER", default=None, help="a second trajectory file to pair with")
+    st.add_argument("--json", dest="json_out", metavar="FILE.json", default=None,
+                    help="also write the figures to this JSON file")
+    st.set_defaults(handler=_cmd_data_stats)
+
+
+def _cmd_data_stats(args: argparse.Namespace) -> int:
+    import json
+    import os
+
+    from nemsim.data.stats import final_profiles, paired_change, stats, stats_markdown
+
+    for path in (args.file, args.against):
+        if path is not None and not os.path.isfile(path):
+            raise UserError(f"no such file: {path}")
+    out = _output_path(args.json_out) if args.json_out else None
+    try:
+        new = final_profiles(args.file)
+        report = stats(new)
+        change = paired_change(new, final_profiles(args.against)) if args.against else None
+    except (ValueError, KeyError) as exc:
+        raise UserError(str(exc)) from None
+    print(stats_markdown(report, change))  # noqa: T201
+    if out is not None:
+        payload = {**report, "sim_config": new.sim_config, "change": change, "against": args.against}
+        Path(out).write_text(json.dumps(payload, indent=2) + "\n")
+        print(f"wrote {out}")  # noqa: T201
+    return 0
 
 
 def _cmd_design(args: argparse.Namespace) -> int:

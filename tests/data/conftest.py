@@ -20,6 +20,12 @@ def synthetic_states(scene, seed: int) -> np.ndarray:
 
 
 @pytest.fixture()
+def synthetic():
+    """synthetic_states(scene, seed): the states ``make_file`` writes for row ``seed``."""
+    return synthetic_states
+
+
+@pytest.fixture()
 def decode():
     return code_of
 
