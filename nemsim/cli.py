@@ -712,8 +712,10 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
             "Train a registered model with the one-step MSE on the train split of a setting; every "
             "val_every epochs roll out the validation trajectories and keep the best as OUT/best.pt "
             "(early stop after `patience` rounds without improvement). Writes OUT/best.pt, OUT/last.pt "
-            "(resume with --resume), OUT/metrics.csv, OUT/train.log and, unless --no-test, "
-            "OUT/test_metrics.json. For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS. "
+            "(resume with --resume), OUT/metrics.csv (per epoch, with the run's cumulative wall and CPU "
+            "seconds), OUT/summary.json, OUT/train.log and, unless --no-test, OUT/test_metrics.json. "
+            "Budgets: --epochs, --max-steps, --max-minutes (wall clock, kept across --resume). "
+            "For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS. "
             "Example: nemsim train --model nemsim --data data/small.h5 --setting control-id --out runs/nemsim"
         ),
     )

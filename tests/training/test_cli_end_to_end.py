@@ -87,6 +87,9 @@ def test_bad_input_exit_2(tmp_path, tiny_data, capsys):
     # a bad budget or config value is a one-line error too, not a traceback
     assert main(_train_args(tiny_data, tmp_path / "y") + ["--max-steps", "0"]) == 2
     assert "max_steps" in capsys.readouterr().err
+    assert main(_train_args(tiny_data, tmp_path / "y") + ["--max-minutes", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "max_train_minutes must be None or > 0" in err and len(err.strip().splitlines()) == 1
     bad = tmp_path / "bad.yaml"
     bad.write_text("unroll_steps: 0\n")
     assert main(_train_args(tiny_data, tmp_path / "z") + ["--config", str(bad)]) == 2
@@ -106,6 +109,15 @@ def test_torchrun_ddp_two_processes(tmp_path, tiny_data):
     assert (out / "last.pt").is_file() and (out / "best.pt").is_file()
     log = (out / "train.log").read_text()
     assert "2 ranks" in log
+    # a wall budget (0.06 ms) spent at the first step: both ranks stop together (rank 0's clock decides)
+    # and the run validates; a rank stopping alone would hang the other in its next all-reduce
+    budget = [*cmd[:cmd.index("--out") + 1], str(tmp_path / "ddp-budget"), *cmd[cmd.index("--out") + 2:]]
+    budget[budget.index("--epochs") + 1] = "3"
+    res = subprocess.run([*budget, "--max-minutes", "0.000001"], env=env, capture_output=True, text=True,
+                         timeout=180)
+    assert res.returncode == 0, res.stderr[-3000:]
+    summary = json.loads((tmp_path / "ddp-budget" / "summary.json").read_text())
+    assert summary["budget_spent"] and summary["steps"] == 1 and summary["best_epoch"] == 1
 
 
 def test_fraction_uses_data_efficiency_subset(tmp_path, tiny_data):
