@@ -71,6 +71,31 @@ def test_resume_flag_continues(tmp_path, tiny_data):
     assert "resumed from" in (out / "train.log").read_text()
 
 
+def test_wall_budget_run_then_collect(tmp_path, tiny_data):
+    """`nemsim train --max-minutes` (0.06 ms: spent by the first step) validates, tests and writes the
+    summary; `nemsim bench collect` files it under its budget table with the run's steps, time and curve."""
+    import csv
+
+    out = tmp_path / "run"
+    args = _train_args(tiny_data, out, "--max-minutes", "0.000001")
+    args[args.index("--epochs") + 1] = "3"
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["budget_spent"] and summary["steps"] == 1 and summary["budget_minutes"] == 1e-6
+    assert summary["wall_s"] >= summary["val_wall_s"] > 0 and summary["cpu_s"] > 0
+    assert "wall budget of 1e-06 minutes spent at step 1" in (out / "train.log").read_text()
+    (row,) = list(csv.DictReader((out / "metrics.csv").open()))
+    assert row["step"] == "1" and row["val_avg_rmse"] and 0 < float(row["wall_s"]) < summary["wall_s"]
+    res_path = tmp_path / "results" / "results.json"
+    assert main(["bench", "collect", "--runs", str(out), "--out", str(res_path)]) == 0
+    res = json.loads(res_path.read_text())
+    entry = res["settings"]["control-id, 1e-06 min"]["test-standin"]
+    assert entry["steps"] == 1 and entry["train_wall_s"] == summary["wall_s"] and entry["budget_min"] == 1e-6
+    assert entry["avg_rmse"] == json.loads((out / "test_metrics.json").read_text())["avg_rmse"]
+    assert res["curves"]["control-id, 1e-06 min"]["test-standin"]["wall_min"] == [float(row["wall_s"]) / 60]
+    assert (res_path.parent / "budget_curve.png").stat().st_size > 0
+
+
 def test_models_lists_params(tmp_path, capsys):
     js = tmp_path / "models.json"
     assert main(["models", "--scene", "tiny", "--json", str(js)]) == 0
