@@ -33,7 +33,8 @@ Choices where the paper is silent (each a field, so a config file can change it)
     ``--resume`` (``last.pt`` stores it; a killed run loses only the time since its last checkpoint).
     Not counted: loading data and building the model before the loop, and the final test. The run stops
     after the first optimizer step (or validation) at which the budget is reached, then validates once and
-    writes best.pt / last.pt as at any other end. With a wall budget the cosine's horizon is the budget
+    writes best.pt / last.pt as at any other end (a budget raised on ``--resume`` goes on from the next
+    epoch, as after ``max_steps``). With a wall budget the cosine's horizon is the budget
     itself: its progress is the fraction of the budget spent, so every model ends its decay at min_lr when
     its time runs out whatever its speed (a horizon in steps would leave a slow model at a high learning
     rate and hold a fast one at min_lr). The warm-up stays in steps (set ``warmup_steps``: the default of
