@@ -753,8 +753,10 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
             "Train a registered model with the one-step MSE on the train split of a setting; every "
             "val_every epochs roll out the validation trajectories and keep the best as OUT/best.pt "
             "(early stop after `patience` rounds without improvement). Writes OUT/best.pt, OUT/last.pt "
-            "(resume with --resume), OUT/metrics.csv, OUT/train.log and, unless --no-test, "
-            "OUT/test_metrics.json. For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS. "
+            "(resume with --resume), OUT/metrics.csv (per epoch, with the run's cumulative wall and CPU "
+            "seconds), OUT/summary.json, OUT/train.log and, unless --no-test, OUT/test_metrics.json. "
+            "Budgets: --epochs, --max-steps, --max-minutes (wall clock, kept across --resume). "
+            "For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS. "
             "Example: nemsim train --model nemsim --data data/small.h5 --setting control-id --out runs/nemsim"
         ),
     )
@@ -1687,11 +1689,14 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
         "collect",
         help="assemble results.json and the README table from training runs and a speed-error report",
         description=(
-            "Read test_metrics.json (and the model name from best.pt) of each training run directory "
-            "and, if given, the noise floor and speed figures of `nemsim bench speed-error`; write "
-            "results.json (per setting and model: Avg/Final RMSE, CD, params, rollout s) and put the "
-            "Markdown table between its markers in the README (other text is kept). Two runs of the "
-            "same setting and model are refused. "
+            "Read test_metrics.json, summary.json and metrics.csv (and the model name from best.pt) of "
+            "each training run directory and, if given, the noise floor and speed figures of `nemsim bench "
+            "speed-error`; write results.json (one table per setting, a budget run under its own table "
+            "such as 'control-id, 45 min'; per model: test Avg/Final RMSE, CD, params, rollout s, budget, "
+            "steps reached, final training loss, training wall and CPU seconds), budget_curve.png next to "
+            "it (validation Avg RMSE against the run's wall minutes, one line per run, one panel per "
+            "table) and put the Markdown table between its markers in the README (other text is kept). "
+            "Two runs of the same table and model are refused. "
             "Example: nemsim bench collect --runs runs/* --speed-error benchmarks/small/speed_error.json"
         ),
     )
@@ -1771,9 +1776,12 @@ def _cmd_bench_collect(args: argparse.Namespace) -> int:
         results = collect_results(args.runs, args.speed_error)
     except (OSError, ValueError) as exc:
         raise UserError(str(exc)) from exc
-    out, readme = write_results(results, args.out, args.readme)
+    paths = write_results(results, args.out, args.readme)
     print(results_markdown(results))  # noqa: T201
-    print(f"wrote {out} and {readme}")  # noqa: T201
+    print(f"wrote {', '.join(str(p) for p in paths.values())}")  # noqa: T201
+    if "figure" not in paths:
+        print("no validation curve with wall times (metrics.csv of runs trained before the loop recorded "  # noqa: T201
+              f"them): no {paths['json'].parent / 'budget_curve.png'}")
     return 0
 
 

@@ -52,6 +52,12 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int,
                    help="optimizer-step budget (overrides max_steps; default none): ends training there, "
                         "validates, and the learning-rate cosine spans it")
+    p.add_argument("--max-minutes", type=float, metavar="M",
+                   help="wall-clock budget in minutes (overrides max_train_minutes; default none): training "
+                        "stops at the first optimizer step at which the run's wall time (training steps, "
+                        "validation and checkpoints, summed over --resume) reaches M, validates and tests as "
+                        "usual; the learning-rate cosine spans the budget (set warmup_steps in --config). "
+                        "Example: --max-minutes 45 --resume continues a killed 45-minute run")
     p.add_argument("--fraction", type=float,
                    help="train on this data-efficiency fraction of the train split: 0.1, 0.2, 0.5 or 1 "
                         "(default 1)")
@@ -166,7 +172,8 @@ def _train_config(args: argparse.Namespace, rank: int) -> tuple[Any, dict[str, A
     except (OSError, ValueError) as exc:
         raise TrainInputError(f"--config {args.config}: {exc}") from None
     changes: dict[str, Any] = {}
-    for arg, key in (("epochs", "max_epochs"), ("max_steps", "max_steps"), ("seed", "seed"), ("bf16", "bf16"),
+    for arg, key in (("epochs", "max_epochs"), ("max_steps", "max_steps"),
+                     ("max_minutes", "max_train_minutes"), ("seed", "seed"), ("bf16", "bf16"),
                      ("channels_last", "channels_last"), ("device", "device"),
                      ("rollout_steps", "rollout_steps")):
         if getattr(args, arg, None) is not None:

@@ -26,6 +26,20 @@ Choices where the paper is silent (each a field, so a config file can change it)
     ``step_loss_weights`` if given, normalized to sum 1). ``unroll_steps`` counts network calls: with U > 1 a
     sample is U·k consecutive transitions and call c starts from the detached k-th state of call c-1 (the
     pushforward term over calls of k). A k = 1 model reads both keys as before.
+  * ``max_train_minutes`` is a budget in wall-clock minutes (the equal-wall-time comparison of models that
+    run at different speeds, e.g. NEMSim against its baselines or multi-step models of different k).
+    It counts everything the training loop spends: optimizer steps, validation rollouts and checkpoint
+    writes (metrics.csv and the summary record the validation share separately), summed over every
+    ``--resume`` (``last.pt`` stores it; a killed run loses only the time since its last checkpoint).
+    Not counted: loading data and building the model before the loop, and the final test. The run stops
+    after the first optimizer step (or validation) at which the budget is reached, then validates once and
+    writes best.pt / last.pt as at any other end (a budget raised on ``--resume`` goes on from the next
+    epoch, as after ``max_steps``). With a wall budget the cosine's horizon is the budget
+    itself: its progress is the fraction of the budget spent, so every model ends its decay at min_lr when
+    its time runs out whatever its speed (a horizon in steps would leave a slow model at a high learning
+    rate and hold a fast one at min_lr). The warm-up stays in steps (set ``warmup_steps``: the default of
+    10 epochs can outlast a budget) and scales the cosine's value. The run then depends on the machine's
+    speed, so a resumed budget run is not bit-identical to an uninterrupted one.
   * ``rollout_steps=None`` means the scene horizon (100); tests set a few steps to run in seconds.
   * ``channels_last`` / ``bf16`` are the CPU speed flags measured on the ``small`` scene; the defaults
     are the measured winners (DEFAULT_* below): bf16 autocast on, channels_last_3d off. bf16 applies to
@@ -59,6 +73,8 @@ class TrainConfig:
     step_loss_weights: tuple[float, ...] | None = None  # k-step models: weight of each predicted state's MSE
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
+    max_train_minutes: float | None = None  # wall-clock budget (training + validation, summed over resumes);
+    # if set, training ends when it is spent and the cosine spans it (instead of max_steps / max_epochs)
     warmup_steps: int | None = None  # warm-up length in steps; overrides warmup_epochs when set
     checkpoint_every: int | None = None  # also write last.pt every N steps (mid-epoch resume); None: epochs
     batches_per_epoch: int | None = None  # end each epoch after N batches (a random sample of the shuffled
@@ -93,6 +109,8 @@ class TrainConfig:
             low = 0 if name == "warmup_steps" else 1
             if value is not None and value < low:
                 raise ValueError(f"{name} must be None or >= {low}, got {value}")
+        if self.max_train_minutes is not None and not self.max_train_minutes > 0:
+            raise ValueError(f"max_train_minutes must be None or > 0, got {self.max_train_minutes}")
         if self.warmup_epochs < 0:
             raise ValueError(f"warmup_epochs must be >= 0, got {self.warmup_epochs}")
         if self.rollout_steps is not None and self.rollout_steps < 1:
@@ -116,7 +134,7 @@ def from_dict(values: dict[str, Any]) -> TrainConfig:
         raise ValueError(f"unknown training config keys {unknown}; expected some of {sorted(known)}")
     values = dict(values)
     for f in fields(TrainConfig):  # YAML 1.1 reads 1e-4 (no dot) as a string
-        if f.type == "float" and isinstance(values.get(f.name), str):
+        if f.type in ("float", "float | None") and isinstance(values.get(f.name), str):
             try:
                 values[f.name] = float(values[f.name])
             except ValueError:

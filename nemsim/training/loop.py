@@ -15,25 +15,36 @@ the uninterrupted run (shuffling is a pure function of seed and epoch through
 ``DistributedSampler.set_epoch``; the resumed epoch skips the batches already trained). ``max_steps`` ends a
 run inside an epoch, with a validation rollout there.
 
+``max_train_minutes`` is a wall-clock budget (``TrainConfig``): the run's wall time (training steps,
+validation rollouts, checkpoint writes) and CPU time are summed over every resume in ``last.pt``, so
+``--resume`` continues the same budget; a killed run loses only the time since its last checkpoint (write
+them often with ``checkpoint_every``). The loop reads time through a ``Clock`` (tests pass a deterministic
+one); under DDP every rank uses rank 0's wall time, so all ranks take the same learning rate and stop at
+the same step.
+
 DDP: if ``torch.distributed`` is initialized (``torchrun``, see ``nemsim.train``) the model is wrapped
 in DistributedDataParallel, each rank sees a disjoint shard of every epoch (per-rank batch =
 batch_size / world size, so the global batch stays 24), validation trajectories are sharded and their
 error sums all-reduced; only rank 0 writes files.
 
-Outputs in ``out_dir``: ``best.pt``, ``last.pt``, ``metrics.csv`` (one row per epoch: lr, train loss,
-validation metrics when computed, seconds). The log file and the progress bar are set up by the
-entry point / here on rank 0 only.
+Outputs in ``out_dir``: ``best.pt``, ``last.pt``, ``metrics.csv`` (one row per epoch: step, lr, train loss,
+validation metrics when computed, the epoch's and validation's seconds, and the run's cumulative
+``wall_s`` / ``cpu_s`` / ``val_wall_s`` when the row's weights were reached, i.e. before its validation:
+the x axis of a "validation error against training time" curve) and, at the end, ``summary.json`` (the
+training summary, ``_Run.summary``). The log file and the progress bar are set up by the entry point /
+here on rank 0 only.
 """
 
 from __future__ import annotations
 
 import csv
 import itertools
+import json
 import logging
 import math
 import random
 import time
-from collections.abc import Sized
+from collections.abc import Callable, Sized
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -55,7 +66,18 @@ from nemsim.training.config import TrainConfig
 log = logging.getLogger(__name__)
 
 CSV_FIELDS = ("epoch", "step", "lr", "train_loss", "val_avg_rmse", "val_final_rmse", "val_mse",
-              "epoch_seconds", "val_seconds")
+              "epoch_seconds", "val_seconds", "wall_s", "cpu_s", "val_wall_s")
+FINAL_LOSS_STEPS = 50  # the summary's final training loss is the mean over this many last steps
+
+
+@dataclass(frozen=True)
+class Clock:
+    """Where the loop reads time: wall seconds (every timing, the wall budget and, under a budget, the
+    learning-rate horizon) and CPU seconds of this process (reported beside them). Tests pass a
+    deterministic wall clock so a budget ends at a known step."""
+
+    wall: Callable[[], float] = time.perf_counter
+    cpu: Callable[[], float] = time.process_time
 
 
 @dataclass
@@ -84,10 +106,19 @@ def total_steps(steps_per_epoch: int, cfg: TrainConfig) -> int:
     return total if cfg.max_steps is None else min(total, cfg.max_steps)
 
 
-def lr_at(step: int, steps_per_epoch: int, cfg: TrainConfig) -> float:
+def lr_at(step: int, steps_per_epoch: int, cfg: TrainConfig, wall_s: float = 0.0) -> float:
     """Linear warm-up (``warmup_steps``, else ``warmup_epochs``) then half-cosine from lr to min_lr at the
-    end of the budget (``total_steps``)."""
+    end of the budget (``total_steps``).
+
+    With a wall budget (``max_train_minutes``) the cosine's progress is the fraction of the budget spent,
+    ``wall_s`` / budget (min_lr once it is spent), and the warm-up multiplies the cosine's value by
+    (step + 1) / warm-up steps: one curve, continuous at the warm-up's end, whatever the model's speed.
+    """
     warm = cfg.warmup_steps if cfg.warmup_steps is not None else cfg.warmup_epochs * steps_per_epoch
+    if cfg.max_train_minutes is not None:
+        progress = min(max(wall_s, 0.0) / (60.0 * cfg.max_train_minutes), 1.0)
+        value = cfg.min_lr + 0.5 * (cfg.lr - cfg.min_lr) * (1.0 + math.cos(math.pi * progress))
+        return value * (step + 1) / warm if step < warm else value
     total = max(total_steps(steps_per_epoch, cfg), warm + 1)
     if step < warm:
         return cfg.lr * (step + 1) / warm
@@ -215,6 +246,11 @@ class RunState:
     epoch_loss: tuple[float, float] = (0.0, 0.0)  # (Σ loss·n, n) of a partly trained epoch (mid-epoch)
     skip: int = 0  # batches of the resumed epoch already trained (mid-epoch last.pt)
     stopped_early: bool = False
+    wall_s: float = 0.0  # run wall seconds before this process (stored at the resumed checkpoint)
+    cpu_s: float = 0.0  # run CPU seconds before this process
+    val_wall_s: float = 0.0  # wall seconds of all validation rollouts so far (part of the run's wall time)
+    recent_losses: list[float] = field(default_factory=list)  # the last FINAL_LOSS_STEPS step losses
+    budget_spent: bool = False  # the wall budget (max_train_minutes) is used up
 
     @classmethod
     def from_train_state(cls, ts: dict[str, Any], steps_per_epoch: int) -> RunState:
@@ -227,17 +263,21 @@ class RunState:
         skip = int(ts.get("epoch_batches", step - epoch * steps_per_epoch if partly else 0))
         return cls(epoch=epoch, step=step, best=ts["best"], best_epoch=ts["best_epoch"],
                    bad_rounds=ts["bad_rounds"], history=list(ts["history"]),
-                   epoch_loss=(float(epoch_loss[0]), float(epoch_loss[1])), skip=skip)  # fmt: skip
+                   epoch_loss=(float(epoch_loss[0]), float(epoch_loss[1])), skip=skip,
+                   wall_s=float(ts.get("wall_s", 0.0)), cpu_s=float(ts.get("cpu_s", 0.0)),
+                   val_wall_s=float(ts.get("val_wall_s", 0.0)),
+                   recent_losses=[float(v) for v in ts.get("recent_losses", [])])  # fmt: skip
 
     def train_state(self, optimizer: torch.optim.Optimizer, epoch_done: int, partial: torch.Tensor | None,
-                    batches: int) -> dict[str, Any]:
+                    batches: int, wall_s: float, cpu_s: float) -> dict[str, Any]:
         """``last.pt``'s ``train_state``: ``partial`` = loss sums of an unfinished epoch of which ``batches``
-        batches are trained (None at an epoch's end)."""
+        batches are trained (None at an epoch's end); ``wall_s`` / ``cpu_s`` = the run's time so far."""
         return {"optimizer": optimizer.state_dict(), "epoch": epoch_done, "schedule_step": self.step,
                 "best": self.best, "best_epoch": self.best_epoch, "bad_rounds": self.bad_rounds,
                 "history": self.history, "rng": _rng_state(),
                 "epoch_loss": (0.0, 0.0) if partial is None else tuple(float(v) for v in partial),
-                "epoch_batches": batches}  # fmt: skip
+                "epoch_batches": batches, "wall_s": wall_s, "cpu_s": cpu_s, "val_wall_s": self.val_wall_s,
+                "recent_losses": list(self.recent_losses)}  # fmt: skip
 
 
 def _check_items(cfg: TrainConfig, data: TrainData, k: int) -> int:
@@ -277,8 +317,8 @@ class _Run:
     """One training run: the fixed pieces (model, optimizer, loader, precision) and the ``RunState``."""
 
     def __init__(self, cfg: TrainConfig, model: nn.Module, data: TrainData, out_dir: Path,
-                 meta: ModelMeta) -> None:
-        self.cfg, self.data, self.out_dir, self.meta = cfg, data, out_dir, meta
+                 meta: ModelMeta, clock: Clock) -> None:
+        self.cfg, self.data, self.out_dir, self.meta, self.clock = cfg, data, out_dir, meta, clock
         self.k = steps_per_call(model)
         self.window = _check_items(cfg, data, self.k)
         self.distributed = dist.is_available() and dist.is_initialized()
@@ -306,8 +346,10 @@ class _Run:
         self.world = world
         self.state = RunState()
         self.step_cap = cfg.max_steps if cfg.max_steps is not None else math.inf
+        self.budget_s = None if cfg.max_train_minutes is None else 60.0 * cfg.max_train_minutes
         self.last_path, self.best_path = out_dir / "last.pt", out_dir / "best.pt"
-        self.t_start = time.perf_counter()
+        self.t_start, self.c_start = clock.wall(), clock.cpu()  # this process's share starts (reset by start)
+        self.now_wall = 0.0  # the run's wall seconds at the last ``tick``
         self.bar: Any = None
 
     def resume(self) -> None:
@@ -335,15 +377,43 @@ class _Run:
                                                                    broadcast_buffers=False)
         budget = total_steps(self.steps_per_epoch, cfg)  # for the bar; epochs bound the loop, max_steps steps
         st.stopped_early = st.bad_rounds >= cfg.patience
-        self.t_start = time.perf_counter()
+        self.t_start, self.c_start = self.clock.wall(), self.clock.cpu()
+        self.tick()  # a resumed run may have spent its budget already
         if self.is_main and cfg.progress:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=budget, initial=min(st.step, budget), unit="step", dynamic_ncols=True)
-        log.info("training %s: %d transitions, %d steps/epoch x %d epochs (budget %d steps), %d ranks, "
-                 "device %s, bf16=%s, channels_last=%s, steps_per_call=%d, unroll_steps=%d", self.meta.name,
-                 len(cast(Sized, self.data.train)), self.steps_per_epoch, cfg.max_epochs, budget, self.world,
-                 self.device, cfg.bf16, cfg.channels_last, self.k, cfg.unroll_steps)
+            if self.budget_s is None:
+                self.bar = tqdm(total=budget, initial=min(st.step, budget), unit="step", dynamic_ncols=True)
+            else:  # a wall budget: the bar counts its seconds
+                self.bar = tqdm(total=round(self.budget_s), initial=round(min(self.now_wall, self.budget_s)),
+                                unit="s", dynamic_ncols=True)
+        log.info("training %s: %d transitions, %d steps/epoch x %d epochs (budget %d steps, %s wall "
+                 "minutes), %d ranks, device %s, bf16=%s, channels_last=%s, steps_per_call=%d, "
+                 "unroll_steps=%d",
+                 self.meta.name, len(cast(Sized, self.data.train)), self.steps_per_epoch, cfg.max_epochs,
+                 budget, cfg.max_train_minutes, self.world, self.device, cfg.bf16, cfg.channels_last, self.k,
+                 cfg.unroll_steps)
+
+    def wall(self) -> float:
+        """The run's wall seconds: earlier processes' (from last.pt) plus this one's since ``start``."""
+        return self.state.wall_s + self.clock.wall() - self.t_start
+
+    def cpu(self) -> float:
+        """The run's CPU seconds (this process's ``process_time``), summed the same way."""
+        return self.state.cpu_s + self.clock.cpu() - self.c_start
+
+    def tick(self) -> bool:
+        """Read the run's wall time into ``now_wall`` and return whether the wall budget is spent. Under DDP
+        with a budget every rank takes rank 0's reading, so all take the same learning rate and stop at the
+        same step."""
+        wall = self.wall()
+        if self.distributed and self.budget_s is not None:
+            shared = torch.tensor([wall], dtype=torch.float64, device=self.device)
+            dist.broadcast(shared, src=0)
+            wall = float(shared)
+        self.now_wall = wall
+        self.state.budget_spent = self.budget_s is not None and wall >= self.budget_s
+        return self.state.budget_spent
 
     def loss(self, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Training loss of one batch: one-step MSE (eq. training_loss), its pushforward or k-step form."""
@@ -364,7 +434,7 @@ class _Run:
     def train_epoch(self, epoch: int) -> dict[str, Any]:
         """One epoch (from the resumed batch on); returns its metrics.csv row without validation."""
         cfg, st, dev = self.cfg, self.state, self.device
-        t_epoch = time.perf_counter()
+        t_epoch = self.clock.wall()
         self.sampler.set_epoch(epoch)
         self.sampler.skip = st.skip * self.per_rank_batch  # batches trained before a mid-epoch resume
         self.train_model.train()
@@ -374,7 +444,7 @@ class _Run:
         for i, (x, u, y) in enumerate(self.loader, start=st.skip):
             if st.step >= self.step_cap:
                 break
-            lr = lr_at(st.step, self.steps_per_epoch, cfg)
+            lr = lr_at(st.step, self.steps_per_epoch, cfg, self.now_wall)
             for group in self.optimizer.param_groups:
                 group["lr"] = lr
             loss = self.loss(x, u, y)
@@ -385,9 +455,15 @@ class _Run:
             st.step += 1
             n = torch.tensor(x.shape[0], device=dev, dtype=torch.float64)
             loss_sum += torch.stack([loss.detach().double() * x.shape[0], n])
+            st.recent_losses = (st.recent_losses + [float(loss.detach())])[-FINAL_LOSS_STEPS:]
+            spent = self.tick()
             if self.bar is not None:
-                self.bar.update(1)
-                self.bar.set_postfix(epoch=epoch + 1, loss=f"{loss.item():.3e}", lr=f"{lr:.2e}")
+                done = st.step if self.budget_s is None else round(min(self.now_wall, self.budget_s))
+                self.bar.update(done - self.bar.n)
+                self.bar.set_postfix(epoch=epoch + 1, step=st.step, loss=f"{st.recent_losses[-1]:.3e}",
+                                     lr=f"{lr:.2e}")
+            if spent:  # the run ends here: validation and last.pt follow (``validation_due``, ``end_epoch``)
+                break
             if (self.is_main and cfg.checkpoint_every and st.step % cfg.checkpoint_every == 0
                     and st.step < self.step_cap and (i + 1) < self.steps_per_epoch):
                 self.save_last(epoch, loss_sum, batches=i + 1)
@@ -396,18 +472,26 @@ class _Run:
             dist.all_reduce(loss_sum)
         train_loss = float(loss_sum[0]) / max(float(loss_sum[1]), 1.0)
         return {"epoch": epoch + 1, "step": st.step, "lr": lr, "train_loss": train_loss,
-                "epoch_seconds": time.perf_counter() - t_epoch}  # fmt: skip
+                "epoch_seconds": self.clock.wall() - t_epoch, "wall_s": self.now_wall, "cpu_s": self.cpu(),
+                "val_wall_s": st.val_wall_s}  # fmt: skip
+
+    def budget_done(self) -> bool:
+        """Before an epoch: the wall budget is spent and the last epoch's weights were validated, so the run
+        is over (validation, e.g., took the last of it). Spent with the last epoch unvalidated (its
+        checkpoint took the last of it), the next step trips the budget inside the epoch and validates."""
+        history = self.state.history
+        return self.tick() and bool(history) and "val_avg_rmse" in history[-1]
 
     def validation_due(self, epoch: int) -> bool:
-        """Every ``val_every`` epochs and at the end of the budget."""
+        """Every ``val_every`` epochs and at the end of the budget (epochs, steps or wall time)."""
         cfg = self.cfg
-        end = epoch + 1 == cfg.max_epochs or self.state.step >= self.step_cap
+        end = epoch + 1 == cfg.max_epochs or self.state.step >= self.step_cap or self.state.budget_spent
         return (epoch + 1) % cfg.val_every == 0 or end
 
     def validate(self, epoch: int, row: dict[str, Any]) -> None:
         """Validation rollout: fills ``row``, updates best / patience, writes best.pt on improvement."""
         cfg, st, dev = self.cfg, self.state, self.device
-        t_val = time.perf_counter()
+        t_val = self.clock.wall()
         self.model.eval()
         sq: Any = None
         n = 0
@@ -426,8 +510,10 @@ class _Run:
         if n == 0:
             raise ValueError("the validation split is empty; a validation rollout needs trajectories")
         val = rmse_summary(sq, n)
+        seconds = self.clock.wall() - t_val
+        st.val_wall_s += seconds
         row.update(val_avg_rmse=val["avg_rmse"], val_final_rmse=val["final_rmse"], val_mse=val["mse"],
-                   val_seconds=time.perf_counter() - t_val)
+                   val_seconds=seconds)
         score = val["avg_rmse"] if cfg.select_metric == "avg_rmse" else val["mse"]
         improved = score < st.best
         if improved:
@@ -453,7 +539,8 @@ class _Run:
     def save_last(self, epoch_done: int, partial: torch.Tensor | None = None, batches: int = 0) -> None:
         """last.pt with everything needed to resume (``RunState.train_state``)."""
         ckpt = self.checkpoint(self.state.history, epoch_done)
-        ckpt["train_state"] = self.state.train_state(self.optimizer, epoch_done, partial, batches)
+        ckpt["train_state"] = self.state.train_state(self.optimizer, epoch_done, partial, batches,
+                                                     wall_s=self.wall(), cpu_s=self.cpu())
         write_checkpoint_dict(self.last_path, ckpt)
 
     def checkpoint(self, history: list[dict[str, Any]], epochs: int) -> dict[str, Any]:
@@ -465,18 +552,33 @@ class _Run:
 
     def summary(self, history: list[dict[str, Any]] | None = None,
                 epochs: int | None = None) -> dict[str, Any]:
-        """The training summary (best.pt's ``summary``); default: the whole history so far."""
+        """The training summary (best.pt's ``summary``, ``summary.json``); default: the whole history so far.
+
+        ``wall_s`` / ``cpu_s``: the run's time over every resume (training, validation, checkpoints), of
+        which ``val_wall_s`` in validation; ``seconds``: this process's share. ``final_train_loss``: mean of
+        the last ``final_loss_steps`` (<= FINAL_LOSS_STEPS) step losses (rank 0's batches under DDP); the
+        last epoch's mean for a checkpoint written before step losses were kept.
+        """
         st, cfg = self.state, self.cfg
         history = st.history if history is None else history
+        recent = st.recent_losses
+        final = sum(recent) / len(recent) if recent else (history[-1]["train_loss"] if history else None)
         return {
             "epochs": len(history) if epochs is None else epochs,
+            "steps": st.step,
             "best_epoch": st.best_epoch,
             "best_val": st.best,
             "select_metric": cfg.select_metric,
             "stopped_early": st.stopped_early,
-            "seconds": time.perf_counter() - self.t_start,
+            "budget_minutes": cfg.max_train_minutes,
+            "budget_spent": st.budget_spent,
+            "wall_s": self.wall(),
+            "cpu_s": self.cpu(),
+            "val_wall_s": st.val_wall_s,
+            "seconds": self.clock.wall() - self.t_start,
             "train_config": asdict(cfg),
-            "final_train_loss": history[-1]["train_loss"] if history else None,
+            "final_train_loss": final,
+            "final_loss_steps": len(recent),
         }
 
 
@@ -488,8 +590,9 @@ def train(
     meta: ModelMeta,
     *,
     resume: bool = False,
+    clock: Clock | None = None,
 ) -> dict[str, Any]:
-    """Train ``model`` on one-step transitions; returns the training summary (also stored in best.pt).
+    """Train ``model`` on one-step transitions; returns the training summary (also in best.pt, summary.json).
 
     Args:
         cfg: hyper-parameters (TrainConfig).
@@ -498,14 +601,15 @@ def train(
         out_dir: where best.pt, last.pt and metrics.csv go.
         meta: model name/config/scene/rules stored in every checkpoint.
         resume: continue from out_dir/last.pt if present (else start fresh).
+        clock: where wall and CPU time are read (default ``Clock()``: perf_counter, process_time).
     """
-    run = _Run(cfg, model, data, Path(out_dir), meta)
+    run = _Run(cfg, model, data, Path(out_dir), meta, clock or Clock())
     if resume:
         run.resume()
     run.start()
     st = run.state
     for epoch in range(st.epoch, cfg.max_epochs):
-        if st.stopped_early or st.step >= run.step_cap:
+        if run.budget_done() or st.stopped_early or st.step >= run.step_cap:
             break
         row = run.train_epoch(epoch)
         if run.validation_due(epoch):
@@ -518,4 +622,11 @@ def train(
             break
     if run.bar is not None:
         run.bar.close()
-    return run.summary()
+    if st.budget_spent:
+        log.info("wall budget of %s minutes spent at step %d", cfg.max_train_minutes, st.step)
+    summary = run.summary()
+    if run.is_main:
+        tmp = run.out_dir / "summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        tmp.replace(run.out_dir / "summary.json")
+    return summary

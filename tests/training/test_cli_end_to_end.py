@@ -71,6 +71,31 @@ def test_resume_flag_continues(tmp_path, tiny_data):
     assert "resumed from" in (out / "train.log").read_text()
 
 
+def test_wall_budget_run_then_collect(tmp_path, tiny_data):
+    """`nemsim train --max-minutes` (0.06 ms: spent by the first step) validates, tests and writes the
+    summary; `nemsim bench collect` files it under its budget table with the run's steps, time and curve."""
+    import csv
+
+    out = tmp_path / "run"
+    args = _train_args(tiny_data, out, "--max-minutes", "0.000001")
+    args[args.index("--epochs") + 1] = "3"
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["budget_spent"] and summary["steps"] == 1 and summary["budget_minutes"] == 1e-6
+    assert summary["wall_s"] >= summary["val_wall_s"] > 0 and summary["cpu_s"] > 0
+    assert "wall budget of 1e-06 minutes spent at step 1" in (out / "train.log").read_text()
+    (row,) = list(csv.DictReader((out / "metrics.csv").open()))
+    assert row["step"] == "1" and row["val_avg_rmse"] and 0 < float(row["wall_s"]) < summary["wall_s"]
+    res_path = tmp_path / "results" / "results.json"
+    assert main(["bench", "collect", "--runs", str(out), "--out", str(res_path)]) == 0
+    res = json.loads(res_path.read_text())
+    entry = res["settings"]["control-id, 1e-06 min"]["test-standin"]
+    assert entry["steps"] == 1 and entry["train_wall_s"] == summary["wall_s"] and entry["budget_min"] == 1e-6
+    assert entry["avg_rmse"] == json.loads((out / "test_metrics.json").read_text())["avg_rmse"]
+    assert res["curves"]["control-id, 1e-06 min"]["test-standin"]["wall_min"] == [float(row["wall_s"]) / 60]
+    assert (res_path.parent / "budget_curve.png").stat().st_size > 0
+
+
 def test_models_lists_params(tmp_path, capsys):
     js = tmp_path / "models.json"
     assert main(["models", "--scene", "tiny", "--json", str(js)]) == 0
@@ -87,6 +112,9 @@ def test_bad_input_exit_2(tmp_path, tiny_data, capsys):
     # a bad budget or config value is a one-line error too, not a traceback
     assert main(_train_args(tiny_data, tmp_path / "y") + ["--max-steps", "0"]) == 2
     assert "max_steps" in capsys.readouterr().err
+    assert main(_train_args(tiny_data, tmp_path / "y") + ["--max-minutes", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "max_train_minutes must be None or > 0" in err and len(err.strip().splitlines()) == 1
     bad = tmp_path / "bad.yaml"
     bad.write_text("unroll_steps: 0\n")
     assert main(_train_args(tiny_data, tmp_path / "z") + ["--config", str(bad)]) == 2
@@ -106,6 +134,15 @@ def test_torchrun_ddp_two_processes(tmp_path, tiny_data):
     assert (out / "last.pt").is_file() and (out / "best.pt").is_file()
     log = (out / "train.log").read_text()
     assert "2 ranks" in log
+    # a wall budget (0.06 ms) spent at the first step: both ranks stop together (rank 0's clock decides)
+    # and the run validates; a rank stopping alone would hang the other in its next all-reduce
+    budget = [*cmd[:cmd.index("--out") + 1], str(tmp_path / "ddp-budget"), *cmd[cmd.index("--out") + 2:]]
+    budget[budget.index("--epochs") + 1] = "3"
+    res = subprocess.run([*budget, "--max-minutes", "0.000001"], env=env, capture_output=True, text=True,
+                         timeout=180)
+    assert res.returncode == 0, res.stderr[-3000:]
+    summary = json.loads((tmp_path / "ddp-budget" / "summary.json").read_text())
+    assert summary["budget_spent"] and summary["steps"] == 1 and summary["best_epoch"] == 1
 
 
 def test_fraction_uses_data_efficiency_subset(tmp_path, tiny_data):

@@ -68,3 +68,25 @@ def test_yaml_exponent_floats_and_step_weights(tmp_path):
     assert cfg.step_loss_weights == (1.0, 1.0, 2.0) and model == {"steps_per_call": 3}
     with pytest.raises(ValueError, match="lr must be a number"):
         from_dict({"lr": "fast"})
+
+
+@pytest.mark.parametrize("value", ["0", "-1"])
+def test_bad_budget_in_a_config_file_is_refused(tmp_path, value):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"max_train_minutes: {value}\n")
+    with pytest.raises(ValueError, match="max_train_minutes must be None or > 0"):
+        read_config_file(cfg)
+    cfg.write_text("max_train_minutes: 4.5e1\n")  # YAML 1.1 reads this as a string
+    assert read_config_file(cfg)[0].max_train_minutes == 45.0
+
+
+def test_wall_budget_schedule_spans_the_budget():
+    """Under max_train_minutes the cosine follows the wall time spent, not the step count: the same wall
+    fraction gives the same lr at any step or step budget; warm-up scales it; min_lr once spent."""
+    cfg = TrainConfig(lr=1e-3, min_lr=1e-5, warmup_steps=10, max_train_minutes=10.0, max_steps=50)
+    half = cfg.min_lr + 0.5 * (cfg.lr - cfg.min_lr)
+    assert lr_at(100, 7, cfg, wall_s=300.0) == pytest.approx(half)
+    assert lr_at(100, 7, cfg.replace(max_steps=None, max_epochs=3), wall_s=300.0) == pytest.approx(half)
+    assert lr_at(4, 7, cfg, wall_s=300.0) == pytest.approx(half * 5 / 10)  # warm-up step 5 of 10
+    assert lr_at(10, 7, cfg, wall_s=0.0) == pytest.approx(cfg.lr)
+    assert lr_at(10, 7, cfg, wall_s=600.0) == lr_at(10, 7, cfg, wall_s=5000.0) == pytest.approx(cfg.min_lr)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
 
 import pytest
@@ -12,7 +13,7 @@ import torch
 from nemsim.checkpoint import load_checkpoint, read_checkpoint
 from nemsim.registry import build_model, model_config
 from nemsim.training.config import TrainConfig
-from nemsim.training.loop import ModelMeta, TrainData, seed_everything, train
+from nemsim.training.loop import Clock, ModelMeta, TrainData, seed_everything, train
 
 STEPS, VISIBLE = 4, 5  # as in tests/training/conftest.py
 
@@ -23,17 +24,20 @@ def _cfg(**kw) -> TrainConfig:
     return TrainConfig(**{**base, **kw})
 
 
-def _run(out, cfg, tiny_data, manifest, tiny_scene, rules, resume=False):
+def _run(out, cfg, tiny_data, manifest, tiny_scene, rules, resume=False, clock=None):
     from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
 
     seed_everything(cfg.seed)
     model = build_model("test-standin", tiny_scene, rules)
+    if clock is not None:  # a _WorkClock: every model call advances it
+        model.register_forward_hook(clock.advance)
     mcfg = dataclasses.asdict(model_config("test-standin", tiny_scene))
     meta = ModelMeta("test-standin", mcfg, tiny_scene, rules)
     data = TrainData(TransitionDataset(tiny_data, manifest, "train", visible_transitions=VISIBLE,
                                        unroll=cfg.unroll_steps),
                      TrajectoryDataset(tiny_data, manifest, "val"))
-    return train(cfg, model, data, out, meta, resume=resume)
+    return train(cfg, model, data, out, meta, resume=resume,
+                 clock=None if clock is None else Clock(wall=clock))
 
 
 def _weights(path):
@@ -194,3 +198,113 @@ def test_continue_with_pushforward_after_one_step_training(tmp_path, tiny_data, 
     n2 = len(TransitionDataset(tiny_data, tiny_manifest, "train", visible_transitions=VISIBLE, unroll=2))
     assert [int(r["epoch"]) for r in rows] == [1, 2]
     assert int(rows[1]["step"]) - first == math.ceil(n2 / _cfg().batch_size)  # no batch skipped
+
+
+TICK = 3.0  # wall seconds of one model call under _WorkClock
+
+
+class _WorkClock:
+    """A deterministic wall clock for budget tests: TICK seconds per model call (training step or one
+    validation rollout step), nothing else; so a run's time is a known function of the work it did."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, *_) -> None:
+        self.t += TICK
+
+
+def _budget_cfg(**kw) -> TrainConfig:
+    # 15 items / batch 4 = 4 steps per epoch; validation = 1 case x STEPS rollout calls
+    return _cfg(max_epochs=10, warmup_steps=1, max_train_minutes=0.5, **kw)  # 0.5 min = 10 calls
+
+
+def test_wall_budget_ends_run_inside_an_epoch(tmp_path, tiny_data, tiny_manifest, tiny_scene, rules):
+    """Epoch 1: steps 1-4 (12 s), validation (4 calls, 24 s); epoch 2: step 5 (27 s), step 6 (30 s = the
+    budget) -> stop inside the epoch, validate once more (42 s), write best.pt / last.pt."""
+    cfg = _budget_cfg()
+    summary = _run(tmp_path, cfg, tiny_data, tiny_manifest, tiny_scene, rules, clock=_WorkClock())
+    assert summary["steps"] == 6 and summary["budget_spent"] and summary["budget_minutes"] == 0.5
+    assert summary["wall_s"] == 14 * TICK and summary["val_wall_s"] == 2 * STEPS * TICK
+    assert summary["cpu_s"] > 0 and summary["final_loss_steps"] == 6 and summary["final_train_loss"] > 0
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [(int(r["step"]), float(r["wall_s"]), float(r["val_wall_s"])) for r in rows] == \
+        [(4, 4 * TICK, 0.0), (6, 10 * TICK, STEPS * TICK)]
+    assert all(r["val_avg_rmse"] and float(r["cpu_s"]) > 0 for r in rows)
+    assert float(rows[1]["cpu_s"]) >= float(rows[0]["cpu_s"])
+    # the cosine spans the budget: step 6 trained at 27 s of 30 s, progress 0.9
+    expected = cfg.min_lr + 0.5 * (cfg.lr - cfg.min_lr) * (1 + math.cos(math.pi * 0.9))
+    assert float(rows[1]["lr"]) == pytest.approx(expected)
+    last = read_checkpoint(tmp_path / "last.pt")["train_state"]
+    assert last["schedule_step"] == 6 and last["wall_s"] == 14 * TICK and last["val_wall_s"] == 8 * TICK
+    assert (tmp_path / "best.pt").is_file()
+    written = json.loads((tmp_path / "summary.json").read_text())
+    assert written["steps"] == 6 and written["wall_s"] == summary["wall_s"]
+    # resuming a spent budget trains nothing; a larger budget goes on from the stored time
+    again = _run(tmp_path, cfg, tiny_data, tiny_manifest, tiny_scene, rules, resume=True, clock=_WorkClock())
+    assert again["steps"] == 6 and len(list(csv.DictReader((tmp_path / "metrics.csv").open()))) == 2
+    more = _run(tmp_path, cfg.replace(max_train_minutes=1.0), tiny_data, tiny_manifest, tiny_scene, rules,
+                resume=True, clock=_WorkClock())
+    # from 42 s, the next epoch (the rest of epoch 2 is skipped, as after max_steps): steps 7-10 (54 s),
+    # validation (66 s >= 60 s) -> stop there, without starting another step
+    assert more["steps"] == 10 and more["wall_s"] == 22 * TICK and more["epochs"] == 3
+
+
+def test_wall_budget_resume_continues_the_same_budget(tmp_path, tiny_data, tiny_manifest, tiny_scene, rules,
+                                                      monkeypatch):
+    """A run killed inside epoch 2 resumes with the time stored in last.pt: it stops at the same step with
+    the same weights, learning rates and times as the uninterrupted run."""
+    from nemsim.data.dataset import TransitionDataset
+
+    cfg = _budget_cfg(checkpoint_every=1)
+    full = _run(tmp_path / "a", cfg, tiny_data, tiny_manifest, tiny_scene, rules, clock=_WorkClock())
+    original = TransitionDataset.__getitem__
+    calls = {"n": 0}
+
+    def dying(self, i):
+        calls["n"] += 1
+        if calls["n"] > 15 + 4:  # epoch 1 (15 items), then step 5: killed fetching step 6's batch
+            raise _Killed
+        return original(self, i)
+
+    monkeypatch.setattr(TransitionDataset, "__getitem__", dying)
+    with pytest.raises(_Killed):
+        _run(tmp_path / "b", cfg, tiny_data, tiny_manifest, tiny_scene, rules, clock=_WorkClock())
+    state = read_checkpoint(tmp_path / "b" / "last.pt")["train_state"]
+    assert state["schedule_step"] == 5 and state["wall_s"] == 9 * TICK and len(state["recent_losses"]) == 5
+    monkeypatch.setattr(TransitionDataset, "__getitem__", original)
+    resumed = _run(tmp_path / "b", cfg, tiny_data, tiny_manifest, tiny_scene, rules, resume=True,
+                   clock=_WorkClock())  # a new process: its clock starts again at 0
+    assert resumed["steps"] == full["steps"] == 6
+    assert resumed["wall_s"] == full["wall_s"] and resumed["val_wall_s"] == full["val_wall_s"]
+    assert resumed["final_train_loss"] == pytest.approx(full["final_train_loss"])
+    wa, wb = _weights(tmp_path / "a" / "last.pt"), _weights(tmp_path / "b" / "last.pt")
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    keys = ("step", "lr", "train_loss", "wall_s", "val_wall_s", "val_avg_rmse")
+    ra, rb = (list(csv.DictReader((tmp_path / d / "metrics.csv").open())) for d in "ab")
+    assert [[r[k] for k in keys] for r in ra] == [[r[k] for k in keys] for r in rb]
+
+
+def test_wall_budget_spent_outside_a_step_still_validates(tmp_path, tiny_data, tiny_manifest, tiny_scene,
+                                                          rules, monkeypatch):
+    """The budget runs out while epoch 1's last.pt is written (a slow disk), epoch 1 unvalidated (val_every
+    5): the run trains one more step, which trips the budget, and validates that step's weights."""
+    import nemsim.training.loop as loop
+
+    clock = _WorkClock()
+    write = loop.write_checkpoint_dict
+
+    def slow_write(*args, **kw):
+        clock.t += 100.0
+        return write(*args, **kw)
+
+    monkeypatch.setattr(loop, "write_checkpoint_dict", slow_write)
+    cfg = _budget_cfg(val_every=5)
+    summary = _run(tmp_path, cfg, tiny_data, tiny_manifest, tiny_scene, rules, clock=clock)
+    rows = list(csv.DictReader((tmp_path / "metrics.csv").open()))
+    assert [int(r["step"]) for r in rows] == [4, 5]
+    assert not rows[0]["val_avg_rmse"] and rows[1]["val_avg_rmse"]
+    assert summary["steps"] == 5 and summary["budget_spent"] and (tmp_path / "best.pt").is_file()
