@@ -68,9 +68,16 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "and test stay those of --data's split, so the paper protocol's cases are unchanged")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init-from", type=Path,
-                   help="start from this checkpoint's weights (same model, rules and scene); parameters it "
+                   help="start from this checkpoint's weights (same model and rules); parameters it "
                         "lacks keep their initialization, e.g. the extra-step head of a steps_per_call > 1 "
-                        "model started from a one-step checkpoint (ignored when --resume finds OUT/last.pt)")
+                        "model started from a one-step checkpoint. A checkpoint of another scene is a warm "
+                        "start too, e.g. a `small` model onto `paper` data (NEMSim's weights fit any grid: "
+                        "convolutions, pooling and per-channel maps); the log names both scenes. Ignored "
+                        "when --resume finds OUT/last.pt")
+    p.add_argument("--complete-only", action="store_true",
+                   help="train, validate and test on the split's cases that the data file holds complete, "
+                        "e.g. a prefix of a design still being generated (default: refuse unfinished "
+                        "cases); the log counts the dropped cases of each split")
     p.add_argument("--splits", type=Path,
                    help="directory of split manifests <setting>.json (default: <data dir>/splits if present, "
                         "else computed from the data file)")
@@ -115,17 +122,25 @@ def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
 
 def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> None:
     """Load a checkpoint's weights into the fresh ``model`` (warm start); parameters the checkpoint lacks keep
-    their initialization. Refuses another model, rules library or scene, and parameters the model lacks."""
+    their initialization. Refuses another model or rules library, and parameters the model lacks or whose
+    shapes differ. Another scene is accepted (a warm start, not a trained model of this scene) and logged:
+    the trained model records the data file's scene."""
     from nemsim.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
+    from nemsim.scenes import Scene
 
     try:
         ckpt = read_checkpoint(path)
-        check_compatible(ckpt, rules=rules, scene=scene)
-    except (OSError, ValueError) as exc:  # CheckpointMismatch is a ValueError
+        check_compatible(ckpt, rules=rules)
+        stored = Scene.from_json(ckpt["scene"])
+    except (OSError, ValueError, TypeError, KeyError) as exc:  # CheckpointMismatch is a ValueError
         kind = "mismatch" if isinstance(exc, CheckpointMismatch) else "unreadable"
         raise TrainInputError(f"--init-from {path}: {kind}: {exc}") from None
     if ckpt["model_name"] != name:
         raise TrainInputError(f"--init-from {path}: a {ckpt['model_name']!r} checkpoint, training {name!r}")
+    if stored != scene:
+        log.warning("--init-from %s: weights of scene %r (%g nm voxels, state %s) start a model of scene %r "
+                    "(%g nm voxels, state %s)", path, stored.name, stored.voxel_nm, stored.state_shape,
+                    scene.name, scene.voxel_nm, scene.state_shape)
     try:
         missing, unexpected = model.load_state_dict(ckpt["model_state"], strict=False)
     except RuntimeError as exc:  # shape mismatches
@@ -135,6 +150,20 @@ def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> Non
         raise TrainInputError(f"--init-from {path}: parameters the model lacks: {sorted(unexpected)[:5]}")
     log.info("initialized from %s; kept the initialization of %d tensors: %s", path, len(missing),
              sorted(missing))
+
+
+def _complete_only(manifest: dict, tf: Any) -> dict:
+    """``manifest`` restricted to the cases ``tf`` holds complete (--complete-only); the drops are logged."""
+    from nemsim.data.splits import complete_cases
+
+    kept, dropped = complete_cases(manifest, tf.case_ids, tf.complete)
+    counts = [f"{split} {len(kept[split])} of {len(kept[split]) + len(dropped[split])}"
+              for split in ("train", "val", "test")]
+    log.info("--complete-only: %s", ", ".join(counts))
+    if not kept["train"] or not kept["val"]:
+        raise TrainInputError(f"--complete-only: {tf.path} holds no complete case of the "
+                              f"{'train' if not kept['train'] else 'val'} split")
+    return kept
 
 
 def _steps_per_call(model_overrides: dict[str, Any]) -> int:
@@ -235,6 +264,8 @@ def _load_data(args: argparse.Namespace, cfg: Any, model_overrides: dict[str, An
     log.info("split manifest: %s", source)
     if args.fraction is not None:
         manifest = _apply_fraction(manifest, args.fraction, tf)
+    if args.complete_only:
+        manifest = _complete_only(manifest, tf)
     for split, limit in (("val", cfg.val_cases), ("test", cfg.test_cases)):
         if limit is not None and split in manifest:
             manifest = {**manifest, split: list(manifest[split])[:limit]}

@@ -257,6 +257,29 @@ def resolve_manifest(
     return manifest, str(directory / f"{setting}.json")
 
 
+def complete_cases(manifest: dict, case_ids, complete) -> tuple[dict, dict[str, list[int]]]:
+    """The manifest restricted to the cases a trajectory file holds complete, and what was dropped.
+
+    For a file still being generated (a prefix of a design, e.g. the first 120 of 500 ``paper`` cases): its
+    train/val/test lists keep their order and lose the cases that are absent or unfinished. The caller
+    says so (``nemsim train --complete-only`` logs the counts): nothing is dropped silently.
+
+    Args:
+        manifest: split manifest (``load_manifest``).
+        case_ids: (N,) the file's case ids; complete: (N,) its completion flags.
+    Returns:
+        (manifest copy with train/val/test filtered, {split: dropped case ids} for train, val and test).
+    """
+    done = {int(c) for c, ok in zip(np.asarray(case_ids).reshape(-1), np.asarray(complete).reshape(-1),
+                                    strict=True) if ok}
+    out, dropped = dict(manifest), {}
+    for split in ("train", "val", "test"):
+        ids = [int(c) for c in manifest.get(split, [])]
+        out[split] = [c for c in ids if c in done]
+        dropped[split] = [c for c in ids if c not in done]
+    return out, dropped
+
+
 def split_table(manifests: dict[str, dict]) -> str:
     """The set sizes as a text table (columns of tab:supp_split_summary)."""
     head = (f"{'Setting':<11} {'Train':>5} {'Val':>5} {'Test':>5} {'Unused':>6} {'Trans/traj':>10} "

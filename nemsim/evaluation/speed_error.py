@@ -1,9 +1,13 @@
 """Speed against error (`nemsim bench speed-error`): what a trajectory costs and how far it is from the truth.
 
-On the first N test cases of a split setting, every method produces the same 100-step trajectory and is
-scored against one **reference**: an independent full-budget simulator run of the case, seeded differently
-from the data file (``np.random.default_rng([seed, case_id, 0])``; the file's cases use
-``default_rng(case_seed(base_seed, case_id))``, another stream). Methods:
+On the first N test cases of a split setting that the data file holds complete, every method produces the
+same 100-step trajectory and is scored against one **reference**: an independent full-budget simulator run
+of the case, seeded differently from the data file (``np.random.default_rng([seed, case_id, 0])``; the file's
+cases use ``default_rng(case_seed(base_seed, case_id))``, another stream). Test cases that a file still being
+generated lacks (e.g. a prefix of the ``paper`` design) are passed over and listed in the report
+(``skipped_case_ids``). Every simulator run uses the configuration the data file records
+(``SimConfig.from_record`` of its ``generator`` attribute), never today's defaults, so the reference is the
+simulator that made the data; a file that records none is refused. Methods:
 
   * the simulator at particle budgets 1, 1/2, 1/4, 1/8, 1/16 (``SimConfig.particle_budget``; the budget-b
     reruns use ``default_rng([seed, case_id, k])``, k = 1, 2, ...). At budget 1 the compared trajectory is
@@ -244,19 +248,25 @@ def _check_config(config: SpeedErrorConfig) -> tuple[list[str], list[float]]:
     return runtimes, budgets
 
 
-def _test_rows(tf: Any, manifest: dict, cases: int, data: str | Path) -> tuple[list[int], list[int]]:
-    """(case ids, file rows) of the first ``cases`` test cases; ValueError if any is missing or unfinished."""
-    test_ids = [int(c) for c in manifest.get("test", [])][:cases]
-    if not test_ids:
+def _test_rows(tf: Any, manifest: dict, cases: int,
+               data: str | Path) -> tuple[list[int], list[int], list[int]]:
+    """(case ids, file rows) of the first ``cases`` test cases the file holds complete, and the test cases
+    passed over on the way (absent or unfinished: a file still being generated); ValueError if the file
+    holds fewer than ``cases`` complete test cases."""
+    from nemsim.data.splits import complete_cases
+
+    all_ids = [int(c) for c in manifest.get("test", [])]
+    if not all_ids:
         raise ValueError(f"setting {manifest.get('setting')!r} has no test cases")
-    missing = [c for c in test_ids if c not in set(int(i) for i in tf.case_ids)]
-    if missing:
-        raise ValueError(f"test cases {missing} are not in {data}; generate them first")
-    rows = [tf.row_of(c) for c in test_ids]
-    unfinished = [c for c, r in zip(test_ids, rows, strict=True) if not tf.complete[r]]
-    if unfinished:
-        raise ValueError(f"test cases {unfinished} are unfinished in {data}; finish generation first")
-    return test_ids, rows
+    kept, dropped = complete_cases({"test": all_ids}, tf.case_ids, tf.complete)
+    if len(kept["test"]) < cases:
+        raise ValueError(f"{data} holds {len(kept['test'])} complete test cases of setting "
+                         f"{manifest.get('setting')!r} ({len(dropped['test'])} of {len(all_ids)} absent or "
+                         f"unfinished, e.g. {dropped['test'][:5]}); use --cases <= {len(kept['test'])} or "
+                         "finish generation")  # fmt: skip
+    test_ids = kept["test"][:cases]
+    skipped = [c for c in all_ids[: all_ids.index(test_ids[-1])] if c in set(dropped["test"])]
+    return test_ids, [tf.row_of(c) for c in test_ids], skipped
 
 
 def _load_models(checkpoints: Sequence[str | Path], scene: Any, runtimes: list[str],
@@ -315,12 +325,16 @@ def run_speed_error(
         steps = scene.n_transitions if config.steps is None else int(config.steps)
         if not 1 <= steps <= tf.n_states - 1:
             raise ValueError(f"steps must be in [1, {tf.n_states - 1}], got {steps}")
-        test_ids, rows = _test_rows(tf, manifest, config.cases, data)
+        test_ids, rows, skipped = _test_rows(tf, manifest, config.cases, data)
+        if skipped:
+            log.warning("test cases %s are not complete in %s: measured on the next ones", skipped, data)
 
         rules = compile_rules(load_rules())
         tf.warn_if_other_rules(rules.sha256)
-        gen_cfg = tf.generator.get("config") if isinstance(tf.generator, dict) else None
-        base_cfg = SimConfig.from_meta(gen_cfg) if gen_cfg else SimConfig()
+        base_cfg = SimConfig.from_record(tf.generator)
+        if base_cfg is None:
+            raise ValueError(f"{data} records no simulator configuration (its `generator` attribute): the "
+                             "reference and budget reruns must use the configuration the file was made with")
         sim_cfgs = {b: replace(base_cfg, particle_budget=b).resolved(scene) for b in budgets}
         tables = build_event_tables(rules, base_cfg.resolved(scene))
 
@@ -353,6 +367,7 @@ def run_speed_error(
         "data": str(data),
         "setting": manifest.get("setting"),
         "case_ids": test_ids,
+        "skipped_case_ids": skipped,
         "steps": steps,
         "threads": config.threads,
         "torch_threads": torch.get_num_threads(),
@@ -499,6 +514,9 @@ def format_markdown(report: dict[str, Any]) -> str:
             f"{_fmt(r['avg_rmse'], '.4f')} | {_fmt(r['final_rmse'], '.4f')} | {_fmt(r['cd'], '.3f')} | "
             f"{_fmt(r['avg_rmse_vs_data'], '.4f')} | {note} |"
         )
+    if report.get("skipped_case_ids"):
+        lines += ["", f"Test cases {report['skipped_case_ids']} are not complete in the data file and were "
+                  "passed over."]  # fmt: skip
     nf = report["noise_floor"]
     lines += ["", f"Noise floor (simulator vs itself, two seeds): Avg RMSE {nf['avg_rmse']:.4f}, "
               f"CD {nf['cd']:.3f} vox."]  # fmt: skip

@@ -248,11 +248,14 @@ class SimConfig:
     @classmethod
     def from_record(cls, record: Any) -> SimConfig | None:
         """The configuration a checkpoint's ``sim_config`` records: a data file's ``generator`` record (its
-        ``config`` entry is ``to_meta``) or a bare ``to_meta`` dict; None when nothing is recorded. The one
+        ``config`` entry is ``to_meta``) or a bare ``to_meta`` dict; None when nothing is recorded, i.e. also
+        when the record names no simulator constant (it would otherwise read as today's defaults). The one
         reader of that record (the service, the simulator-judged benchmarks and inverse design use it)."""
         if not isinstance(record, dict) or not record:
             return None
         meta = record["config"] if isinstance(record.get("config"), dict) else record
+        if not set(meta) & set(cls.__dataclass_fields__):
+            return None
         return cls.from_meta(meta)
 
     @classmethod

@@ -141,6 +141,62 @@ def test_bad_runtime_is_one_line_exit_2(tmp_path, tiny_sim_data, capsys):
     assert len(err.splitlines()) == 1
 
 
+def _edited_copy(src, dst, *, unfinished: list[int], generator: dict | None = None):
+    """A copy of a data file with the rows of ``unfinished`` case ids flagged unfinished (a file still being
+    generated) and, if given, another ``generator`` record."""
+    import shutil
+
+    import h5py
+    import numpy as np
+
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        ids = [int(c) for c in np.asarray(f["case_ids"])]
+        for c in unfinished:
+            f["complete"][ids.index(c)] = 0
+        if generator is not None:
+            f.attrs["generator"] = json.dumps(generator)
+    return dst
+
+
+def test_incomplete_file_uses_the_complete_test_cases_and_its_recorded_simulator(tmp_path, tiny_sim_data,
+                                                                                  capsys):
+    """A file still being generated: the bench passes over the unfinished test case and says so; the reruns
+    use the simulator configuration the file records (here the mirror reflection of files made before the
+    specular lobe), not today's defaults; too few complete cases, or no record, is one line and exit 2."""
+    from nemsim.cli import main
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.sim import SimConfig
+
+    with open_trajectories(tiny_sim_data) as tf:
+        generator = dict(tf.generator)
+    mirror = {k: v for k, v in generator["config"].items() if k != "ion_reflect_spread_deg"}
+    assert SimConfig.from_meta(mirror).ion_reflect_spread_deg == 0 != SimConfig().ion_reflect_spread_deg
+    data = _edited_copy(tiny_sim_data, tmp_path / "partial.h5", unfinished=[2],
+                        generator={**generator, "config": mirror})
+    (tmp_path / "splits").symlink_to(tiny_sim_data.parent / "splits")  # test cases [2, 0, 1]
+    base = ["bench", "speed-error", "--data", str(data), "--budgets", "1", "--steps", "2", "--batch", "0"]
+    assert main([*base, "--cases", "1", "--out", str(tmp_path / "out")]) == 0
+    rep = json.loads((tmp_path / "out" / "speed_error.json").read_text())
+    assert rep["case_ids"] == [0] and rep["skipped_case_ids"] == [2]
+    assert "Test cases [2] are not complete" in (tmp_path / "out" / "speed_error.md").read_text()
+    used = SimConfig.from_meta(rep["reference"]["sim_config"])
+    with open_trajectories(data) as tf:
+        assert used == SimConfig.from_record(tf.generator).resolved(tf.scene)
+    assert used.ion_reflect_spread_deg == 0.0
+    capsys.readouterr()
+
+    assert main([*base, "--cases", "3", "--out", str(tmp_path / "out3")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "holds 2 complete test cases" in err and "[2]" in err and "--cases <= 2" in err
+    assert len(err.splitlines()) == 1
+
+    bare = _edited_copy(tiny_sim_data, tmp_path / "bare.h5", unfinished=[], generator={"kind": "test"})
+    base[base.index(str(data))] = str(bare)
+    assert main([*base, "--cases", "1", "--out", str(tmp_path / "out4")]) == 2
+    assert "records no simulator configuration" in capsys.readouterr().err
+
+
 def test_default_out_is_not_the_committed_results():
     from nemsim.cli import build_parser
 

@@ -15,3 +15,12 @@ def test_from_record_reads_a_generator_record_a_bare_meta_and_nothing():
     assert SimConfig.from_record(generator).capacity == 12  # the nested entry, not the defaults
     assert SimConfig.from_record(meta).flux_scale == 0.5  # a bare to_meta dict
     assert SimConfig.from_record(None) is None and SimConfig.from_record({}) is None
+
+
+def test_a_record_without_simulator_constants_is_nothing_not_todays_defaults():
+    """A generator record that names no constant (e.g. synthetic test data) describes no simulator: reading
+    it as SimConfig() would silently rerun today's defaults instead of what made the data."""
+    assert SimConfig.from_record({"kind": "synthetic-test"}) is None
+    assert SimConfig.from_record({"base_seed": 0, "config": {"note": "none"}}) is None
+    mirror = SimConfig.from_record({"config": {"flux_scale": 0.6}})  # a record made before the lobe existed
+    assert mirror is not None and mirror.ion_reflect_spread_deg == 0.0 != SimConfig().ion_reflect_spread_deg

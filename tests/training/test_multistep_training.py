@@ -178,7 +178,9 @@ def test_cli_trains_k3_and_records_the_data_generator(tmp_path, tiny_data, capsy
 
 def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, rules, capsys):
     """--init-from: a k=3 run starts from a one-step checkpoint's weights (its extra-step head from zero, so
-    it starts as the one-step model's linear extrapolation); another model or scene is refused."""
+    it starts as the one-step model's linear extrapolation); another model is refused; another scene's
+    checkpoint is a warm start too (NEMSim's weights fit any grid), named in the log, and the trained model
+    records the data's scene."""
     from nemsim.cli import main
 
     one = tmp_path / "one.pt"
@@ -201,9 +203,20 @@ def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, ru
         torch.testing.assert_close(trained[name], value, atol=1e-6, rtol=0)
     assert set(trained) - set(start) == {"decoder.extra.weight", "decoder.extra.bias"}
     capsys.readouterr()
-    bad = tmp_path / "bad.pt"
-    save_checkpoint(bad, _save_k1, model_name="nemsim", model_config={}, scene=SMALL_SCENE, rules=rules)
-    args[args.index(str(one))] = str(bad)
+    other = tmp_path / "small.pt"  # the same weights, recorded as a `small` model
+    save_checkpoint(other, _save_k1, model_name="nemsim", model_config={}, scene=SMALL_SCENE, rules=rules)
+    args[args.index(str(one))] = str(other)
     args[args.index("--out") + 1] = str(tmp_path / "run2")
+    assert main(args) == 0
+    log = (tmp_path / "run2" / "train.log").read_text()
+    assert "weights of scene 'small'" in log and "a model of scene 'tiny'" in log
+    run2 = read_checkpoint(tmp_path / "run2" / "last.pt")
+    assert run2["scene"] == tiny_scene.to_json()
+    for name, value in start.items():
+        torch.testing.assert_close(run2["model_state"][name], value, atol=1e-6, rtol=0)
+    bad = tmp_path / "bad.pt"
+    save_checkpoint(bad, _save_k1, model_name="fno", model_config={}, scene=tiny_scene, rules=rules)
+    args[args.index(str(other))] = str(bad)
+    args[args.index("--out") + 1] = str(tmp_path / "run3")
     assert main(args) == 2
-    assert "scene" in capsys.readouterr().err
+    assert "a 'fno' checkpoint, training 'nemsim'" in capsys.readouterr().err
