@@ -1800,8 +1800,8 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
             "simulator-minus-surrogate offset at the best one shifts the targets and a local search "
             "around it (a trust region) proposes a new recipe for the simulator, for up to --rounds rounds "
             "or until --budget seconds; the top recipe is then the best simulated one (labelled as such). "
-            "Example: nemsim inverse --checkpoint checkpoints/nemsim-small.pt --spec target.json --verify "
-            "--refine"
+            "--verify does this by default (--no-refine: only simulate the top recipes). Example: nemsim "
+            "inverse --checkpoint checkpoints/nemsim-small.pt --spec target.json --verify"
         ),
     )
     p.add_argument("--checkpoint", required=True, help="NEMSim checkpoint .pt")
@@ -1809,9 +1809,11 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
                    help="the design spec (JSON file, or - for stdin); see the description")
     p.add_argument("--verify", action="store_true",
                    help="also run the simulator on the top recipes (about 2.5 s each on small) and report "
-                   "achieved against target")
+                   "achieved against target; by default inside the design loop (--refine), so the top "
+                   "recipe is the best simulated one")
     p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
-                   help="simulator-corrected design (implies --verify; see the description); default: off")
+                   help="simulator-corrected design (implies --verify; see the description); default: on "
+                   "with --verify (--no-refine: only simulate the top recipes)")
     p.add_argument("--verify-top", type=int, default=None, metavar="R",
                    help="recipes simulated (default 1; with --refine 2, the round-0 recipes)")
     p.add_argument("--rounds", type=int, default=None, metavar="N",
@@ -1871,10 +1873,10 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--methods", default="auto",
                    help="search methods to compare, comma-separated subset of auto, adam, cma (default auto: "
                    "cma when installed, else adam)")
-    p.add_argument("--refine", default="off", choices=("off", "on", "both"),
+    p.add_argument("--refine", default="both", choices=("off", "on", "both"),
                    help="simulator-corrected design (`nemsim inverse --refine`, its in-loop simulator runs "
                    "with seed 3): off, on (only the refined variant of each method, '<method>+refine') or "
-                   "both (an A/B on the same targets); default off")
+                   "both (an A/B on the same targets; the default)")
     p.add_argument("--rounds", type=int, default=None, metavar="N",
                    help="with --refine: corrected rounds at most (default 2)")
     p.add_argument("--verify-top", type=int, default=None, metavar="R",

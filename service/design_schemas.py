@@ -82,7 +82,8 @@ class DesignRequest(BaseModel):
         description="simulator-corrected design (implies verify): when the top recipes miss in the "
         "simulator, the simulator-minus-surrogate offset at the best one shifts the targets and a local "
         "search around it proposes a new recipe for the simulator, round after round; the top recipe is "
-        "then the best simulated one (`verified_by`), and `refinement` reports every round. Default: off",
+        "then the best simulated one (`verified_by`), and `refinement` reports every round. Default: on "
+        "when verify is true (false: only simulate the top recipes)",
     )
     refine_rounds: Annotated[int, Field(ge=0, le=3), BeforeValidator(_json_integer)] | None = Field(
         None, description="simulator-corrected rounds at most (default 2; the job stops within about 60 s)"

@@ -50,7 +50,7 @@ def run_bench(
     seed: int = 7,
     methods: tuple[str, ...] = ("auto",),
     n_unreachable: int = len(UNREACHABLE),
-    refine: str = "off",
+    refine: str = "both",
     refine_config: Any = None,
     progress: bool = True,
 ) -> dict[str, Any]:

@@ -12,7 +12,7 @@ multi-fidelity bias correction):
            surrogate's local bias. The search is repeated for surrogate metrics = target - d, only inside a
            trust region of half-width ``radius`` (normalized controls) around the anchor (the offset is
            trusted only nearby), warm-started from every simulated recipe, with a small budget; its top
-           recipe not simulated yet is simulated. Stop when a simulated recipe meets every tolerance, after
+           recipe is simulated. Stop when a simulated recipe meets every tolerance, after
            ``rounds`` rounds, or when the next round's estimated cost (the last round's wall time, or for
            the first correction round the round-0 seconds per rollout times its rollouts plus the slowest
            simulator run) would pass ``budget_s`` of wall time for the whole design.
@@ -27,10 +27,15 @@ recipes (surrogate only, with simulated metrics where they were run). Status:
     rounds and budget (the closest simulated miss is reported).
 ``refinement`` lists every round (anchor, offset, shifted targets, search cost, the simulated recipe with
 its predicted and simulated metrics and its own offset) and why the loop stopped (``met``, ``rounds``,
-``budget``, ``converged``: the corrected search's best recipe was simulated already); ``cost`` is the whole
-design's: rollouts of every
-round, simulator runs and seconds, wall and CPU seconds (this process plus its finished child processes,
-where the service's simulator runs).
+``budget``, ``converged``: the corrected search's best recipe was simulated already, ``no simulated
+recipe``: the simulator declined them all); ``cost`` is the whole design's: rollouts of every round,
+simulator runs and seconds, wall and CPU seconds (this process plus its finished child processes, where the
+service's simulator runs).
+
+Why an additive offset rather than a learned correction: with one or two simulator runs per design there is
+nothing to fit beyond a constant per metric, and the surrogate's errors on nearby recipes are correlated
+(the same model error at similar controls), so a constant is the first-order term the trust region keeps
+valid.
 
 The simulator is a caller-supplied function returning the simulated metrics at the target step
 (``nemsim.analysis.inverse.simulated_metrics`` over an in-process run for the CLI, over child processes in
@@ -63,7 +68,10 @@ from nemsim.analysis.inverse import (
     verify_recipe,
 )
 
-REFINE_WITH_VERIFY = False  # whether verification (CLI --verify, service "verify": true) refines by default
+# verification (CLI --verify, service "verify": true) refines unless told not to: on held-out targets it met
+# more of them in an independent simulator run than verifying the surrogate's top recipe, within the
+# design budget (benchmarks/small/inverse)
+REFINE_WITH_VERIFY = True
 
 
 class SimulationSkipped(Exception):

@@ -70,3 +70,18 @@ def test_inverse_refine_reports_simulated_rounds(tiny_checkpoint, tmp_path, caps
     code = main(args[:-2] + ["--rounds", "-1"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "rounds" in err
+
+
+def test_verify_refines_by_default_and_no_refine_only_simulates(tiny_checkpoint, tmp_path, capsys):
+    from nemsim.analysis.inverse_refine import REFINE_WITH_VERIFY
+
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(SPEC))
+    base = ["inverse", "--checkpoint", str(tiny_checkpoint), "--spec", str(spec), "--verify", "--rounds", "0",
+            "--verify-top", "1", "--json", "-"]
+    assert main(base) == 0
+    assert ("refinement" in json.loads(capsys.readouterr().out)) == REFINE_WITH_VERIFY
+    assert main(base + ["--no-refine"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert "refinement" not in res and len(res["verification"]["recipes"]) == 1
+    assert res["status"] in ("met", "unreachable")

@@ -35,6 +35,7 @@ def test_design_job_202_progress_and_result(make_client, monkeypatch):
             "step": 3,
             "k": 2,
             "verify": True,
+            "refine": False,  # the plain verification: simulate the top recipe only
         },
     )
     assert r.status_code == 202, r.text
