@@ -1803,8 +1803,13 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
             "closest recipe and its miss. Spec (JSON): {\"targets\": {\"etch_depth\": {\"value\": 100, "
             "\"tol\": 5}, \"bottom_width\": {\"value\": 30, \"tol\": 3}}, \"step\": 100, \"fixed\": "
             "{\"angle_cl\": 5}, \"bounds\": {\"flux_cl\": [0.002, 0.01]}, \"secondary\": {\"metric\": "
-            "\"mask_loss\", \"goal\": \"min\"}, \"k\": 3}. Example: nemsim inverse --checkpoint "
-            "checkpoints/nemsim-small.pt --spec target.json --verify"
+            "\"mask_loss\", \"goal\": \"min\"}, \"k\": 3}. With --refine the simulator works inside the "
+            "design loop: it runs the top --verify-top recipes; if none meets every tolerance, the "
+            "simulator-minus-surrogate offset at the best one shifts the targets and a local search "
+            "around it (a trust region) proposes a new recipe for the simulator, for up to --rounds rounds "
+            "or until --budget seconds; the top recipe is then the best simulated one (labelled as such). "
+            "--verify does this by default (--no-refine: only simulate the top recipes). Example: nemsim "
+            "inverse --checkpoint checkpoints/nemsim-small.pt --spec target.json --verify"
         ),
     )
     p.add_argument("--checkpoint", required=True, help="NEMSim checkpoint .pt")
@@ -1812,7 +1817,20 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
                    help="the design spec (JSON file, or - for stdin); see the description")
     p.add_argument("--verify", action="store_true",
                    help="also run the simulator on the top recipes (about 2.5 s each on small) and report "
-                   "achieved against target")
+                   "achieved against target; by default inside the design loop (--refine), so the top "
+                   "recipe is the best simulated one")
+    p.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
+                   help="simulator-corrected design (implies --verify; see the description); default: on "
+                   "with --verify (--no-refine: only simulate the top recipes)")
+    p.add_argument("--verify-top", type=int, default=None, metavar="R",
+                   help="recipes simulated (default 1; with --refine 2, the round-0 recipes)")
+    p.add_argument("--rounds", type=int, default=None, metavar="N",
+                   help="simulator-corrected rounds at most (default 2)")
+    p.add_argument("--budget", type=float, default=None, metavar="S",
+                   help="wall seconds of the whole design: a corrected round starts only if its estimated "
+                   "cost fits (default 60)")
+    p.add_argument("--sim-seed", type=int, default=1,
+                   help="simulator seed of the verification runs (default 1)")
     p.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
     p.add_argument("--json", dest="json_out", default=None, metavar="FILE",
                    help="write the full result as JSON to FILE (- for stdout, then no table)")
@@ -1863,6 +1881,16 @@ def _add_inverse(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--methods", default="auto",
                    help="search methods to compare, comma-separated subset of auto, adam, cma (default auto: "
                    "cma when installed, else adam)")
+    p.add_argument("--refine", default="both", choices=("off", "on", "both"),
+                   help="simulator-corrected design (`nemsim inverse --refine`, its in-loop simulator runs "
+                   "with seed 3): off, on (only the refined variant of each method, '<method>+refine') or "
+                   "both (an A/B on the same targets; the default)")
+    p.add_argument("--rounds", type=int, default=None, metavar="N",
+                   help="with --refine: corrected rounds at most (default 2)")
+    p.add_argument("--verify-top", type=int, default=None, metavar="R",
+                   help="with --refine: round-0 recipes simulated (default 2)")
+    p.add_argument("--budget", type=float, default=None, metavar="S",
+                   help="with --refine: wall seconds per design (default 60)")
     p.add_argument("--out", default="runs/bench/inverse", metavar="DIR",
                    help="output directory (default runs/bench/inverse)")
     p.set_defaults(handler=_cmd_bench_inverse)
@@ -1872,6 +1900,7 @@ def _cmd_inverse(args: argparse.Namespace) -> int:
     import json
 
     from nemsim.analysis.inverse import format_result, load_design_context, run_design, spec_from_dict
+    from nemsim.analysis.inverse_refine import REFINE_WITH_VERIFY, refine_config_from_dict
 
     text = sys.stdin.read() if args.spec == "-" else Path(args.spec).read_text()
     try:
@@ -1879,8 +1908,16 @@ def _cmd_inverse(args: argparse.Namespace) -> int:
     except json.JSONDecodeError as exc:
         raise UserError(f"{args.spec}: not JSON: {exc}") from None
     spec = spec_from_dict(data)
+    refine = None
+    if args.refine or (args.refine is None and args.verify and REFINE_WITH_VERIFY):
+        given = {"rounds": args.rounds, "budget_s": args.budget, "verify_top": args.verify_top}
+        refine = refine_config_from_dict({k: v for k, v in given.items() if v is not None})
+    top = 1 if args.verify_top is None else args.verify_top
+    if not 1 <= top <= 10:
+        raise UserError(f"--verify-top must be in 1..10, got {top}")
     ctx = load_design_context(args.checkpoint)
-    result = run_design(ctx, spec, seed=args.seed, verify=args.verify, progress=args.json_out != "-")
+    result = run_design(ctx, spec, seed=args.seed, verify=args.verify, verify_top=top, sim_seed=args.sim_seed,
+                        progress=args.json_out != "-", refine=refine)
     if args.json_out == "-":
         print(json.dumps(result, indent=2))  # noqa: T201
         return 0
@@ -1913,10 +1950,13 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_bench_inverse(args: argparse.Namespace) -> int:
     from nemsim.analysis.inverse_bench import format_bench, run_bench, write_bench
+    from nemsim.analysis.inverse_refine import refine_config_from_dict
 
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    given = {"rounds": args.rounds, "verify_top": args.verify_top, "budget_s": args.budget}
+    rcfg = refine_config_from_dict({k: v for k, v in given.items() if v is not None})
     report = run_bench(args.checkpoint, n_targets=args.targets, seed=args.seed, methods=methods,
-                       n_unreachable=args.unreachable)
+                       n_unreachable=args.unreachable, refine=args.refine, refine_config=rcfg)
     paths = write_bench(report, args.out)
     print(format_bench(report))  # noqa: T201
     print(f"wrote {paths['md']}, {paths['json']}")  # noqa: T201

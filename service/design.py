@@ -16,7 +16,15 @@ import numpy as np
 import torch
 
 from nemsim.analysis.intervals import Calibration, Support, calibration_for
-from nemsim.analysis.inverse import DesignCancelled, DesignContext, DesignSpec, search, verify_recipes
+from nemsim.analysis.inverse import (
+    DesignCancelled,
+    DesignContext,
+    DesignSpec,
+    search,
+    simulated_metrics,
+    verify_recipes,
+)
+from nemsim.analysis.inverse_refine import RefineConfig, SimulationSkipped, refine_design
 from nemsim.controls import CONTROL_NAMES
 from service.jobs import Job, JobCancelled, run_simulator
 
@@ -88,8 +96,10 @@ def design_work(
     verify_top: int,
     sim_seed: int,
     sim_max_work: float,
+    refine: RefineConfig | None = None,
 ) -> dict[str, Any]:
-    """The work of a design job: search, then (with verify) simulate the top recipes."""
+    """The work of a design job: search, then (with verify) simulate the top recipes; with ``refine`` the
+    simulator-corrected design (``nemsim.analysis.inverse_refine``) instead."""
     from nemsim.evaluation.truth import particle_work
     from service.surrogate import checkpoint_sim_config
 
@@ -103,6 +113,10 @@ def design_work(
         model_id=surrogate.model_id,
         loaded=surrogate.loaded,
     )
+    if refine is not None:
+        return _refined(
+            job, surrogate, ctx, spec, refine, seed=seed, sim_seed=sim_seed, sim_max_work=sim_max_work
+        )
     share = SEARCH_SHARE if verify else 0.98
 
     def progress(f: float, _msg: str) -> None:
@@ -142,3 +156,50 @@ def design_work(
                 "recipes": verify_recipes(result, spec, surrogate.scene, simulate, top),
             }
     return result
+
+
+def _refined(
+    job: Job,
+    surrogate: Any,
+    ctx: DesignContext,
+    spec: DesignSpec,
+    refine: RefineConfig,
+    *,
+    seed: int,
+    sim_seed: int,
+    sim_max_work: float,
+) -> dict[str, Any]:
+    """The simulator-corrected design in a job: every simulator run in a child process, as for simulator
+    jobs; a recipe beyond the server's work limit is skipped (reported), not simulated."""
+    from nemsim.evaluation.truth import particle_work
+    from service.surrogate import checkpoint_sim_config
+
+    config, _ = checkpoint_sim_config(surrogate.loaded.raw or {})
+
+    def simulate(raw: np.ndarray, steps: int) -> np.ndarray:
+        work = particle_work([(raw, 0)])
+        if work > sim_max_work:
+            raise SimulationSkipped(
+                f"{work:.3g}x the work of a design-centre run (server limit {sim_max_work:g}x)"
+            )
+        schedule = np.repeat(raw[None], steps, axis=0)  # (T, 14)
+        hold = _Share(job, job.progress, 0.0)  # the design's progress stands still while it simulates
+        states = run_simulator(hold, surrogate.scene, config, schedule, sim_seed, share=1.0)  # type: ignore[arg-type]
+        return states.astype(np.float32)
+
+    def progress(f: float, _msg: str) -> None:
+        job.progress = 0.98 * f
+
+    try:
+        return refine_design(
+            ctx,
+            spec,
+            simulated_metrics(simulate, surrogate.scene),
+            refine=refine,
+            seed=seed,
+            sim_seed=sim_seed,
+            on_progress=progress,
+            should_stop=lambda: job.cancelled,
+        )
+    except DesignCancelled:
+        raise JobCancelled from None

@@ -74,8 +74,19 @@ class DesignRequest(BaseModel):
     verify: bool = Field(
         False, description="run the simulator on the top recipes and report achieved against target"
     )
-    verify_top: Annotated[int, Field(ge=1, le=3), BeforeValidator(_json_integer)] = Field(
-        1, description="recipes to simulate with verify"
+    verify_top: Annotated[int, Field(ge=1, le=3), BeforeValidator(_json_integer)] | None = Field(
+        None, description="recipes to simulate with verify (default 1; with refine 2, the round-0 recipes)"
+    )
+    refine: bool | None = Field(
+        None,
+        description="simulator-corrected design (implies verify): when the top recipes miss in the "
+        "simulator, the simulator-minus-surrogate offset at the best one shifts the targets and a local "
+        "search around it proposes a new recipe for the simulator, round after round; the top recipe is "
+        "then the best simulated one (`verified_by`), and `refinement` reports every round. Default: on "
+        "when verify is true (false: only simulate the top recipes)",
+    )
+    refine_rounds: Annotated[int, Field(ge=0, le=3), BeforeValidator(_json_integer)] | None = Field(
+        None, description="simulator-corrected rounds at most (default 2; the job stops within about 60 s)"
     )
     sim_seed: Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(_json_integer)] = Field(
         1, description="simulator seed of the verification runs"

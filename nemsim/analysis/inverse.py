@@ -31,7 +31,9 @@ predicted metrics are all within tolerance, else ``unreachable`` (reported with 
 miss per target, never as a met target).
 
 Verification (``verify_recipes``) runs the simulator (a caller-supplied function: in-process for the CLI,
-simulator jobs in the service) on the top recipes and reports achieved against target.
+simulator jobs in the service) on the top recipes and reports achieved against target. The simulator can
+also work inside the design loop (``nemsim.analysis.inverse_refine``: simulator-corrected rounds that
+correct the surrogate's local bias), then the top recipe is the best simulated one.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -60,6 +62,9 @@ from nemsim.controls import (
 )
 from nemsim.geometry.profile import profile_metrics_batch
 from nemsim.geometry.soft_profile import SOFT_METRICS, soft_profile_metrics
+
+if TYPE_CHECKING:
+    from nemsim.analysis.inverse_refine import RefineConfig
 
 TARGET_METRICS = SOFT_METRICS  # etch_depth, top_width, bottom_width, bowing, mask_loss
 DEFAULT_TOL = {"etch_depth": 5.0, "top_width": 3.0, "bottom_width": 3.0, "mask_loss": 2.0, "bowing": 2.0}
@@ -424,6 +429,19 @@ def _pick_distinct(order: Sequence[int], points: Sequence[np.ndarray], n: int, s
     return chosen
 
 
+@dataclass(frozen=True)
+class LocalRegion:
+    """Restricts a search to a trust region: the box of half-width ``radius`` (normalized units) around
+    ``anchor`` (14,), intersected with the spec's bounds; the ``warm`` recipes (W, 14) are evaluated
+    (clipped into the region) beside the quasi-random screening. Used by the simulator-corrected rounds
+    (``nemsim.analysis.inverse_refine``), where a metric offset measured at the anchor is only trusted
+    nearby."""
+
+    anchor: np.ndarray  # (14,) normalized
+    radius: float
+    warm: np.ndarray  # (W, 14) normalized
+
+
 def search(
     ctx: DesignContext,
     spec: DesignSpec,
@@ -431,8 +449,12 @@ def search(
     seed: int = 0,
     on_progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
+    local: LocalRegion | None = None,
 ) -> dict[str, Any]:
-    """Find recipes for ``spec`` (module docstring). Returns the JSON-ready result (see ``run_design``)."""
+    """Find recipes for ``spec`` (module docstring). Returns the JSON-ready result (see ``run_design``).
+
+    With ``local`` the search stays inside that trust region and starts from its warm recipes.
+    """
     from scipy.stats import qmc
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -452,6 +474,12 @@ def search(
         cfg = replace(cfg, method="cma" if _has_cma() else "adam")
         spec = replace(spec, search=cfg)
     lo, hi, free, fixed = _box(spec)
+    if local is not None:
+        if not local.radius > 0:
+            raise ValueError(f"the trust-region radius must be > 0, got {local.radius:g}")
+        a = np.asarray(local.anchor, dtype=np.float64)
+        lo = np.where(free, np.maximum(lo, a - local.radius), lo)
+        hi = np.where(free, np.maximum(np.minimum(hi, a + local.radius), lo), hi)
     cost = _Cost()
     evaluate = _Evaluator(ctx, step, cfg.batch, cost, check)
     pool = _Pool()
@@ -467,6 +495,10 @@ def search(
         sob = np.zeros((1, 0))
     u_screen = np.tile(fixed, (len(sob), 1))
     u_screen[:, free] = lo[free] + sob * (hi[free] - lo[free])
+    if local is not None and len(local.warm):
+        warm = np.clip(np.asarray(local.warm, dtype=np.float64).reshape(-1, N_CONTROLS), lo, hi)
+        warm[:, ~free] = fixed[~free]
+        u_screen = np.concatenate([warm, u_screen])  # (W + N, 14)
     m_screen = evaluate(u_screen)
     pool.add(u_screen, m_screen)
     trace = [round(float(np.min(objective(m_screen, spec))), 4)]  # best objective per stage/iteration
@@ -693,6 +725,43 @@ def _status_message(status: str, best: dict[str, Any]) -> str:
 # --- verification and the whole design ---------------------------------------------------------------
 
 Simulate = Callable[[np.ndarray, int], np.ndarray]  # (raw (14,), steps) -> states (steps + 1, 2, D, H, W)
+SimulateMetrics = Callable[[np.ndarray, int], dict[str, float]]  # (raw (14,), step) -> metrics at step, nm
+
+
+def simulated_metrics(simulate: Simulate, scene: Any) -> SimulateMetrics:
+    """The exact profile metrics at the target step of a simulator run (what verification compares)."""
+
+    def metrics_at(raw: np.ndarray, step: int) -> dict[str, float]:
+        states = simulate(raw, step)
+        return {k: float(v[step]) for k, v in profile_metrics_batch(states, scene).items()}
+
+    return metrics_at
+
+
+def verify_recipe(
+    rec: dict[str, Any], spec: DesignSpec, step: int, simulate: SimulateMetrics, rank: int = 1
+) -> dict[str, Any]:
+    """Simulate one recipe of a result and compare the simulator's metrics at ``step`` with the targets and
+    with the recipe's predicted intervals."""
+    raw = np.array([rec["controls"][n] for n in CONTROL_NAMES], dtype=np.float64)
+    t0 = time.perf_counter()
+    achieved = simulate(raw, step)
+    sim_s = time.perf_counter() - t0
+    inside = {}
+    for level, per in (rec.get("intervals") or {}).items():
+        inside[level] = {
+            m: bool((lo is None or achieved[m] >= lo) and (hi is None or achieved[m] <= hi))
+            for m, (lo, hi) in per.items()
+        }
+    tmiss = misses(achieved, spec)
+    return {
+        "rank": rec.get("rank", rank),
+        "achieved": {k: round(float(v), 3) for k, v in achieved.items()},
+        "targets": tmiss,
+        "met": all(v["met"] for v in tmiss.values()),
+        "within_intervals": inside,
+        "simulator_s": round(sim_s, 3),
+    }
 
 
 def verify_recipes(
@@ -704,35 +773,15 @@ def verify_recipes(
     on_progress: Progress | None = None,
 ) -> list[dict[str, Any]]:
     """Simulate the ``top`` recipes of a result and compare the simulator's exact metrics at the target step
-    with the targets and with the predicted intervals."""
+    with the targets and with the predicted intervals (``verify_recipe``)."""
     out = []
     step = int(result["step"])
     recipes = result["recipes"][:top]
+    metrics_at = simulated_metrics(simulate, scene)
     for i, rec in enumerate(recipes):
         if on_progress is not None:
             on_progress(i / len(recipes), f"simulating recipe {i + 1}/{len(recipes)}")
-        raw = np.array([rec["controls"][n] for n in CONTROL_NAMES], dtype=np.float64)
-        t0 = time.perf_counter()
-        states = simulate(raw, step)
-        sim_s = time.perf_counter() - t0
-        achieved = {k: float(v[step]) for k, v in profile_metrics_batch(states, scene).items()}
-        inside = {}
-        for level, per in (rec.get("intervals") or {}).items():
-            inside[level] = {
-                m: bool((lo is None or achieved[m] >= lo) and (hi is None or achieved[m] <= hi))
-                for m, (lo, hi) in per.items()
-            }
-        tmiss = misses(achieved, spec)
-        out.append(
-            {
-                "rank": rec.get("rank", i + 1),
-                "achieved": {k: round(v, 3) for k, v in achieved.items()},
-                "targets": tmiss,
-                "met": all(v["met"] for v in tmiss.values()),
-                "within_intervals": inside,
-                "simulator_s": round(sim_s, 3),
-            }
-        )
+        out.append(verify_recipe(rec, spec, step, metrics_at, i + 1))
     return out
 
 
@@ -745,8 +794,14 @@ def run_design(
     verify_top: int = 1,
     sim_seed: int = 1,
     progress: bool = False,
+    refine: RefineConfig | None = None,
 ) -> dict[str, Any]:
-    """Search (and with ``verify`` simulate the top recipes in-process); the CLI's entry point."""
+    """Search (and with ``verify`` simulate the top recipes in-process); the CLI's entry point.
+
+    With ``refine`` (a ``nemsim.analysis.inverse_refine.RefineConfig``) the simulator is used inside the
+    design loop instead (simulator-corrected rounds; implies ``verify``, and ``verify_top`` is the
+    config's).
+    """
     bar = None
     if progress:
         from tqdm import tqdm
@@ -759,20 +814,33 @@ def run_design(
             bar.set_postfix_str(msg)
             bar.refresh()
 
+    from nemsim.sim import run_trajectory
+
+    config = simulator_config(ctx.loaded)
+
+    def simulate(raw: np.ndarray, steps: int) -> np.ndarray:
+        rng = np.random.default_rng(sim_seed)
+        return run_trajectory(ctx.scene, ctx.loaded.rules, raw, rng, config, n_transitions=steps).states
+
     try:
-        result = search(ctx, spec, seed=seed, on_progress=report)
+        if refine is not None:
+            from nemsim.analysis.inverse_refine import refine_design
+
+            result = refine_design(
+                ctx,
+                spec,
+                simulated_metrics(simulate, ctx.scene),
+                refine=refine,
+                seed=seed,
+                sim_seed=sim_seed,
+                on_progress=report,
+            )
+        else:
+            result = search(ctx, spec, seed=seed, on_progress=report)
     finally:
         if bar is not None:
             bar.close()
-    if verify:
-        from nemsim.sim import run_trajectory
-
-        config = simulator_config(ctx.loaded)
-
-        def simulate(raw: np.ndarray, steps: int) -> np.ndarray:
-            rng = np.random.default_rng(sim_seed)
-            return run_trajectory(ctx.scene, ctx.loaded.rules, raw, rng, config, n_transitions=steps).states
-
+    if verify and refine is None:
         result["verification"] = {
             "seed": sim_seed,
             "recipes": verify_recipes(result, spec, ctx.scene, simulate, verify_top),
@@ -814,6 +882,8 @@ def format_result(result: dict[str, Any]) -> str:
             else next(iter(result["recipes"][0]["intervals"]))
         )
     head = ["rank"] + [f"{n} (target)" for n in names] + ["objective", "data"]
+    if result["recipes"] and "verified_by" in result["recipes"][0]:
+        head.append("verified by")
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---:|" * len(head))
     for r in result["recipes"]:
@@ -824,31 +894,67 @@ def format_result(result: dict[str, Any]) -> str:
             if level is not None:
                 lo, hi = r["intervals"][level][n]
                 iv = f" [{_f(lo)}, {_f(hi)}]"
-            cells.append(f"{t['value']:.1f}{iv} ({t['target']:g}±{t['tol']:g}){'' if t['met'] else ' MISS'}")
+            value, met = f"{t['value']:.1f}{iv}", t["met"]
+            if "simulated_targets" in r:  # simulated: the simulator's value decides
+                st = r["simulated_targets"][n]
+                value, met = f"{value} / sim {st['value']:.1f}", st["met"]
+            cells.append(f"{value} ({t['target']:g}±{t['tol']:g}){'' if met else ' MISS'}")
         cells += [f"{r['objective']:.3g}", r["training_data"]["flag"]]
+        if "verified_by" in r:
+            cells.append(
+                ("simulator " + ("MET" if r["simulator_met"] else "miss"))
+                if r["verified_by"] == "simulator" else "surrogate"
+            )
         lines.append("| " + " | ".join(cells) + " |")
     if level is not None:
         lines.append(f"(brackets: {100 * float(level):.0f} % conformal interval, nm)")
+    if any("simulated_targets" in r for r in result["recipes"]):
+        lines.append("(predicted / sim: the surrogate's prediction, the simulator's run of the recipe; nm)")
     lines.append("")
     for r in result["recipes"]:
         ctl = ", ".join(f"{k}={_ctl(k, v)}" for k, v in r["controls"].items())
         lines.append(f"recipe {r['rank']}: {ctl}")
     c = result["cost"]
+    sims = ""
+    if "simulator_runs" in c:
+        sims = f", {c['simulator_runs']} simulator runs ({c['simulator_wall_s']:.1f} s)"
     lines.append(
         f"cost: {c['rollouts']} rollouts ({c['forward_rollouts']} forward, {c['gradient_rollouts']} "
-        f"with gradients; {c['method']}), {c['wall_s']:.1f} s wall, {c['cpu_s']:.1f} s CPU"
+        f"with gradients; {c['method']}){sims}, {c['wall_s']:.1f} s wall, {c['cpu_s']:.1f} s CPU"
     )
+    ref = result.get("refinement")
+    if ref:
+        lines.append(
+            f"simulator-corrected design: surrogate search {ref['surrogate_status']}; "
+            f"stopped: {ref['stopped']}"
+        )
+        lines += [_round_line(rd) for rd in ref["rounds"]]
     ver = result.get("verification")
     if ver:
         for v in ver["recipes"]:
             parts = ", ".join(
                 f"{k} {t['value']:.1f} ({'ok' if t['met'] else 'MISS'})" for k, t in v["targets"].items()
             )
+            which = f"round {v['round']} recipe" if "round" in v else f"recipe {v['rank']}"
             lines.append(
-                f"simulator (seed {ver['seed']}), recipe {v['rank']}: {'MET' if v['met'] else 'NOT MET'}: "
-                f"{parts}"
+                f"simulator (seed {ver['seed']}), {which}: {'MET' if v['met'] else 'NOT MET'}: {parts}"
             )
+        for why in ver.get("skipped", []):
+            lines.append(f"simulator skipped {why}")
     return "\n".join(lines)
+
+
+def _round_line(rd: dict[str, Any]) -> str:
+    """One simulator-corrected round: the offset it searched with, then predicted -> simulated metrics."""
+    line = f"  round {rd['round']}: "
+    if rd["round"] > 0:
+        line += "offset " + ", ".join(f"{k} {v:+.1f}" for k, v in rd["offset"].items()) + "; "
+    runs = []
+    for s in rd["simulated"]:
+        pairs = ", ".join(f"{k} {s['predicted'][k]:.1f} -> {s['simulated'][k]:.1f}" for k in s["predicted"])
+        verdict = " MET" if s["met"] else f" (miss {', '.join(s['missed'])})"
+        runs.append(f"predicted -> simulated {pairs}{verdict}")
+    return line + ("; ".join(runs) or "nothing simulated")
 
 
 def _f(v: float | None) -> str:
@@ -870,5 +976,7 @@ __all__ = [
     "run_design",
     "search",
     "spec_from_dict",
+    "simulated_metrics",
+    "verify_recipe",
     "verify_recipes",
 ]

@@ -8,12 +8,18 @@ each target the search (``nemsim.analysis.inverse.search``, default configuratio
 simulator runs the top-1 with another seed (2): success when that run meets every tolerance (reachable) or
 when the target is reported unreachable (unreachable). As a reference for the simulator's own noise, the
 target recipe itself is simulated with seed 2 too ("oracle": the true recipe judged the same way).
+
+``refine`` also (or only) runs the simulator-corrected design (``nemsim.analysis.inverse_refine``, variant
+"<method>+refine"): its simulator runs inside the loop use seed 3 (``LOOP_SEED``), so the judging run
+(seed 2) is an independent one and a recipe the loop verified can still miss there (the simulator's seed
+noise). Its design cost includes those simulator runs (in-process, so in the CPU seconds too).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +39,8 @@ UNREACHABLE: tuple[tuple[str, dict[str, Any]], ...] = (
         {"etch_depth": {"value": 100.0, "tol": 5.0}, "bottom_width": {"value": 50.0, "tol": 3.0}},
     ),
 )
-TARGET_SEED, VERIFY_SEED = 1, 2
+TARGET_SEED, VERIFY_SEED, LOOP_SEED = 1, 2, 3
+REFINE_CHOICES = ("off", "on", "both")
 
 
 def run_bench(
@@ -43,10 +50,17 @@ def run_bench(
     seed: int = 7,
     methods: tuple[str, ...] = ("auto",),
     n_unreachable: int = len(UNREACHABLE),
+    refine: str = "both",
+    refine_config: Any = None,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run the benchmark (module docstring); returns the JSON-ready report."""
+    """Run the benchmark (module docstring); returns the JSON-ready report.
+
+    ``refine``: "off" (the search only), "on" (only the simulator-corrected variant of each method) or
+    "both"; ``refine_config`` a ``RefineConfig`` (None: its defaults).
+    """
     from nemsim.analysis.inverse import load_design_context, simulator_config, spec_from_dict
+    from nemsim.analysis.inverse_refine import RefineConfig
     from nemsim.evaluation.truth import SimTruth
 
     if n_targets < 1:
@@ -56,6 +70,11 @@ def run_bench(
     bad = [m for m in methods if m not in ("auto", "adam", "cma")]
     if bad or not methods:
         raise ValueError(f"unknown methods {bad or methods}; expected a subset of ['auto', 'adam', 'cma']")
+    if refine not in REFINE_CHOICES:
+        raise ValueError(f"--refine must be one of {list(REFINE_CHOICES)}, got {refine!r}")
+    rcfg = (refine_config or RefineConfig()).check()
+    variants = [(m, m, False) for m in methods if refine != "on"]
+    variants += [(f"{m}+refine", m, True) for m in methods if refine != "off"]
     ctx = load_design_context(checkpoint)
     scene = ctx.scene
     step = scene.n_transitions
@@ -87,7 +106,7 @@ def run_bench(
             from tqdm import tqdm
 
             bar = tqdm(
-                total=len(cases) * len(methods), unit="design", desc="inverse designs", dynamic_ncols=True
+                total=len(cases) * len(variants), unit="design", desc="inverse designs", dynamic_ncols=True
             )
         try:
             for case in cases:
@@ -100,8 +119,10 @@ def run_bench(
                         abs(case["oracle"][k] - t.value) <= t.tol for k, t in spec.targets.items()
                     )
                 case["runs"] = {}
-                for method in methods:
-                    case["runs"][method] = _design_run(ctx, spec, method, case["reachable"], truth, step)
+                for label, method, refined in variants:
+                    case["runs"][label] = _design_run(
+                        ctx, spec, method, case["reachable"], truth, step, rcfg if refined else None
+                    )
                     if bar is not None:
                         bar.update(1)
         finally:
@@ -109,7 +130,7 @@ def run_bench(
                 bar.close()
         n_sim = truth.n_simulated
         sim_s = truth.sim_wall_s
-    summary = {method: _summary(cases, method) for method in methods}
+    summary = {label: _summary(cases, label) for label, _, _ in variants}
     from nemsim.machine import cpu_name
 
     return {
@@ -120,6 +141,8 @@ def run_bench(
         "targets_seed": seed,
         "target_sim_seed": TARGET_SEED,
         "verify_sim_seed": VERIFY_SEED,
+        "loop_sim_seed": LOOP_SEED,
+        "refine_config": asdict(rcfg) if refine != "off" else None,
         "oracle_met": sum(bool(c.get("oracle_met")) for c in cases if c["reachable"]),
         "summary": summary,
         "cases": cases,
@@ -132,17 +155,25 @@ def run_bench(
     }
 
 
-def _design_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any,
-                step: int) -> dict[str, Any]:
-    """One inverse design of ``spec`` with ``method``, its top recipe simulated (verification seed) and
-    judged: a reachable target succeeds when the simulator meets every tolerance, an unreachable one when the
-    search says unreachable."""
+def _design_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any, step: int,
+                refine: Any = None) -> dict[str, Any]:
+    """One inverse design of ``spec`` with ``method`` (simulator-corrected with a ``refine`` config), its
+    top recipe simulated (verification seed) and judged: a reachable target succeeds when the simulator
+    meets every tolerance, an unreachable one when the design says unreachable."""
     from dataclasses import replace
 
     from nemsim.analysis.inverse import TARGET_METRICS, search
+    from nemsim.analysis.inverse_refine import refine_design
 
     s = replace(spec, search=replace(spec.search, method=method))  # type: ignore[arg-type]
-    res = search(ctx, s, seed=0)
+    if refine is None:
+        res = search(ctx, s, seed=0)
+    else:
+
+        def simulate(raw: np.ndarray, at: int) -> dict[str, float]:
+            return {k: float(v[at]) for k, v in truth.metrics(raw, LOOP_SEED).items()}
+
+        res = refine_design(ctx, s, simulate, refine=refine, seed=0, sim_seed=LOOP_SEED)
     top = res["recipes"][0]
     raw = np.array([top["controls"][n] for n in CONTROL_NAMES])
     achieved = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}
@@ -155,7 +186,7 @@ def _design_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any,
             if k in per
         }
     success = sim_met if reachable else res["status"] == "unreachable"
-    return {
+    out = {
         "status": res["status"],
         "success": bool(success),
         "simulator_met": bool(sim_met),
@@ -166,6 +197,10 @@ def _design_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any,
         "controls": top["controls"],
         "cost": res["cost"],
     }
+    if refine is not None:
+        out["refinement"] = res["refinement"]
+        out["loop_simulated"] = top.get("simulated")
+    return out
 
 
 def _summary(cases: list[dict[str, Any]], method: str) -> dict[str, Any]:
@@ -173,15 +208,19 @@ def _summary(cases: list[dict[str, Any]], method: str) -> dict[str, Any]:
     reach = [c["runs"][method] for c in cases if c["reachable"]]
     unreach = [c["runs"][method] for c in cases if not c["reachable"]]
     costs = [c["runs"][method]["cost"] for c in cases]
+    runs = [c["runs"][method]["cost"].get("simulator_runs", 0) for c in cases]
     return {
         "reachable_success": sum(r["success"] for r in reach),
+        "loop_verified": sum(r["status"] == "verified" for r in reach),
         "reachable": len(reach),
         "unreachable_detected": sum(r["success"] for r in unreach),
         "unreachable": len(unreach),
         "false_unreachable": sum(r["status"] == "unreachable" for r in reach),
         "design_cpu_s_mean": round(float(np.mean([c["cpu_s"] for c in costs])), 2),
         "design_cpu_s_max": round(float(np.max([c["cpu_s"] for c in costs])), 2),
+        "design_wall_s_mean": round(float(np.mean([c["wall_s"] for c in costs])), 2),
         "design_wall_s_max": round(float(np.max([c["wall_s"] for c in costs])), 2),
+        "simulator_runs_mean": round(float(np.mean(runs)), 2),
         "rollouts_mean": round(float(np.mean([c["rollouts"] for c in costs])), 1),
     }
 
@@ -199,16 +238,28 @@ def format_bench(rep: dict[str, Any]) -> str:
         f"reported unreachable. Oracle: the target's own recipe, seed {rep['verify_sim_seed']}, meets "
         f"{rep['oracle_met']} of the reachable targets (the simulator's seed noise).",
         "",
-        "| method | reachable met (simulator) | unreachable detected | reachable called unreachable | "
-        "design CPU s (mean / max) | wall s max | rollouts (mean) |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| method | reachable met (simulator) | verified in the loop | unreachable detected | "
+        "reachable called unreachable | design CPU s (mean / max) | wall s (mean / max) | rollouts (mean) | "
+        "simulator runs in the design (mean) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for m, s in rep["summary"].items():
+        loop = f"{s['loop_verified']}/{s['reachable']}" if m.endswith("+refine") else "-"
         lines.append(
-            f"| {m} | {s['reachable_success']}/{s['reachable']} | {s['unreachable_detected']}/"
+            f"| {m} | {s['reachable_success']}/{s['reachable']} | {loop} | {s['unreachable_detected']}/"
             f"{s['unreachable']} | {s['false_unreachable']} | {s['design_cpu_s_mean']:.1f} / "
-            f"{s['design_cpu_s_max']:.1f} | {s['design_wall_s_max']:.1f} | {s['rollouts_mean']:.0f} |"
+            f"{s['design_cpu_s_max']:.1f} | {s['design_wall_s_mean']:.1f} / {s['design_wall_s_max']:.1f} | "
+            f"{s['rollouts_mean']:.0f} | {s['simulator_runs_mean']:.1f} |"
         )
+    if rep.get("refine_config"):
+        lines += [
+            "",
+            "+refine: simulator-corrected design, its in-loop simulator runs with seed "
+            f"{rep['loop_sim_seed']} (independent of the judging seed {rep['verify_sim_seed']}); "
+            "configuration "
+            + ", ".join(f"{k}={v}" for k, v in rep["refine_config"].items())
+            + ". 'verified in the loop': the design's own simulator run met every tolerance.",
+        ]
     lines += [
         "",
         "Per target (predicted / simulated at the top-1 recipe, nm; targets in brackets):",

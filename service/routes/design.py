@@ -8,6 +8,7 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import JSONResponse
 
 from nemsim.analysis.inverse import spec_from_dict
+from nemsim.analysis.inverse_refine import REFINE_WITH_VERIFY, refine_config_from_dict
 from service.deps import SettingsDep, SurrogateDep, busy, reject
 from service.design import design_work
 from service.design_schemas import DesignRequest
@@ -37,11 +38,17 @@ async def post_design(
     The result lists `k` ranked recipes with predicted metrics, conformal intervals, a distance-to-training-
     data flag and the search's cost; `status` is `met` or `unreachable` (then the closest recipe and its
     miss). With `verify`, the simulator runs the top recipes and the result reports achieved against target.
+    With `refine`, the simulator works inside the design loop (simulator-corrected rounds); the status is
+    then `verified`, `unverified` or `unreachable` and the top recipe is the best simulated one.
     """
     try:
         spec = spec_from_dict(body.spec_dict())
     except ValueError as exc:
         reject(("body",), str(exc))
+    refine = None
+    if body.refine or (body.refine is None and body.verify and REFINE_WITH_VERIFY):
+        given = {"verify_top": body.verify_top, "rounds": body.refine_rounds}
+        refine = refine_config_from_dict({k: v for k, v in given.items() if v is not None})
     horizon = surrogate.horizon_steps
     if spec.step is not None and spec.step > horizon:
         reject(("body", "step"), f"step = {spec.step} is beyond the model's horizon of {horizon}")
@@ -54,9 +61,10 @@ async def post_design(
                 spec,
                 seed=body.seed,
                 verify=body.verify,
-                verify_top=body.verify_top,
+                verify_top=body.verify_top or 1,
                 sim_seed=body.sim_seed,
                 sim_max_work=settings.sim_max_work,
+                refine=refine,
             ),
         )
     except ServiceBusy as exc:

@@ -53,3 +53,35 @@ def test_inverse_bad_input_is_one_line_exit_2(tiny_checkpoint, tmp_path, capsys)
     code = main(["inverse", "--checkpoint", str(tmp_path / "missing.pt"), "--spec", str(spec)])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1
+
+
+def test_inverse_refine_reports_simulated_rounds(tiny_checkpoint, tmp_path, capsys):
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(SPEC))
+    args = ["inverse", "--checkpoint", str(tiny_checkpoint), "--spec", str(spec), "--refine", "--rounds", "0",
+            "--verify-top", "1", "--sim-seed", "4", "--json", "-"]
+    assert main(args) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["refinement"]["config"]["rounds"] == 0 and res["refinement"]["config"]["verify_top"] == 1
+    assert res["verification"]["seed"] == 4 and len(res["verification"]["recipes"]) == 1
+    assert res["recipes"][0]["verified_by"] == "simulator"
+    expected = "unverified" if res["refinement"]["surrogate_status"] == "met" else "unreachable"
+    assert res["status"] == ("verified" if res["verification"]["recipes"][0]["met"] else expected)
+    code = main(args[:-2] + ["--rounds", "-1"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "rounds" in err
+
+
+def test_verify_refines_by_default_and_no_refine_only_simulates(tiny_checkpoint, tmp_path, capsys):
+    from nemsim.analysis.inverse_refine import REFINE_WITH_VERIFY
+
+    spec = tmp_path / "spec.json"
+    spec.write_text(json.dumps(SPEC))
+    base = ["inverse", "--checkpoint", str(tiny_checkpoint), "--spec", str(spec), "--verify", "--rounds", "0",
+            "--verify-top", "1", "--json", "-"]
+    assert main(base) == 0
+    assert ("refinement" in json.loads(capsys.readouterr().out)) == REFINE_WITH_VERIFY
+    assert main(base + ["--no-refine"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert "refinement" not in res and len(res["verification"]["recipes"]) == 1
+    assert res["status"] in ("met", "unreachable")

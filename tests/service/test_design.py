@@ -35,6 +35,7 @@ def test_design_job_202_progress_and_result(make_client, monkeypatch):
             "step": 3,
             "k": 2,
             "verify": True,
+            "refine": False,  # the plain verification: simulate the top recipe only
         },
     )
     assert r.status_code == 202, r.text
@@ -55,6 +56,48 @@ def test_design_job_202_progress_and_result(make_client, monkeypatch):
     assert isinstance(ver[0]["met"], bool)
 
 
+def test_refined_design_job_reports_its_rounds(make_client, monkeypatch):
+    """`refine`: the simulator inside the loop (child processes); the top recipe is a simulated one."""
+    import service.routes.design as route
+
+    real = route.spec_from_dict
+    monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": SMALL_SEARCH}))
+    client = make_client()
+    body = {"targets": {"etch_depth": {"value": 20, "tol": 5}}, "step": 2, "k": 2, "refine": True,
+            "verify_top": 1, "refine_rounds": 1}
+    r = client.post("/design", json=body)
+    assert r.status_code == 202, r.text
+    done, seen = _poll(client, r.json()["location"], timeout_s=180.0)
+    assert done["status"] == "done", done
+    assert seen == sorted(seen) and done["progress"] == 1.0
+    res = done["result"]
+    runs = res["verification"]["recipes"]
+    assert 1 <= len(runs) <= 2 and res["cost"]["simulator_runs"] == len(runs)
+    assert [v["round"] for v in runs] == list(range(len(runs)))
+    assert res["status"] in ("verified", "unverified", "unreachable")
+    assert (res["status"] == "verified") == any(v["met"] for v in runs)
+    top = res["recipes"][0]
+    assert top["verified_by"] == "simulator" and set(top["simulated"]) >= {"etch_depth"}
+    assert res["refinement"]["rounds"][0]["simulated"][0]["simulated"]["etch_depth"] == runs[0]["achieved"][
+        "etch_depth"
+    ]
+
+
+def test_refined_design_skips_recipes_beyond_the_work_limit(make_client, monkeypatch):
+    import service.routes.design as route
+
+    real = route.spec_from_dict
+    monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": SMALL_SEARCH}))
+    client = make_client(sim_max_work=1e-6)
+    r = client.post("/design", json={"targets": {"etch_depth": 20}, "step": 2, "k": 2, "refine": True})
+    done, _ = _poll(client, r.json()["location"])
+    res = done["result"]
+    assert done["status"] == "done" and res["verification"]["recipes"] == []
+    assert len(res["verification"]["skipped"]) == 2 and "server limit" in res["verification"]["skipped"][0]
+    assert res["status"] in ("met", "unreachable")  # nothing simulated: the surrogate's word
+    assert all(r["verified_by"] == "surrogate" for r in res["recipes"])
+
+
 def test_bad_design_requests_are_422(make_client):
     client = make_client()
     for body, word in (
@@ -62,6 +105,7 @@ def test_bad_design_requests_are_422(make_client):
         ({"targets": {"depth": 5}}, "targets"),
         ({"targets": {"etch_depth": 5}, "fixed": {"flux_xx": 1.0}}, "unknown control"),
         ({"targets": {"etch_depth": 5}, "step": 500}, "horizon"),
+        ({"targets": {"etch_depth": 5}, "refine_rounds": 9}, "refine_rounds"),
     ):
         r = client.post("/design", json=body)
         assert r.status_code == 422, (body, r.text)

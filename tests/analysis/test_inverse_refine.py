@@ -1,0 +1,238 @@
+"""Simulator-corrected inverse design, tested deterministically: a toy surrogate on `tiny` whose etch depth
+is linear in one control, and fake simulators (the surrogate plus a constant metric offset) injected in
+place of the Monte Carlo simulator; then the in-process path on the tiny checkpoint with the real one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nemsim.analysis.intervals import Support
+from nemsim.analysis.inverse import DesignContext, rollout_to, spec_from_dict
+from nemsim.analysis.inverse_refine import (
+    RefineConfig,
+    SimulationSkipped,
+    refine_config_from_dict,
+    refine_design,
+)
+from nemsim.controls import CONTROL_NAMES, control_index, from_normalized, to_normalized
+from nemsim.geometry.profile import profile_metrics_batch
+
+STEP = 6
+FREE = "flux_cl"
+SEARCH = {"screen": 8, "starts": 2, "iterations": 8, "batch": 8, "method": "adam"}
+EXACT = RefineConfig(rounds=2, budget_s=1e9, radius=2.0, screen=4, starts=2, iterations=8)
+
+
+class _Toy(torch.nn.Module):
+    """Each step raises the Si SDF everywhere by 0.05 * (1.5 + u[flux_cl]): the hole floor sinks at a rate
+    linear in the one free control, so the predicted etch depth at step 6 runs from 4.5 to 22.5 nm."""
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        rate = 0.05 * (1.5 + u[:, control_index(FREE)])  # (B,)
+        d = torch.zeros_like(x)
+        d[:, 1] = rate[:, None, None, None]
+        return (x + d).clamp(-1.0, 1.0)
+
+
+@pytest.fixture(scope="module")
+def toy(tiny_scene):
+    from nemsim.sim import initial_state
+
+    x0 = torch.from_numpy(np.asarray(initial_state(tiny_scene), dtype=np.float32))
+    return DesignContext(
+        model=_Toy(), scene=tiny_scene, x0=x0, calibration=None, support=Support.from_record(None),
+        model_id="toy",
+    )
+
+
+def _predict(ctx, raw: np.ndarray) -> dict[str, float]:
+    u = torch.as_tensor(np.asarray(to_normalized(raw[None])), dtype=torch.float32)
+    with torch.no_grad():
+        x = rollout_to(ctx.model, ctx.x0, u, STEP)
+    return {k: float(v[0]) for k, v in profile_metrics_batch(x.numpy(), ctx.scene).items()}
+
+
+class FakeSimulator:
+    """The surrogate's exact metrics plus a constant offset per metric; records every call."""
+
+    def __init__(self, ctx, offset: dict[str, float], skip: bool = False) -> None:
+        self.ctx, self.offset, self.skip = ctx, offset, skip
+        self.calls: list[np.ndarray] = []
+
+    def __call__(self, raw: np.ndarray, step: int) -> dict[str, float]:
+        assert step == STEP
+        if self.skip:
+            raise SimulationSkipped("beyond the test's work limit")
+        self.calls.append(np.array(raw))
+        m = _predict(self.ctx, raw)
+        return {k: v + self.offset.get(k, 0.0) for k, v in m.items()}
+
+
+def _spec(depth: float, tol: float = 1.0, k: int = 3):
+    centre = np.asarray(from_normalized(np.zeros(14)), dtype=np.float64)
+    fixed = {n: float(v) for n, v in zip(CONTROL_NAMES, centre, strict=True) if n != FREE}
+    return spec_from_dict(
+        {"targets": {"etch_depth": {"value": depth, "tol": tol}}, "step": STEP, "fixed": fixed, "k": k,
+         "search": SEARCH}
+    )
+
+
+def test_one_correction_round_removes_a_constant_offset(toy):
+    sim = FakeSimulator(toy, {"etch_depth": 5.0})
+    res = refine_design(toy, _spec(16.0), sim, refine=EXACT, sim_seed=3)
+    ref = res["refinement"]
+    r0, r1 = ref["rounds"][0], ref["rounds"][1]
+    assert ref["surrogate_status"] == "met" and len(ref["rounds"]) == 2 and ref["stopped"] == "met"
+    # round 0: the surrogate puts its recipes on target, the simulator is 5 nm deeper: both miss
+    assert len(r0["simulated"]) == EXACT.verify_top
+    for s in r0["simulated"]:
+        assert abs(s["predicted"]["etch_depth"] - 16.0) <= 1.0 and not s["met"]
+        assert s["offset"]["etch_depth"] == pytest.approx(5.0, abs=1e-3)
+    # round 1 searches for a surrogate depth of 16 - 5 = 11 nm and its recipe meets the target
+    assert r1["offset"]["etch_depth"] == pytest.approx(5.0, abs=1e-3)
+    assert r1["shifted_targets"]["etch_depth"] == pytest.approx(11.0, abs=1e-3)
+    (s1,) = r1["simulated"]
+    assert abs(s1["predicted"]["etch_depth"] - 11.0) <= 1.0 and s1["met"]
+    assert abs(s1["simulated"]["etch_depth"] - 16.0) <= 1.0
+    assert res["status"] == "verified" and "simulator" in res["message"]
+    top = res["recipes"][0]
+    assert top["verified_by"] == "simulator" and top["round"] == 1 and top["simulator_met"] is True
+    assert top["simulated"]["etch_depth"] == pytest.approx(s1["simulated"]["etch_depth"])
+    assert top["targets"]["etch_depth"]["target"] == 16.0  # judged against the real target, not the shifted
+    assert [r["rank"] for r in res["recipes"]] == [1, 2, 3]
+    assert {r["verified_by"] for r in res["recipes"][1:]} <= {"simulator", "surrogate"}
+    cost = res["cost"]
+    assert cost["simulator_runs"] == len(sim.calls) == EXACT.verify_top + 1
+    assert cost["rollouts"] == cost["forward_rollouts"] + cost["gradient_rollouts"] > 0
+    assert cost["wall_s"] >= cost["search_wall_s"] > 0 and cost["cpu_s"] > 0
+    assert [v["round"] for v in res["verification"]["recipes"]] == [0, 0, 1]
+    assert res["verification"]["seed"] == 3
+
+
+def test_the_trust_region_bounds_each_round(toy):
+    """A radius of 0.3 normalized units moves the depth by at most 0.3 * 9 nm per round: a 5 nm offset
+    takes two rounds, and each round's recipe stays inside the region around its anchor."""
+    sim = FakeSimulator(toy, {"etch_depth": 5.0})
+    cfg = RefineConfig(verify_top=1, rounds=3, budget_s=1e9, radius=0.3, screen=4, starts=2, iterations=8)
+    res = refine_design(toy, _spec(16.0), sim, refine=cfg)
+    rounds = res["refinement"]["rounds"]
+    j = control_index(FREE)
+    u = [float(np.asarray(to_normalized(c[None]))[0, j]) for c in sim.calls]
+    for a, b in zip(u, u[1:], strict=False):
+        assert abs(b - a) <= 0.3 + 1e-6
+    assert not rounds[1]["simulated"][0]["met"]  # one round cannot close 5 nm
+    assert res["status"] == "verified" and len(rounds) == 3 and rounds[2]["simulated"][0]["met"]
+
+
+def test_met_in_round_0_and_budget_stop(toy):
+    sim = FakeSimulator(toy, {})
+    res = refine_design(toy, _spec(16.0), sim, refine=EXACT)
+    assert res["status"] == "verified" and res["refinement"]["stopped"] == "met"
+    assert len(res["refinement"]["rounds"]) == 1 and len(sim.calls) == 1  # the first recipe met: no second
+    sim = FakeSimulator(toy, {"etch_depth": 5.0})
+    res = refine_design(toy, _spec(16.0), sim, refine=RefineConfig(verify_top=1, budget_s=0.0))
+    assert res["refinement"]["stopped"] == "budget" and len(sim.calls) == 1
+    assert res["status"] == "unverified" and "closest simulated" in res["message"]
+    assert res["recipes"][0]["verified_by"] == "simulator" and not res["recipes"][0]["simulator_met"]
+
+
+def test_a_surrogate_unreachable_target_the_simulator_meets_is_verified(toy):
+    """The surrogate cannot etch 30 nm in 6 steps (at most 22.5); the simulator etches 12 nm more, so the
+    corrected search asks for 18 nm and the simulator meets 30 nm: not unreachable."""
+    sim = FakeSimulator(toy, {"etch_depth": 12.0})
+    res = refine_design(toy, _spec(30.0), sim, refine=EXACT)
+    assert res["refinement"]["surrogate_status"] == "unreachable"
+    assert res["status"] == "verified"
+    assert abs(res["recipes"][0]["simulated"]["etch_depth"] - 30.0) <= 1.0
+
+
+def test_an_unreachable_target_stays_unreachable_with_the_closest_simulated_miss(toy):
+    sim = FakeSimulator(toy, {"etch_depth": 2.0})
+    res = refine_design(toy, _spec(200.0), sim, refine=EXACT)
+    assert res["status"] == "unreachable" and "closest simulated" in res["message"]
+    ref = res["refinement"]
+    assert ref["surrogate_status"] == "unreachable" and ref["stopped"] in ("rounds", "converged")
+    assert all(r["search"]["status"] == "unreachable" for r in ref["rounds"])
+    top = res["recipes"][0]
+    assert top["verified_by"] == "simulator" and not top["simulator_met"]
+    best = max(v["achieved"]["etch_depth"] for v in res["verification"]["recipes"])
+    assert top["simulated"]["etch_depth"] == pytest.approx(best)  # the closest miss is the deepest run
+    assert best == pytest.approx(22.5 + 2.0, abs=0.5)
+
+
+def test_declined_simulations_leave_the_surrogate_result(toy):
+    sim = FakeSimulator(toy, {"etch_depth": 5.0}, skip=True)
+    res = refine_design(toy, _spec(16.0), sim, refine=EXACT)
+    assert res["status"] == "met"  # the surrogate's word, since nothing was simulated
+    assert res["refinement"]["stopped"] == "no simulated recipe"
+    assert len(res["verification"]["skipped"]) == EXACT.verify_top and res["verification"]["recipes"] == []
+    assert all(r["verified_by"] == "surrogate" for r in res["recipes"])
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [({"rounds": -1}, "rounds"), ({"radius": 0}, "radius"), ({"colour": 1}, "unknown keys"),
+     ({"verify_top": 1.5}, "integers"), ({"budget_s": "x"}, "number")],
+)
+def test_refine_config_errors_name_the_field(bad, match):
+    with pytest.raises(ValueError, match=match):
+        refine_config_from_dict(bad)
+
+
+def test_refine_config_from_dict_reads_a_subset():
+    cfg = refine_config_from_dict({"rounds": 1, "radius": 0.5})
+    assert cfg.rounds == 1 and cfg.radius == 0.5 and cfg.verify_top == RefineConfig().verify_top
+
+
+def test_run_design_refines_with_the_real_simulator(tiny_checkpoint):
+    """The in-process path: the checkpoint's simulator, one round-0 run and at most one corrected run."""
+    from nemsim.analysis.inverse import format_result, load_design_context, run_design
+
+    ctx = load_design_context(tiny_checkpoint)
+    spec = spec_from_dict(
+        {"targets": {"etch_depth": {"value": 8.0, "tol": 2.0}}, "step": 2, "k": 2,
+         "search": {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}}
+    )
+    cfg = RefineConfig(verify_top=1, rounds=1, budget_s=1e9, screen=2, starts=1, iterations=1)
+    res = run_design(ctx, spec, refine=cfg, sim_seed=5)
+    runs = res["verification"]["recipes"]
+    assert 1 <= len(runs) <= 2 and res["cost"]["simulator_runs"] == len(runs)
+    assert res["status"] in ("verified", "unverified", "unreachable")
+    assert (res["status"] == "verified") == any(v["met"] for v in runs)
+    assert res["recipes"][0]["verified_by"] == "simulator"
+    achieved = runs[0]["achieved"]["etch_depth"]
+    assert np.isfinite(achieved) and achieved >= 0
+    text = format_result(res)
+    assert "simulator-corrected design" in text and "round 0:" in text and "simulator runs" in text
+
+
+class _FakeTruth:
+    """`SimTruth.metrics` over the fake simulator ({name: (STEP + 1,)}, the value at STEP); records seeds."""
+
+    def __init__(self, sim: FakeSimulator) -> None:
+        self.sim, self.seeds = sim, []
+
+    def metrics(self, raw: np.ndarray, seed: int) -> dict[str, np.ndarray]:
+        self.seeds.append(seed)
+        return {k: np.full(STEP + 1, v) for k, v in self.sim(raw, STEP).items()}
+
+
+def test_bench_run_judges_the_refined_design_with_an_independent_seed(toy):
+    from nemsim.analysis.inverse_bench import LOOP_SEED, VERIFY_SEED, _design_run, _summary
+
+    truth = _FakeTruth(FakeSimulator(toy, {"etch_depth": 5.0}))
+    plain = _design_run(toy, _spec(16.0), "adam", True, truth, STEP)
+    assert truth.seeds == [VERIFY_SEED] and not plain["success"] and plain["status"] == "met"
+    truth.seeds.clear()
+    refined = _design_run(toy, _spec(16.0), "adam", True, truth, STEP, EXACT)
+    assert truth.seeds[-1] == VERIFY_SEED and set(truth.seeds[:-1]) == {LOOP_SEED}
+    assert refined["success"] and refined["status"] == "verified"
+    assert refined["cost"]["simulator_runs"] == len(truth.seeds) - 1 == 3
+    assert abs(refined["achieved"]["etch_depth"] - 16.0) <= 1.0
+    cases = [{"reachable": True, "runs": {"adam": plain, "adam+refine": refined}}]
+    s = _summary(cases, "adam")
+    assert s["reachable_success"] == 0 and s["simulator_runs_mean"] == 0
+    s = _summary(cases, "adam+refine")
+    assert s["reachable_success"] == s["loop_verified"] == 1 and s["simulator_runs_mean"] == 3
