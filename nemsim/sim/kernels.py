@@ -51,8 +51,8 @@ Per primary particle ([supp_simulator], "Particle Injection and Transport"):
     ``small`` (median recipe with m = 50, 500 eV, high ion flux), absorbing the near-normal and
     intermediate-angle ions (45-75 deg) removes the mask-facet-reflected ions that drive the sidewall
     bulge: lateral width -10 nm and the unsmoothed bow 4.6 -> 2.1 nm; kept as an option for studies.
-  * optional mechanisms (``SimConfig``, all off by default, no extra random draws when off; measured in
-    benchmarks/small/bowing.md):
+  * optional mechanisms (``SimConfig``, off by default except the specular lobe, ``config`` module
+    docstring; no extra random draws when off; measured in benchmarks/small/bowing.md):
       - diffuse ion reflection (``ion_reflect_diffuse`` = f): a reflecting ion scatters with probability
         f cosine-distributed about the local normal instead of specularly (rough or amorphized
         surfaces);
