@@ -253,7 +253,6 @@ def _add_data(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_data_stats(args: argparse.Namespace) -> int:
-    import json
     import os
 
     from nemsim.data.stats import final_profiles, paired_change, stats, stats_markdown
@@ -261,7 +260,6 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
     for path in (args.file, args.against):
         if path is not None and not os.path.isfile(path):
             raise UserError(f"no such file: {path}")
-    out = _output_path(args.json_out) if args.json_out else None
     try:
         new = final_profiles(args.file)
         report = stats(new)
@@ -269,10 +267,10 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
     except (ValueError, KeyError) as exc:
         raise UserError(str(exc)) from None
     print(stats_markdown(report, change))  # noqa: T201
-    if out is not None:
-        payload = {**report, "sim_config": new.sim_config, "change": change, "against": args.against}
-        Path(out).write_text(json.dumps(payload, indent=2) + "\n")
-        print(f"wrote {out}")  # noqa: T201
+    if args.json_out:
+        _write_json(args.json_out, {**report, "sim_config": new.sim_config, "change": change,
+                                    "against": args.against})
+        print(f"wrote {args.json_out}")  # noqa: T201
     return 0
 
 

@@ -33,17 +33,19 @@ class FinalProfiles:
     sim_config: dict[str, Any]  # the file's generator record (config entry), {} when absent
 
 
-def final_profiles(path: str | Path, chunk: int = 32) -> FinalProfiles:
-    """Profile metrics of the last state of every complete case of ``path`` (``chunk`` cases per read)."""
+def final_profiles(path: str | Path, chunk: int = 64) -> FinalProfiles:
+    """Profile metrics of the last state of every complete case of ``path``, reading the final states of
+    ``chunk`` consecutive rows at a time (a ``paper`` file does not fit in memory)."""
     with open_trajectories(path) as tf:
         rows = np.flatnonzero(tf.complete)
         if len(rows) == 0:
             raise ValueError(f"{path}: no complete case")
         parts: list[dict[str, np.ndarray]] = []
-        for start in range(0, len(rows), chunk):
-            sel = rows[start : start + chunk]
-            finals = np.stack([np.asarray(tf.states[int(r), -1]) for r in sel])  # (n, 2, D, H, W)
-            parts.append(profile_metrics_batch(finals, tf.scene))
+        for start in range(0, tf.n_cases, chunk):
+            keep = tf.complete[start : start + chunk]
+            if keep.any():
+                finals = np.asarray(tf.states[start : start + chunk, -1])[keep]  # (n, 2, D, H, W)
+                parts.append(profile_metrics_batch(finals, tf.scene))
         metrics = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
         config = tf.generator.get("config", {}) if isinstance(tf.generator, dict) else {}
         return FinalProfiles(str(path), tf.case_ids[rows], metrics, tf.scene.voxel_nm, dict(config))
