@@ -1244,7 +1244,7 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler=_cmd_stress)
     p = _bench_subparsers(sub).add_parser(
         "rollout",
-        help="100-step rollout wall time: fp32 vs bf16 vs channels_last, with max |Δ| vs fp32",
+        help="100-step rollout wall time: fp32, bf16, channels_last, depth window, OpenVINO; max |Δ| vs fp32",
         description=(
             "Time the same autoregressive rollouts of a model under each precision/memory-format "
             "variant (one warm-up, then --repeats timed runs, interleaved) and print median and min wall "
@@ -1260,8 +1260,9 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=1, help="trajectories per rollout (default 1)")
     p.add_argument("--repeats", type=int, default=5, help="timed rollouts per variant (default 5)")
     p.add_argument("--variants", default="fp32,fp32-percall,bf16,channels_last",
-                   help="comma-separated subset of fp32, fp32-percall, bf16, channels_last "
-                   "(default: all four)")
+                   help="comma-separated subset of fp32, fp32-percall, bf16, channels_last, fp32-window (the "
+                   "depth-windowed rollout; NEMSim only), openvino-f32, openvino-bf16 (default: the first "
+                   "four)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_rollout)

@@ -12,6 +12,9 @@ Variants:
     reference for what the cache saves;
   * ``bf16``: ``torch.autocast("cpu", torch.bfloat16)`` around the rollout (the rule side stays fp32);
   * ``channels_last``: a copy of the model and the state in ``torch.channels_last_3d`` memory format;
+  * ``fp32-window``: the depth-windowed rollout (``rollout(window=True)``, ``nemsim.model.window``; NEMSim
+    only): each call computes the depth slab that can change; the report adds the fraction of voxels
+    computed;
   * ``openvino-f32`` / ``openvino-bf16``: the step graph under OpenVINO (``nemsim.evaluation.runtime``, one
     inference thread; PyTorch if openvino is missing, see the log).
 """
@@ -32,7 +35,7 @@ from torch import nn
 from nemsim.controls import N_CONTROLS
 from nemsim.evaluation.rollout import rollout
 
-VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last", "openvino-f32", "openvino-bf16")
+VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last", "fp32-window", "openvino-f32", "openvino-bf16")
 
 
 class _PerCall(nn.Module):
@@ -48,22 +51,24 @@ class _PerCall(nn.Module):
         return self.model(x, u)
 
 
-def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[Any, torch.Tensor, Any]:
-    """(model, x0, context manager factory) of one variant."""
+def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[Any, torch.Tensor, Any, bool]:
+    """(model, x0, context manager factory, depth window on) of one variant."""
     if name == "fp32":
-        return model, x0, contextlib.nullcontext
+        return model, x0, contextlib.nullcontext, False
     if name == "fp32-percall":
-        return _PerCall(model), x0, contextlib.nullcontext
+        return _PerCall(model), x0, contextlib.nullcontext, False
     if name == "bf16":
-        return model, x0, lambda: torch.autocast("cpu", dtype=torch.bfloat16)
+        return model, x0, lambda: torch.autocast("cpu", dtype=torch.bfloat16), False
     if name == "channels_last":
         cl = copy.deepcopy(model).to(memory_format=torch.channels_last_3d)  # type: ignore[call-overload]
-        return cl, x0.contiguous(memory_format=torch.channels_last_3d), contextlib.nullcontext
+        return cl, x0.contiguous(memory_format=torch.channels_last_3d), contextlib.nullcontext, False
+    if name == "fp32-window":
+        return model, x0, contextlib.nullcontext, True
     if name in ("openvino-f32", "openvino-bf16"):
         from nemsim.evaluation.runtime import Precision, compile_model
 
         precision: Precision = "bf16" if name.endswith("bf16") else "f32"
-        return compile_model(model, "openvino", precision), x0, contextlib.nullcontext
+        return compile_model(model, "openvino", precision), x0, contextlib.nullcontext, False
     raise ValueError(f"unknown variant {name!r}; expected one of {VARIANTS}")
 
 
@@ -94,15 +99,19 @@ def bench_rollout(
     setups = {name: _variant(model, x, name) for name in variants}
     times: dict[str, list[float]] = {name: [] for name in variants}
     trajs: dict[str, torch.Tensor] = {}
+    window_stats: dict[str, dict[str, Any]] = {}
     with torch.inference_mode():
-        for name, (m, xv, ctx) in setups.items():  # warm-up, and the trajectory for the error figure
+        for name, (m, xv, ctx, win) in setups.items():  # warm-up, and the trajectory for the error figure
             with ctx():
-                trajs[name] = rollout(m, xv, u, steps).float().contiguous()
+                stats: dict[str, Any] = {}
+                trajs[name] = rollout(m, xv, u, steps, window=win, stats=stats).float().contiguous()
+                if win:
+                    window_stats[name] = stats
         for _ in range(repeats):
-            for name, (m, xv, ctx) in setups.items():
+            for name, (m, xv, ctx, win) in setups.items():
                 with ctx():
                     t0 = time.perf_counter()
-                    rollout(m, xv, u, steps)
+                    rollout(m, xv, u, steps, window=win)
                     times[name].append(time.perf_counter() - t0)
     ref = trajs["fp32"]
     return {
@@ -116,6 +125,8 @@ def bench_rollout(
                 "min_s": min(times[name]),
                 "times_s": times[name],
                 "max_abs_diff_vs_fp32": float((trajs[name] - ref).abs().max()),
+                **({"fraction_computed": window_stats[name]["fraction_computed"]} if name in window_stats
+                   else {}),
             }
             for name in variants
         },
@@ -129,7 +140,8 @@ def format_bench(report: dict[str, Any]) -> str:
         f"  {'variant':14s} {'median s':>9s} {'min s':>8s} {'max|Δ| vs fp32':>15s}",
     ]
     for name, v in report["variants"].items():
+        frac = f"  ({v['fraction_computed']:.2f} of the voxels computed)" if "fraction_computed" in v else ""
         lines.append(
-            f"  {name:14s} {v['median_s']:9.3f} {v['min_s']:8.3f} {v['max_abs_diff_vs_fp32']:15.2e}"
+            f"  {name:14s} {v['median_s']:9.3f} {v['min_s']:8.3f} {v['max_abs_diff_vs_fp32']:15.2e}{frac}"
         )
     return "\n".join(lines)

@@ -161,6 +161,21 @@ def test_cli_bench_rollout(tiny_checkpoint, tmp_path, monkeypatch, x0, capsys):
     assert main(["bench", "rollout", "--scene", "tiny", "--variants", "fp64"]) == 2
 
 
+def test_cli_bench_rollout_window(tiny_checkpoint, tmp_path, monkeypatch, x0):
+    """The depth-windowed variant reports its share of voxels computed and stays near the full rollout."""
+    import nemsim.evaluation.stress as stress
+    from nemsim.cli import main
+
+    monkeypatch.setattr(stress, "initial_state", lambda scene: x0)
+    out = tmp_path / "bench.json"
+    rc = main(["bench", "rollout", "--checkpoint", str(tiny_checkpoint), "--steps", "3", "--repeats", "1",
+               "--variants", "fp32,fp32-window", "--json", str(out)])
+    assert rc == 0
+    win = json.loads(out.read_text())["variants"]["fp32-window"]
+    assert 0.0 < win["fraction_computed"] <= 1.0
+    assert win["max_abs_diff_vs_fp32"] < 0.25  # the stated tolerance is per-step RMS; a bound on max
+
+
 def test_service_stability_guard():
     from service.surrogate import stability_warnings
 
