@@ -44,8 +44,9 @@ TABLE_END = "<!-- results-table:end -->"
 
 
 def _run_info(run_dir: Path) -> tuple[str, dict[str, Any]]:
-    """(model name, training summary): the name from the run's best.pt (the directory name without one), the
-    summary from summary.json (written at the run's end), else best.pt's, else {}."""
+    """(model name, training summary): the name from the run's best.pt (the directory name without one; a
+    multi-step model's name gets " (k=N)"), the summary from summary.json (written at the run's end), else
+    best.pt's, else {}."""
     name, summary = run_dir.name, {}
     ckpt = run_dir / "best.pt"
     if ckpt.is_file():
@@ -53,6 +54,9 @@ def _run_info(run_dir: Path) -> tuple[str, dict[str, Any]]:
 
         c = read_checkpoint(ckpt)
         name, summary = str(c.get("model_name") or run_dir.name), dict(c.get("summary") or {})
+        k = (c.get("model_config") or {}).get("steps_per_call", 1)
+        if k and k > 1:  # a multi-step model is its own row (the steps_per_call comparison)
+            name = f"{name} (k={k})"
     end = run_dir / "summary.json"
     if end.is_file():
         summary = json.loads(end.read_text())

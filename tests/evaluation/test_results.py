@@ -106,3 +106,21 @@ def test_collect_without_curves_writes_no_figure(tmp_path, capsys):
     assert not (tmp_path / "budget_curve.png").exists()
     assert "no budget_curve.png" in capsys.readouterr().out.replace(str(tmp_path) + "/", "")
 
+
+
+def test_collect_names_multistep_models_apart(tmp_path):
+    """Runs of one model differing in steps_per_call are separate rows ("nemsim (k=5)"), not refused."""
+    import torch
+
+    runs = []
+    for k in (1, 5):
+        summary = _summary(100, 60.0, 59.0, 0.01)
+        d = _run_dir(tmp_path, f"k{k}", "control-id", 0.02 + 0.01 * k, BUDGET, summary)
+        torch.save({"format_version": 1, "model_name": "nemsim", "model_config": {"steps_per_call": k}},
+                   f"{d}/best.pt")
+        runs.append(d)
+    out = tmp_path / "results.json"
+    assert main(["bench", "collect", "--runs", *runs, "--out", str(out)]) == 0
+    table = json.loads(out.read_text())["settings"]["control-id, 45 min"]
+    assert set(table) == {"nemsim", "nemsim (k=5)"}
+    assert table["nemsim (k=5)"]["avg_rmse"] == 0.07
