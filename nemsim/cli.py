@@ -1022,8 +1022,9 @@ def _bench_subparsers(sub: argparse._SubParsersAction) -> argparse._SubParsersAc
             help="benchmarks",
             description=(
                 "Benchmarks of the simulator (sim, noise), the surrogate (rollout, speed-error), the HTTP "
-                "service (service) and the results table (collect). Each prints its figures; most also "
-                "write them as JSON with --json. Example: nemsim bench sim --scenes small"
+                "service (service), the model comparison (compare) and the results table (collect). Each "
+                "prints its figures; most also write them as JSON with --json. "
+                "Example: nemsim bench sim --scenes small"
             ),
         )
         group = bench.add_subparsers(dest="bench", metavar="BENCH")
@@ -1709,6 +1710,71 @@ def _add_speed_error(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--readme", default=None, metavar="FILE.md",
                    help="Markdown file for the table (default: README.md next to --out)")
     p.set_defaults(handler=_cmd_bench_collect)
+    _add_bench_compare(bench_sub)
+
+
+def _add_bench_compare(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser(
+        "compare",
+        help="run (or show the state of) the committed plan of the equal-wall-clock model comparison",
+        description=(
+            "Read a comparison plan (every run: model, size, learning rate, setting, minutes; probes that "
+            "choose each baseline's size and learning rate by validation score) and run what is left as "
+            "`nemsim train ... --resume` subprocesses: partial runs first, then pending ones in plan order, "
+            "at most --jobs at a time, one thread each, pinned to one of --cores with taskset; output in "
+            "RUN/console.log. Ctrl-C or SIGTERM stops the runs, which keep their last.pt: the same command "
+            "resumes them. Every finished run's summary, metrics and config are copied into the plan's "
+            "record (committed, so a session on a fresh machine skips what is done). Refuses when the data "
+            "file or splits are missing, naming the commands that make them. Example: nemsim bench compare "
+            "--plan benchmarks/small/compare-45min.plan.yaml --jobs 2; then nemsim bench collect --runs "
+            "benchmarks/small/compare-45min/full/*/* --out benchmarks/small/results.json"
+        ),
+    )
+    p.add_argument("--plan", required=True, metavar="FILE.yaml", help="the comparison plan")
+    p.add_argument("--runs-dir", default="runs/compare-45min", metavar="DIR",
+                   help="run directories: DIR/probes/NAME, DIR/full/SETTING/MODEL "
+                   "(default runs/compare-45min)")
+    p.add_argument("--status", action="store_true",
+                   help="print every run's state (done, partial, pending, blocked), minutes spent and best "
+                   "validation Avg RMSE, then exit")  # fmt: skip
+    p.add_argument("--jobs", type=int, default=1, help="runs at once, one core each (default 1)")
+    p.add_argument("--cores", default="0,1", metavar="I,J",
+                   help="cores the runs are pinned to with taskset, least used first (default 0,1)")
+    p.add_argument("--only", default=None, metavar="NAME,...", help="run only these plan entries")
+    p.add_argument("--hours", type=float, default=None,
+                   help="start only runs that finish (budget left + a margin for the test) within this many "
+                   "hours: nothing is left half-done when the session's machine goes away")  # fmt: skip
+    p.add_argument("--dry-run", action="store_true", help="print the commands that would run, start nothing")
+    p.set_defaults(handler=_cmd_bench_compare)
+
+
+def _cmd_bench_compare(args: argparse.Namespace) -> int:
+    from nemsim.comparison.plan import format_status, plan_status, read_plan
+    from nemsim.comparison.runner import RunnerConfig, run_plan
+
+    plan = read_plan(args.plan)
+    try:
+        cores = tuple(int(c) for c in args.cores.split(",") if c.strip())
+    except ValueError:
+        raise UserError(f"--cores {args.cores!r}: expected core numbers, e.g. 0,1") from None
+    only = tuple(n.strip() for n in (args.only or "").split(",") if n.strip())
+    if args.status:
+        statuses = plan_status(plan, args.runs_dir)
+        for name in only:
+            plan.entry(name)
+        print(format_status([s for s in statuses if not only or s.entry.name in only]))  # noqa: T201
+        return 0
+    cfg = RunnerConfig(runs_dir=Path(args.runs_dir), jobs=args.jobs, cores=cores, only=only, hours=args.hours,
+                       dry_run=args.dry_run)  # fmt: skip
+    failed = run_plan(plan, cfg, echo=lambda line: print(line, flush=True))  # noqa: T201
+    if failed:
+        print(f"{failed} run(s) failed: see their console.log; the same command retries them",  # noqa: T201
+              file=sys.stderr)
+        return EXIT_BUG
+    if not args.dry_run:
+        print(f"record: {plan.record} (commit it); results: nemsim bench collect --runs "  # noqa: T201
+              f"{plan.record}/full/*/* --out {plan.record.parent}/results.json")
+    return 0
 
 
 def _load_setting_manifest(data: str, setting: str, splits: str | None) -> dict:

@@ -1,0 +1,149 @@
+"""`nemsim bench compare` end to end on tiny data: real `nemsim train` subprocesses with a budget of about a
+second, the record of finished runs, a rerun that starts nothing, the missing-data refusal, SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import pytest
+import yaml
+
+from nemsim.cli import main
+from nemsim.comparison.plan import PlanError, plan_status, read_plan
+from nemsim.comparison.runner import RunnerConfig, run_plan
+
+TWO_RUNS = (
+    "  - {name: probe-fno-small, probe: true, model: fno, size: small, lr: 2.0e-3, minutes: 0.02}\n"
+    "  - {name: control-id-nemsim, model: nemsim, minutes: 0.02}\n"
+)
+
+
+def _compare(plan, runs, *extra):
+    return main(["bench", "compare", "--plan", str(plan), "--runs-dir", str(runs), "--cores", "0", *extra])
+
+
+@pytest.mark.slow
+def test_a_two_run_plan_completes_and_a_rerun_does_nothing(write_plan, tmp_path, capsys):
+    plan, runs = write_plan(TWO_RUNS), tmp_path / "runs"
+    assert _compare(plan, runs, "--jobs", "2") == 0
+    out = capsys.readouterr().out
+    assert out.count("] start ") == 2 and out.count(": done, ") == 2, out
+    probe, full = runs / "probes" / "probe-fno-small", runs / "full" / "control-id" / "nemsim"
+    for d in (probe, full):
+        assert (d / "last.pt").is_file() and (d / "train.log").is_file() and (d / "console.log").is_file()
+        assert "--resume: no" in (d / "train.log").read_text()  # started fresh, through --resume
+    assert not (probe / "test_metrics.json").exists() and (full / "test_metrics.json").is_file()
+    cfg = yaml.safe_load((probe / "config.yaml").read_text())
+    assert cfg["lr"] == 2.0e-3 and cfg["max_train_minutes"] == 0.02 and cfg["model"] == {"width": 4}
+    assert cfg["batch_size"] == 2  # the recipe's
+    record = tmp_path / "record"
+    assert (record / "probes" / "probe-fno-small" / "summary.json").is_file()
+    assert {p.name for p in (record / "full" / "control-id" / "nemsim").iterdir()} == {
+        "config.yaml", "metrics.csv", "summary.json", "test_metrics.json"}  # fmt: skip
+    statuses = plan_status(read_plan(plan), runs)
+    assert [(s.state, s.recorded) for s in statuses] == [("done", True)] * 2
+    # the record alone (no best.pt) makes the results table, the model named by its directory
+    res = tmp_path / "results" / "results.json"
+    kept = record / "full" / "control-id" / "nemsim"
+    assert main(["bench", "collect", "--runs", str(kept), "--out", str(res)]) == 0
+    assert list(json.loads(res.read_text())["settings"]["control-id, 0.02 min"]) == ["nemsim"]
+    assert all(s.spent_min is not None and s.spent_min >= 0.02 for s in statuses)
+
+    mtime = (full / "last.pt").stat().st_mtime_ns
+    assert _compare(plan, runs, "--jobs", "2") == 0
+    out = capsys.readouterr().out
+    assert "start" not in out and "2 runs: 2 done" in out
+    assert (full / "last.pt").stat().st_mtime_ns == mtime
+    # a fresh machine: the runs dir is gone, the record says both are done
+    assert _compare(plan, tmp_path / "fresh", "--status") == 0
+    assert "2 runs: 2 done" in capsys.readouterr().out
+
+
+def test_missing_data_is_refused_naming_the_commands(write_plan, tmp_path, capsys):
+    missing = tmp_path / "no" / "small.h5"
+    plan = write_plan(TWO_RUNS, data=missing)
+    assert _compare(plan, tmp_path / "runs") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert err == (f"nemsim bench compare: {missing} does not exist: make it with `nemsim generate --scene "
+                   f"tiny --out {missing}` then `nemsim splits --data {missing}`")  # fmt: skip
+    assert not (tmp_path / "runs").exists()
+    assert _compare(plan, tmp_path / "runs", "--dry-run") == 0  # shows what would run, writes nothing
+    assert "would run probe-fno-small" in capsys.readouterr().out and not (tmp_path / "runs").exists()
+
+
+def test_a_started_run_keeps_its_configuration(write_plan, tmp_path):
+    runs = tmp_path / "runs"
+    plan = read_plan(write_plan(TWO_RUNS))
+    d = runs / "probes" / "probe-fno-small"
+    d.mkdir(parents=True)
+    (d / "config.yaml").write_text("lr: 0.5\n")
+    (d / "last.pt").write_bytes(b"")
+    lines: list[str] = []
+    failed = run_plan(plan, RunnerConfig(runs_dir=runs, cores=(0,), only=("probe-fno-small",)), lines.append)
+    assert failed == 1 and "the run started with other" in "\n".join(lines)
+    with pytest.raises(PlanError, match="no run named 'nope'"):
+        run_plan(plan, RunnerConfig(runs_dir=runs, only=("nope",)), lines.append)
+
+
+def _processes_mentioning(text: str) -> list[int]:
+    """Pids of live processes whose command line contains ``text``."""
+    pids = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            cmdline = open(f"/proc/{pid}/cmdline", "rb").read().decode(errors="replace")
+        except OSError:
+            continue
+        if text in cmdline:
+            pids.append(int(pid))
+    return pids
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc to find the children")
+def test_sigterm_stops_the_runs_and_a_rerun_resumes_them(write_plan, tmp_path):
+    """SIGTERM to the runner stops its child (state partial: its last.pt is kept) and ends in
+    KeyboardInterrupt (the CLI's exit 130); the rerun resumes the same budget from last.pt and finishes."""
+    plan = read_plan(write_plan("  - {name: control-id-nemsim, model: nemsim, minutes: 0.05}\n"))
+    runs = tmp_path / "runs"
+    out = runs / "full" / "control-id" / "nemsim"
+
+    def terminate_once_checkpointed() -> None:
+        end = time.monotonic() + 60
+        while not (out / "last.pt").is_file() and time.monotonic() < end:
+            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=terminate_once_checkpointed, daemon=True).start()
+    lines: list[str] = []
+    cfg = RunnerConfig(runs_dir=runs, cores=(0,), poll_s=0.05)
+    with pytest.raises(KeyboardInterrupt):
+        run_plan(plan, cfg, lines.append)
+    assert any("stopped control-id-nemsim" in ln for ln in lines)
+    assert _processes_mentioning(str(out)) == []
+    (status,) = plan_status(plan, runs)
+    assert status.state == "partial" and 0 < (status.spent_min or 0) < 0.05
+
+    assert run_plan(plan, cfg, lines.append) == 0
+    (status,) = plan_status(plan, runs)
+    assert status.state == "done" and status.recorded and status.spent_min >= 0.05
+    assert "resumed from" in (out / "train.log").read_text()
+
+
+def test_one_runner_at_a_time_per_runs_dir(write_plan, tmp_path):
+    import fcntl
+
+    from nemsim.comparison.runner import LOCK
+
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    plan = read_plan(write_plan(TWO_RUNS))
+    with (runs / LOCK).open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(PlanError, match="another `nemsim bench compare` is running in"):
+            run_plan(plan, RunnerConfig(runs_dir=runs, cores=(0,)), print)
+    assert not (runs / "probes").exists()
