@@ -18,6 +18,11 @@ rule kinetics are not bf16-friendly) and feeds the graph. Which cache entries ar
 evaluating ``precompute`` at two random control vectors: entries that differ are inputs, the others (rule
 buffers, weight products) are folded into the graph as constants. Models without ``precompute``
 (baselines) are exported as ``forward(x, u)`` with ``u`` the input.
+For NEMSim (``predict_packed``) the graph ends at the decoder's packed residuals (B, 16k, D/2, H/2, W/2) and
+the k states are formed outside it by ``nemsim.model.unpack.write_states`` (voxel shuffle, flux gate, + x_t,
+clamp in one pass, straight into the caller's buffer): on large grids writing the k full-size states, not the
+convolutions, was most of a call's time inside the graph (``unpack_states = False`` exports the states, as
+before; benchmarks/paper/README.md has the measurement).
 Shapes are static: one OpenVINO model is converted, reshaped to the call's input shapes (the trace alone
 leaves them dynamic, and the plugin then redoes shape arithmetic and memory planning on every call) and
 compiled per (state shape incl. batch, input shapes) on first use and kept, so a scene at batch 1 and 16
@@ -226,22 +231,37 @@ class TorchPredictor(_Predictor):
         with self._ctx():
             return model_predict(self.model, x, cache).float()
 
+    @torch.no_grad()
+    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
+        """fp32: the model's own ``predict_into`` where it has one (NEMSim writes the states in one fused
+        pass, ``nemsim.model.unpack``); otherwise the copy of ``predict``."""
+        into = getattr(self.model, "predict_into", None)
+        if self.precision != "f32" or into is None:
+            return super().predict_into(x, cache, out)
+        _check_out(out, x, self.k)
+        return into(x, cache, out)
+
 
 class _StepGraph(nn.Module):
     """predict(x, cache) with the cache's variable leaves as inputs and its constant leaves as buffers."""
 
-    def __init__(self, model: nn.Module, spec: Any, leaves: list[Any], variable: list[int]) -> None:
+    def __init__(self, model: nn.Module, spec: Any, leaves: list[Any], variable: list[int],
+                 packed: bool = False) -> None:
         super().__init__()
         self.model = model
         self.spec = spec
         self.variable = variable
         self.leaves = list(leaves)  # constants in place; the variable slots are replaced per call
+        self.packed = packed  # output the decoder's packed residuals instead of the k states
 
     def forward(self, x: torch.Tensor, *inputs: torch.Tensor) -> torch.Tensor:
         leaves = list(self.leaves)
         for i, t in zip(self.variable, inputs, strict=True):
             leaves[i] = t
-        return model_predict(self.model, x, pytree.tree_unflatten(leaves, self.spec))  # (B, k, 2, D, H, W)
+        cache = pytree.tree_unflatten(leaves, self.spec)
+        if self.packed:
+            return self.model.predict_packed(x, cache)  # type: ignore[operator]  # (B, 16k, D'/2, H'/2, W'/2)
+        return model_predict(self.model, x, cache)  # (B, k, 2, D, H, W)
 
 
 @dataclass
@@ -261,6 +281,9 @@ class OpenVINOPredictor(_Predictor):
     # > 1 with its subgraph "snippets" on; disabling them fixed it (speed: module docstring).
     extra_properties: dict[str, Any] = {"SNIPPETS_MODE": "DISABLE"}
     fuse_depth_to_space = True  # ``_fuse_depth_to_space`` on the converted graph
+    # a model with ``predict_packed`` (NEMSim) is exported up to the decoder's packed residuals and its k
+    # states are formed by ``nemsim.model.unpack.write_states`` straight into the caller's buffer
+    unpack_states = True
 
     def __init__(self, model: nn.Module, precision: str = "f32", threads: int = 1) -> None:
         import openvino as ov
@@ -276,6 +299,7 @@ class OpenVINOPredictor(_Predictor):
         self._scratches: dict[int, Any] = {}  # id(request) -> its output scratch array (``_scratch``)
         self._fallback: TorchPredictor | None = None
         self._spec, self._variable = self._cache_layout()
+        self._unpack = self.unpack_states and callable(getattr(model, "predict_packed", None))
 
     def _cache_layout(self) -> tuple[Any, list[int]]:
         """(pytree spec of precompute's output, indices of the leaves that depend on u)."""
@@ -306,14 +330,14 @@ class OpenVINOPredictor(_Predictor):
             warnings.simplefilter("ignore")  # the tracer's notes on shape checks are not the user's concern
             leaves, _ = pytree.tree_flatten(cache.torch_cache)
             leaves = [t.detach().clone() if isinstance(t, torch.Tensor) else t for t in leaves]
-            graph = _StepGraph(self.model, self._spec, leaves, self._variable).eval()
+            graph = _StepGraph(self.model, self._spec, leaves, self._variable, self._unpack).eval()
             example = (x.detach().float().clone(), *(torch.from_numpy(a.copy()) for a in cache.inputs))
             with _export_kernels():
                 ov_model = ov.convert_model(graph, example_input=example)  # TorchScript trace
             # the trace leaves every input dimension dynamic: fixing them lets the plugin fold the shape
             # arithmetic and plan memory and kernels once instead of on every call
             ov_model.reshape({i: ov.PartialShape([int(n) for n in t.shape]) for i, t in enumerate(example)})
-            if self.fuse_depth_to_space:
+            if self.fuse_depth_to_space and not self._unpack:
                 _fuse_depth_to_space(ov_model)
         props = {
             "INFERENCE_NUM_THREADS": self.threads,
@@ -373,6 +397,8 @@ class OpenVINOPredictor(_Predictor):
             out.copy_(self._fallback.predict(x, cache.torch_cache)[:, :n])
             return out
         try:
+            if self._unpack:
+                return self._infer_packed(req, x, cache, out)
             ov = self._ov
             # inputs and output are the caller's memory (no copies by the Python bindings): x as it is when
             # contiguous float32 (the rollout's buffer), out when it takes all k states contiguously
@@ -392,6 +418,22 @@ class OpenVINOPredictor(_Predictor):
             return out
         finally:
             self._release(key, req)
+
+    def _infer_packed(self, req: Any, x: torch.Tensor, cache: _OVCache, out: torch.Tensor) -> torch.Tensor:
+        """One call of a packed-residual graph: the states written into out by ``write_states`` (gate, + x,
+        clamp in one pass) from the request's own output buffer, while the request is held."""
+        from nemsim.model.unpack import write_states
+
+        ov = self._ov
+        xin = x.detach().float().contiguous()  # (B, 2, D, H, W), held until the call has returned
+        req.set_input_tensor(0, ov.Tensor(xin.numpy(), shared_memory=True))
+        for i, a in enumerate(cache.inputs, start=1):
+            req.set_input_tensor(i, ov.Tensor(a, shared_memory=True))
+        req.start_async()
+        req.wait()
+        r = torch.from_numpy(req.get_output_tensor(0).data).float()  # (B, 16k, D'/2, H'/2, W'/2)
+        gate = cache.torch_cache.get("gate") if isinstance(cache.torch_cache, dict) else None
+        return write_states(xin, r, gate, bool(getattr(self.config, "clamp_output", True)), out)
 
     def _scratch(self, req: Any, batch: int) -> Any:
         """The request's own output array (B, k, 2, D, H, W) float32 for calls that keep fewer than k states

@@ -99,12 +99,16 @@ class ResidualDecoder(nn.Module):
     def forward(self, z_next: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """Cumulative residuals r (B, k, 2, D, H, W) from z̃ (B, C_z, d, h, w), b (B, 12, D/2, H/2, W/2),
         x (B, 2, D, H, W); r[:, 0] = Δx, the one-step residual."""
-        h = self.mix_latent(self.coarse(z_next))  # (B, 16, d, h, w)
-        h = upsample2(h, tuple(b.shape[2:]))  # type: ignore[arg-type]  # (B, 16, D/2, H/2, W/2)
-        g = F.silu(h + self.mix_skip(b) + self._mix_state(x.to(b.dtype)))  # (B, 16, D/2, H/2, W/2)
-        r1 = self.out(g)  # (B, 16, D/2, H/2, W/2): Δx before the voxel shuffle
+        r = self.packed(z_next, b, x)  # (B, 16k, D/2, H/2, W/2)
+        out = depth_to_space(r)  # (B, 2k, D, H, W), channel = step * 2 + c
+        return out.view(r.shape[0], self.steps, -1, *out.shape[2:])  # (B, k, 2, D, H, W)
+
+    def packed(self, z_next: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``forward`` before the voxel shuffle: (B, 8·2k, D/2, H/2, W/2), channel (2j + c)·8 + 4dz + 2dy + dx
+        holds r_{j+1}[c] at voxel (2z + dz, 2y + dy, 2w + dx) (``nemsim.model.unpack`` reads it so)."""
+        g, r1 = self._trunk(z_next, b, x)
         if self.steps == 1:
-            return depth_to_space(r1)[:, None]  # (B, 1, 2, D, H, W)
+            return r1
         # all k residuals by one 1x1x1 convolution of [g, r_1] (no extra full-size passes): the fused
         # weight's rows for step j are [W_E_j, j I] (for j = 1: [0, I]), its bias [0; b_E]
         w = self.extra.weight.flatten(1)  # (16(k-1), 16)
@@ -112,10 +116,15 @@ class ResidualDecoder(nn.Module):
         bias = torch.cat([torch.zeros_like(self.extra.bias[: r1.shape[1]]), self.extra.bias])  # type: ignore[index, list-item]  # (16k,)
         # channels-first, so the GEMM's output is too and the voxel shuffle below is a single copy
         x_in = torch.cat([g.to(r1.dtype), r1], dim=1).contiguous()  # (B, 32, D/2, H/2, W/2)
-        r = conv3d(x_in, fused.to(r1.dtype)[:, :, None, None, None], bias.to(r1.dtype))  # (B, 16k, ..)
-        B = r.shape[0]
-        out = depth_to_space(r)  # (B, 2k, D, H, W), channel = step * 2 + c
-        return out.view(B, self.steps, -1, *out.shape[2:])  # (B, k, 2, D, H, W)
+        return conv3d(x_in, fused.to(r1.dtype)[:, :, None, None, None], bias.to(r1.dtype))  # (B, 16k, ..)
+
+    def _trunk(self, z_next: torch.Tensor, b: torch.Tensor,
+               x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The 1/2-grid feature g (B, 16, D/2, H/2, W/2) and the packed one-step residual r_1 (B, 16, ..)."""
+        h = self.mix_latent(self.coarse(z_next))  # (B, 16, d, h, w)
+        h = upsample2(h, tuple(b.shape[2:]))  # type: ignore[arg-type]  # (B, 16, D/2, H/2, W/2)
+        g = F.silu(h + self.mix_skip(b) + self._mix_state(x.to(b.dtype)))  # (B, 16, D/2, H/2, W/2)
+        return g, self.out(g)  # r_1: Δx before the voxel shuffle
 
     def _mix_state(self, x: torch.Tensor) -> torch.Tensor:
         """mix_state(space_to_depth(x)) computed as the equivalent 2x2x2 stride-2 convolution of x

@@ -236,12 +236,54 @@ class NEMSim(nn.Module):
         ``cache = precompute(u)``: (B, k, 2, D, H, W), x̂_{t+1..t+k} [, aux]. For k = 1 this is
         ``step(x, cache)[:, None]``. ``window``: the run of a depth-windowed call (``DepthWindow`` calls
         this; x is then the window's slab)."""
+        D, H, W = x.shape[2:]
+        z_next, b, xp, parts = self._latent_update(x, cache, window)
+        # cumulative residuals from x_t, cropped back; k = 1: the paper's Dec(z̃, b, x)
+        residual = self.decoder(z_next, b, xp)[..., :D, :H, :W].to(x.dtype)  # (B, k, 2, D, H, W)
+        if cache.get("gate") is not None:  # flux_gate: zero ion flux, zero update
+            residual = residual * cache["gate"].to(residual.dtype).view(-1, *([1] * (residual.dim() - 1)))
+        x_next = x[:, None] + residual  # eq:supp_mrc_state_update (B, k, 2, D, H, W)
+        if self.config.clamp_output:
+            x_next = x_next.clamp_(-1.0, 1.0)  # in place: x_next is a fresh tensor (one pass fewer)
+        if not return_aux:
+            return x_next
+        lam, eic, alpha, T, amp = parts
+        aux = {
+            "lambda": lam, "alpha": alpha, "T": T, "S": amp["S"], "P": amp["P"], "G": amp["G"],
+            "w": amp["w"], "lambda_p": eic["lam_p"], "lambda_d": eic["lam_d"], "pool": eic["pool"],
+            "delta_l": eic["dl"],
+        }
+        return x_next, aux
+
+    def predict_into(self, x: torch.Tensor, cache: dict[str, Any], out: torch.Tensor) -> torch.Tensor:
+        """``predict(x, cache)[:, :n]`` written into out (B, n, 2, D, H, W), n <= k (``rollout``'s fast path).
+        Outside autograd and autocast, on float32 CPU tensors, the decoder's packed output becomes the
+        states in one fused pass (``nemsim.model.unpack``: the same states, several full-size passes
+        fewer); otherwise it is a copy of ``predict``."""
+        fused = (not torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu")
+                 and x.device.type == "cpu" and x.dtype == out.dtype == torch.float32)
+        if not fused:
+            return out.copy_(self.predict(x, cache)[:, : out.shape[1]])
+        from nemsim.model.unpack import write_states
+
+        return write_states(x, self.predict_packed(x, cache).float(), cache.get("gate"),
+                            self.config.clamp_output, out)
+
+    def predict_packed(self, x: torch.Tensor, cache: dict[str, Any]) -> torch.Tensor:
+        """The decoder's packed residuals of a call (``ResidualDecoder.packed``, padded half grid):
+        (B, 16k, D'/2, H'/2, W'/2), before the states are formed. ``nemsim.model.unpack.write_states`` turns
+        them into the k states (gate, + x, clamp); the OpenVINO runtime exports this method."""
+        z_next, b, xp, _ = self._latent_update(x, cache, None)
+        return self.decoder.packed(z_next, b, xp)
+
+    def _latent_update(self, x: torch.Tensor, cache: dict[str, Any], window: WindowRun | None):
+        """Everything of a call up to the decoder: (z̃, b, the padded input, (λ, EIC outputs, α, T, MRC
+        amplitudes))."""
         u = cache["u"]
         if x.dim() != 5 or x.shape[1] != 2:
             raise ValueError(f"x must be (B, 2, D, H, W), got {tuple(x.shape)}")
         if u.shape[0] != x.shape[0]:
             raise ValueError(f"the cache holds controls for batch {u.shape[0]}, x has batch {x.shape[0]}")
-        B, C, D, H, W = x.shape
         # Stability guard: states are SDF/d_max clipped to [-1, 1], so the clamp is the identity on every
         # valid state; a rollout that drifts outside no longer feeds the excess back through the network
         # (`nemsim stress`: an untrained small model grew 1.8 %/step to |x| ~ 500 in 300 steps without it).
@@ -257,21 +299,7 @@ class NEMSim(nn.Module):
         dz, amp = self.mrc(z_mrc, z_bar, u, T, self.rules, cache["mrc"])  # (B, C_z, d, h, w)
         dz = dz[:, :, dz.shape[2] - z.shape[2]:]  # the window's part (all of it without a window)
         z_next = z + dz.to(z.dtype)  # eq:supp_mrc_latent_update
-        # cumulative residuals from x_t, cropped back; k = 1: the paper's Dec(z̃, b, x)
-        residual = self.decoder(z_next, b, xp)[..., :D, :H, :W].to(x.dtype)  # (B, k, 2, D, H, W)
-        if cache.get("gate") is not None:  # flux_gate: zero ion flux, zero update
-            residual = residual * cache["gate"].to(residual.dtype).view(-1, *([1] * (residual.dim() - 1)))
-        x_next = x[:, None] + residual  # eq:supp_mrc_state_update (B, k, 2, D, H, W)
-        if self.config.clamp_output:
-            x_next = x_next.clamp_(-1.0, 1.0)  # in place: x_next is a fresh tensor (one pass fewer)
-        if not return_aux:
-            return x_next
-        aux = {
-            "lambda": lam, "alpha": alpha, "T": T, "S": amp["S"], "P": amp["P"], "G": amp["G"],
-            "w": amp["w"], "lambda_p": eic["lam_p"], "lambda_d": eic["lam_d"], "pool": eic["pool"],
-            "delta_l": eic["dl"],
-        }
-        return x_next, aux
+        return z_next, b, xp, (lam, eic, alpha, T, amp)
 
     def step(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False):
         """``forward(x, cache["u"])`` with the control-only part taken from ``cache = precompute(u)``: the

@@ -96,21 +96,25 @@ def test_openvino_f32_matches_pytorch(trained):
 
 @pytest.mark.slow
 @needs_openvino
-@pytest.mark.parametrize("precision", ["f32", "bf16"])
-def test_openvino_multistep_matches_pytorch(trained_multistep, precision):
+@pytest.mark.parametrize(("precision", "unpack"), [("f32", True), ("bf16", True), ("f32", False)])
+def test_openvino_multistep_matches_pytorch(trained_multistep, precision, unpack, monkeypatch):
     """The exported multi-step graph (extra-step head, flux gate, GroupNorm on its 4-D view, static
-    shapes) against PyTorch eager on trained weights."""
+    shapes) against PyTorch eager on trained weights: exported up to the decoder's packed residuals with the
+    states formed by ``write_states`` (the default), or whole with the states as its output."""
     model, x0, u = trained_multistep
     ref = rollout(model, x0, u)
+    monkeypatch.setattr(runtime.OpenVINOPredictor, "unpack_states", unpack)
     pred = compile_model(model, "openvino", precision)
     out = rollout(pred, x0, u)
     assert pred.backend == "openvino" and pred.k == 4 and out.shape == ref.shape
     assert (out[:, 1:] - out[:, :1]).abs().max() > 1e-3
     (compiled,) = pred._compiled.values()
     assert all(i.get_partial_shape().is_static for i in compiled.inputs)  # compiled for the state's shape
-    # the decoder's voxel shuffle runs as the plugin's DepthToSpace (runtime._fuse_depth_to_space)
-    layers = {op.get_rt_info()["layerType"].astype(str) for op in compiled.get_runtime_model().get_ops()}
-    assert "DepthToSpace" in layers
+    if unpack:  # the packed residuals (B, 16k, ..) on the padded half grid
+        assert [tuple(o.get_partial_shape().to_shape())[:2] for o in compiled.outputs] == [(2, 64)]
+    else:  # the decoder's voxel shuffle runs as the plugin's DepthToSpace (runtime._fuse_depth_to_space)
+        layers = {op.get_rt_info()["layerType"].astype(str) for op in compiled.get_runtime_model().get_ops()}
+        assert "DepthToSpace" in layers
     d = out - ref
     if precision == "f32":
         assert d.abs().max() <= 1e-4
