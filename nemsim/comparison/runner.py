@@ -82,6 +82,14 @@ class _Child:
     t0: float
 
 
+def _default_signals() -> None:
+    """In the child before exec: SIGINT and SIGTERM back to their defaults. A signal the runner's process
+    ignores would otherwise stay ignored in the child (exec keeps SIG_IGN), and the SIGINT of ``_stop``
+    would not stop it (seen when a caller in the same process had set SIGINT to SIG_IGN)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def check_data(plan: Plan) -> None:
     """Refuse to run without the plan's data file and splits, naming the commands that make them."""
     for path in (plan.data, plan.splits):
@@ -148,7 +156,8 @@ def _start(plan: Plan, status: RunStatus, cfg: RunnerConfig, running: dict[str, 
     with log.open("ab") as fh:  # the child keeps its own descriptor
         fh.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} nemsim bench compare: {' '.join(cmd)}\n".encode())
         fh.flush()
-        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=_environment())
+        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=_environment(),
+                                preexec_fn=_default_signals)
     c, e = status.choice, status.entry
     lr = "recipe lr" if c.lr is None else f"lr {c.lr:g}"
     spent = f"{status.spent_min:.1f}" if status.spent_min is not None else "0"

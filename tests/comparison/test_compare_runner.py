@@ -120,11 +120,16 @@ def test_sigterm_stops_the_runs_and_a_rerun_resumes_them(write_plan, tmp_path):
             time.sleep(0.05)
         os.kill(os.getpid(), signal.SIGTERM)
 
+    # SIGINT ignored, as another caller in the process may leave it: the children must not inherit that
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=terminate_once_checkpointed, daemon=True).start()
     lines: list[str] = []
     cfg = RunnerConfig(runs_dir=runs, cores=(0,), poll_s=0.05)
-    with pytest.raises(KeyboardInterrupt):
-        run_plan(plan, cfg, lines.append)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_plan(plan, cfg, lines.append)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert any("stopped control-id-nemsim" in ln for ln in lines)
     assert _processes_mentioning(str(out)) == []
     (status,) = plan_status(plan, runs)
