@@ -52,3 +52,22 @@ def tiny_checkpoint(tmp_path_factory, tiny_scene, rules):
         metrics={"avg_rmse": 0.5},
     )
     return path
+
+
+def _synthetic_states(scene, rate: float):
+    """(T, 2, D, H, W) float32 in [-1, 1]: a fixed mask slab and a Si plane that moves down at ``rate``."""
+    import numpy as np
+
+    C, D, H, W = scene.state_shape
+    depth = np.arange(D, dtype=np.float32)[:, None, None]
+    out = np.empty((scene.n_states, C, D, H, W), dtype=np.float32)
+    for t in range(scene.n_states):
+        out[t, 0] = np.clip((np.abs(depth - scene.resist_top + 3) - 3) / scene.d_max_vox, -1, 1)
+        out[t, 1] = np.clip((depth - scene.si_top + rate * t) / scene.d_max_vox, -1, 1)
+    return out
+
+
+@pytest.fixture(scope="session")
+def synthetic_states():
+    """states(scene, rate) -> the synthetic trajectory states the tests write into data files."""
+    return _synthetic_states

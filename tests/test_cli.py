@@ -14,7 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from nemsim import cli
@@ -23,19 +22,8 @@ from nemsim.cli import main
 N_CASES = 4
 
 
-def _states(scene, rate: float) -> np.ndarray:
-    """(T, 2, D, H, W) float32 in [-1, 1]: a fixed mask slab and a Si plane that moves down at ``rate``."""
-    C, D, H, W = scene.state_shape
-    depth = np.arange(D, dtype=np.float32)[:, None, None]
-    out = np.empty((scene.n_states, C, D, H, W), dtype=np.float32)
-    for t in range(scene.n_states):
-        out[t, 0] = np.clip((np.abs(depth - scene.resist_top + 3) - 3) / scene.d_max_vox, -1, 1)
-        out[t, 1] = np.clip((depth - scene.si_top + rate * t) / scene.d_max_vox, -1, 1)
-    return out
-
-
 @pytest.fixture(scope="session")
-def data_file(tmp_path_factory, tiny_scene) -> Path:
+def data_file(tmp_path_factory, tiny_scene, synthetic_states) -> Path:
     """A tiny-scene trajectory file of N_CASES synthetic cases (ids 0..3), no splits next to it."""
     from nemsim.controls import lhs_design
     from nemsim.data.hdf5 import TrajectoryWriter
@@ -47,7 +35,7 @@ def data_file(tmp_path_factory, tiny_scene) -> Path:
                           generator={"kind": "synthetic-test"},
                           rules_sha256=compile_rules(load_rules()).sha256) as w:  # fmt: skip
         for row in range(N_CASES):
-            w.write(row, _states(tiny_scene, 0.02 * (row + 1)), seed=row)
+            w.write(row, synthetic_states(tiny_scene, 0.02 * (row + 1)), seed=row)
     return path
 
 

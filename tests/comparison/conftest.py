@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 N_CASES = 5
@@ -25,19 +24,8 @@ rollout_steps: 3
 """
 
 
-def _states(scene, rate: float) -> np.ndarray:
-    """(T, 2, D, H, W) float32 in [-1, 1]: a fixed mask slab and a Si plane that moves down at ``rate``."""
-    C, D, H, W = scene.state_shape
-    depth = np.arange(D, dtype=np.float32)[:, None, None]
-    out = np.empty((scene.n_states, C, D, H, W), dtype=np.float32)
-    for t in range(scene.n_states):
-        out[t, 0] = np.clip((np.abs(depth - scene.resist_top + 3) - 3) / scene.d_max_vox, -1, 1)
-        out[t, 1] = np.clip((depth - scene.si_top + rate * t) / scene.d_max_vox, -1, 1)
-    return out
-
-
 @pytest.fixture(scope="session")
-def tiny_data(tmp_path_factory, tiny_scene, rules) -> Path:
+def tiny_data(tmp_path_factory, tiny_scene, rules, synthetic_states) -> Path:
     """tiny.h5 of N_CASES synthetic cases and splits/<setting>.json next to it (3 train, 1 val, 1 test)."""
     from nemsim.controls import lhs_design
     from nemsim.data.hdf5 import TrajectoryWriter
@@ -48,7 +36,7 @@ def tiny_data(tmp_path_factory, tiny_scene, rules) -> Path:
     with TrajectoryWriter(path, scene=tiny_scene, case_ids=range(N_CASES), controls_raw=raw,
                           generator={"kind": "synthetic-test"}, rules_sha256=rules.sha256) as w:  # fmt: skip
         for row in range(N_CASES):
-            w.write(row, _states(tiny_scene, 0.02 * (row + 1)), seed=row)
+            w.write(row, synthetic_states(tiny_scene, 0.02 * (row + 1)), seed=row)
     (root / "splits").mkdir()
     for setting in ("control-id", "ood-joint", "vis-50"):
         manifest = {"setting": setting, "train": [0, 1, 2], "val": [3], "test": [4], "unused": [],
