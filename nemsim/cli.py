@@ -177,12 +177,17 @@ def _add_data(sub: argparse._SubParsersAction) -> None:
             "Draw the Latin-hypercube design of the 14 process controls and write it as CSV: header = "
             "the 14 control names, one row per case (case id = row index), in physical units (fluxes "
             "in mol m^-2 s^-1, cosine-power exponents as integers, ion-energy means and spreads in eV). "
-            "The defaults reproduce the paper's 500-case design. "
-            "Example: nemsim design --out data/design.csv"
+            "The defaults reproduce the paper's 500-case design. --kind corners draws distinct random "
+            "corners of the box instead (every control at its minimum or maximum), never the physics "
+            "benchmark's held-out corners: extra training cases where the Latin hypercube has none. "
+            "Examples: nemsim design --out data/design.csv; "
+            "nemsim design --kind corners --n 300 --seed 44 --out data/design-corners.csv"
         ),
     )
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
-    p.add_argument("--seed", type=int, default=42, help="LHS seed (default 42, the paper's design)")
+    p.add_argument("--seed", type=int, default=42, help="random seed (default 42, the paper's design)")
+    p.add_argument("--kind", choices=("lhs", "corners"), default="lhs",
+                   help="lhs: Latin hypercube (default, the paper's); corners: random corners of the box")
     p.add_argument("--out", required=True, metavar="FILE.csv",
                    help="output CSV (overwritten; missing folders are created)")
     p.set_defaults(handler=_cmd_design)
@@ -275,12 +280,23 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
 
 
 def _cmd_design(args: argparse.Namespace) -> int:
-    from nemsim.controls import lhs_design, write_controls_csv
+    from nemsim.controls import corner_design, lhs_design, write_controls_csv
 
     if args.n < 1:
         raise UserError(f"--n must be >= 1, got {args.n}")
-    write_controls_csv(_output_path(args.out), lhs_design(args.n, args.seed))
-    print(f"wrote {args.out}: {args.n} cases x 14 controls (LHS seed {args.seed})")  # noqa: T201
+    if args.kind == "corners":
+        from nemsim.evaluation.physics import PhysicsConfig, box_corners
+
+        held_out = box_corners(PhysicsConfig.corners, PhysicsConfig.heldout_seed)
+        try:
+            raw = corner_design(args.n, args.seed, exclude=held_out)
+        except ValueError as e:
+            raise UserError(str(e)) from None
+        what = f"random box corners, seed {args.seed}, none of the physics benchmark's {len(held_out)}"
+    else:
+        raw, what = lhs_design(args.n, args.seed), f"LHS seed {args.seed}"
+    write_controls_csv(_output_path(args.out), raw)
+    print(f"wrote {args.out}: {args.n} cases x 14 controls ({what})")  # noqa: T201
     return 0
 
 

@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from nemsim import cli
@@ -82,6 +83,20 @@ def test_design_creates_missing_parent_dirs(tmp_path):
     assert len(out.read_text().splitlines()) == 6  # header + 5 cases
     npz = tmp_path / "new" / "rules.npz"
     assert main(["rules", "compile", "--out", str(npz)]) == 0 and npz.is_file()
+
+
+def test_design_corners_leave_out_the_physics_benchmarks_held_out_corners(tmp_path, capsys):
+    from nemsim.controls import read_controls_csv
+    from nemsim.evaluation.physics import PhysicsConfig, box_corners
+
+    out = tmp_path / "corners.csv"
+    assert main(["design", "--kind", "corners", "--n", "50", "--seed", "1", "--out", str(out)]) == 0
+    raw = read_controls_csv(out)
+    held_out = box_corners(PhysicsConfig.corners, PhysicsConfig.heldout_seed)
+    assert raw.shape == (50, 14) and not any(np.array_equal(r, h) for r in raw for h in held_out)
+    assert "random box corners" in capsys.readouterr().out
+    assert main(["design", "--kind", "corners", "--n", "99999", "--out", str(out)]) == 2
+    assert "distinct corners" in capsys.readouterr().err
 
 
 # ---- item 2: splits of a data file, and manifests that do not fit ------------------------------------------

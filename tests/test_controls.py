@@ -65,6 +65,21 @@ def test_lhs_design_properties():
     np.testing.assert_array_equal(C.lhs_design(500, 42), d)
 
 
+def test_corner_design_draws_distinct_corners_and_never_an_excluded_one():
+    banned = np.stack([C.LOW, C.HIGH])  # all-min and all-max
+    d = C.corner_design(200, 3, exclude=banned)
+    assert d.shape == (200, 14)
+    assert np.all((d == C.LOW) | (d == C.HIGH))  # every control exactly at a bound
+    assert len(np.unique(d, axis=0)) == 200
+    assert not any(np.array_equal(row, b) for row in d for b in banned)
+    frac_high = np.mean(d == C.HIGH, axis=0)  # (14,) each bound about half the time
+    assert np.all((frac_high > 0.35) & (frac_high < 0.65))
+    assert not C.check_admissible(d)
+    np.testing.assert_array_equal(C.corner_design(200, 3, exclude=banned), d)  # the seed decides
+    with pytest.raises(ValueError, match="distinct corners"):
+        C.corner_design(2**14 - 1, 0, exclude=banned)  # only 2**14 - 2 are left
+
+
 def test_lhs_matches_scipy_sampler():
     from scipy.stats import qmc
 
