@@ -236,9 +236,13 @@ def _startable(statuses: list[RunStatus], cfg: RunnerConfig, skip: set[str]) -> 
     return sorted(ok, key=lambda s: s.state != "partial")
 
 
+def _minutes_left(status: RunStatus) -> float:
+    """Wall minutes a run still needs: its budget left plus the margin for start-up and test."""
+    return max(status.entry.minutes - (status.spent_min or 0.0) + MARGIN_MIN[status.entry.probe], 0.0)
+
+
 def _fits(status: RunStatus, deadline: float | None) -> bool:
-    left = status.entry.minutes - (status.spent_min or 0.0) + MARGIN_MIN[status.entry.probe]
-    return deadline is None or time.monotonic() + 60 * max(left, 0.0) <= deadline
+    return deadline is None or time.monotonic() + 60 * _minutes_left(status) <= deadline
 
 
 def _record_done(plan: Plan, statuses: list[RunStatus], cfg: RunnerConfig, echo: Echo) -> None:
@@ -252,9 +256,18 @@ def _dry_run(plan: Plan, statuses: list[RunStatus], cfg: RunnerConfig, echo: Ech
     for path in (plan.data, plan.splits):
         if not path.exists():
             echo(f"(missing: {path}; a real run refuses until it exists)")
-    for i, s in enumerate(_startable(statuses, cfg, set())):
-        cmd = train_command(plan, s, cfg, cfg.cores[i % len(cfg.cores)])
-        echo(f"would run {s.entry.name}: OMP_NUM_THREADS=1 {' '.join(cmd)}")
+    # the schedule a real run would follow for what can start now: --jobs slots, each run on the slot free
+    # first, nothing started that would not finish within --hours (blocked runs start later, as they unblock)
+    free = [0.0] * cfg.jobs  # minutes from now at which each slot is free
+    limit = None if cfg.hours is None else 60.0 * cfg.hours
+    for s in _startable(statuses, cfg, set()):
+        slot = min(range(cfg.jobs), key=free.__getitem__)
+        if limit is not None and free[slot] + _minutes_left(s) > limit:
+            echo(f"would not start {s.entry.name}: it would not finish within --hours")
+            continue
+        cmd = train_command(plan, s, cfg, cfg.cores[slot % len(cfg.cores)])
+        echo(f"would run {s.entry.name} at +{free[slot]:.0f} min: OMP_NUM_THREADS=1 {' '.join(cmd)}")
+        free[slot] += _minutes_left(s)
     echo(format_status(statuses))
 
 

@@ -73,7 +73,24 @@ def test_missing_data_is_refused_naming_the_commands(write_plan, tmp_path, capsy
                    f"tiny --out {missing}` then `nemsim splits --data {missing}`")  # fmt: skip
     assert not (tmp_path / "runs").exists()
     assert _compare(plan, tmp_path / "runs", "--dry-run") == 0  # shows what would run, writes nothing
-    assert "would run probe-fno-small" in capsys.readouterr().out and not (tmp_path / "runs").exists()
+    assert "would run probe-fno-small at +0 min" in capsys.readouterr().out and not (tmp_path / "runs").exists()
+
+
+def test_dry_run_follows_jobs_and_hours(write_plan, tmp_path, capsys):
+    plan = write_plan(
+        "  - {name: probe-a, probe: true, model: fno, size: small, lr: 2.0e-3, minutes: 15}\n"
+        "  - {name: probe-b, probe: true, model: fno, size: small, lr: 5.0e-4, minutes: 15}\n"
+        "  - {name: control-id-nemsim, model: nemsim, minutes: 45}\n"
+    )
+    # one slot, 40 min: probe-a at +0 (17 min with its margin), probe-b at +17, the 60-min run does not fit
+    assert _compare(plan, tmp_path / "runs", "--dry-run", "--hours", "0.67") == 0
+    out = capsys.readouterr().out
+    assert "would run probe-a at +0 min" in out and "would run probe-b at +17 min" in out
+    assert "would not start control-id-nemsim" in out
+    # two slots, no limit: both probes at once, then the full run on the slot free first
+    assert _compare(plan, tmp_path / "runs", "--dry-run", "--jobs", "2") == 0
+    out = capsys.readouterr().out
+    assert "would run probe-b at +0 min" in out and "would run control-id-nemsim at +17 min" in out
 
 
 def test_a_started_run_keeps_its_configuration(write_plan, tmp_path):
