@@ -73,7 +73,8 @@ def test_missing_data_is_refused_naming_the_commands(write_plan, tmp_path, capsy
                    f"tiny --out {missing}` then `nemsim splits --data {missing}`")  # fmt: skip
     assert not (tmp_path / "runs").exists()
     assert _compare(plan, tmp_path / "runs", "--dry-run") == 0  # shows what would run, writes nothing
-    assert "would run probe-fno-small at +0 min" in capsys.readouterr().out and not (tmp_path / "runs").exists()
+    assert "would run probe-fno-small at +0 min" in capsys.readouterr().out
+    assert not (tmp_path / "runs").exists()
 
 
 def test_dry_run_follows_jobs_and_hours(write_plan, tmp_path, capsys):
