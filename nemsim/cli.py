@@ -1305,8 +1305,9 @@ def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--levels", type=int, default=3, help="sweep levels per control group, >= 3 (default 3)")
     p.add_argument("--heldout", type=int, default=12,
                    help="fresh Latin-hypercube held-out cases (default 12; ignored with --data)")
-    p.add_argument("--corners", type=int, default=4,
-                   help="corners of the control box among the fresh held-out cases (default 4)")
+    p.add_argument("--corners", type=int, default=16,
+                   help="corners of the control box among the fresh held-out cases (default 16; never among "
+                        "the corners `nemsim design --kind corners` draws for training)")
     p.add_argument("--data", default=None, metavar="FILE.h5",
                    help="take the held-out controls from this data file's split instead (re-simulated with "
                    "two seeds)")

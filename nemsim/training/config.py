@@ -26,6 +26,12 @@ Choices where the paper is silent (each a field, so a config file can change it)
     ``step_loss_weights`` if given, normalized to sum 1). ``unroll_steps`` counts network calls: with U > 1 a
     sample is U·k consecutive transitions and call c starts from the detached k-th state of call c-1 (the
     pushforward term over calls of k). A k = 1 model reads both keys as before.
+  * ``profile_loss_weight`` (not in the paper; 0 = the paper's loss) adds lambda times the mean squared error,
+    in voxels^2, of the differentiable profile metrics (``nemsim.geometry.soft_profile``: etch depth, top
+    and bottom width, mask loss) of every predicted state against its target. Why: the field MSE weighs a
+    width error of a voxel at the hole's bottom like noise in a few voxels, and a model trained on it alone
+    missed the neutral-Cl responses of the bottom width even on its training cases (checkpoints/README.md).
+    A one-voxel metric error costs lambda; the field MSE of a trained model is ~2e-5.
   * ``max_train_minutes`` is a budget in wall-clock minutes (the equal-wall-time comparison of models that
     run at different speeds, e.g. NEMSim against its baselines or multi-step models of different k).
     It counts everything the training loop spends: optimizer steps, validation rollouts and checkpoint
@@ -71,6 +77,7 @@ class TrainConfig:
     batch_size: int = 24  # transitions per optimizer step (global, split over DDP ranks)
     unroll_steps: int = 1  # network calls per sample: 1 = the paper's loss; U > 1 adds U-1 pushforward calls
     step_loss_weights: tuple[float, ...] | None = None  # k-step models: weight of each predicted state's MSE
+    profile_loss_weight: float = 0.0  # lambda of the profile-metric term (0 = the paper's loss; docstring)
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
     max_train_minutes: float | None = None  # wall-clock budget (training + validation, summed over resumes);
@@ -119,6 +126,8 @@ class TrainConfig:
         if w is not None and (len(w) == 0 or min(w) < 0 or sum(w) <= 0):
             raise ValueError(f"step_loss_weights must be None or non-negative with a positive sum, one per "
                              f"predicted state; got {w}")
+        if not self.profile_loss_weight >= 0:
+            raise ValueError(f"profile_loss_weight must be >= 0, got {self.profile_loss_weight}")
         if self.select_metric not in ("avg_rmse", "mse"):
             raise ValueError(f"select_metric={self.select_metric!r}; expected one of ['avg_rmse', 'mse']")
 

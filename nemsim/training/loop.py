@@ -144,9 +144,23 @@ def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torc
     return total / k
 
 
+PROFILE_LOSS_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss")
+
+
+def profile_loss(pred: torch.Tensor, target: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """Mean squared error in voxels^2 of the soft profile metrics (``PROFILE_LOSS_METRICS``) of pred (N, 2, D,
+    H, W) against target (N, 2, D, H, W), float32; the training config's ``profile_loss_weight`` term."""
+    from nemsim.geometry.soft_profile import soft_profile_metrics
+
+    mp, mt = soft_profile_metrics(pred, scene), soft_profile_metrics(target, scene)
+    err = torch.stack([(mp[m] - mt[m]) / scene.voxel_nm for m in PROFILE_LOSS_METRICS])  # (4, N)
+    return torch.mean(err**2)
+
+
 def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, k: int, autocast,
                    memory_format=torch.contiguous_format,
-                   weights: torch.Tensor | None = None) -> torch.Tensor:
+                   weights: torch.Tensor | None = None,
+                   profile: tuple[float, Scene] | None = None) -> torch.Tensor:
     """Loss of a model predicting k states per call, over U = u.shape[1] / k calls chained by their detached
     last state (the pushforward term over calls of k; U = 1: plain k-step supervision).
 
@@ -154,6 +168,7 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
     predicted state (None = uniform), normalized to sum 1. Call c predicts x_{t+ck+1..t+ck+k} under the
     controls of its first transition u_{t+ck} (as the rollout does with constant controls). Returns the mean
     over calls of Σ_j w_j MSE_j. With k = 1 this is ``pushforward_loss`` (model called as model(x, u)).
+    ``profile`` = (lambda, scene) adds lambda times ``profile_loss`` over every predicted state of each call.
     """
     n = u.shape[1]
     if n % k:
@@ -169,6 +184,9 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
         pred = pred.float()  # (B, k, 2, D, H, W)
         per_state = torch.mean((pred - y[:, c * k:(c + 1) * k]) ** 2, dim=(0, 2, 3, 4, 5))  # (k,)
         total = total + torch.sum(w * per_state)
+        if profile is not None and profile[0] > 0:
+            target = y[:, c * k:(c + 1) * k]
+            total = total + profile[0] * profile_loss(pred.flatten(0, 1), target.flatten(0, 1), profile[1])
         state = pred[:, -1].detach()
     return total / (n // k)
 
@@ -424,12 +442,18 @@ class _Run:
             u = u.to(dev, non_blocking=True)  # (B, 14)
             with autocast:
                 pred = self.train_model(x, u)
-            return torch.mean((pred.float() - y) ** 2)
+            loss = torch.mean((pred.float() - y) ** 2)
+            if self.cfg.profile_loss_weight > 0:
+                loss = loss + self.cfg.profile_loss_weight * profile_loss(pred.float(), y, self.meta.scene)
+            return loss
         if self.k == 1:  # u (B, U, 14), y (B, U, 2, D, H, W): pushforward over U transitions
+            if self.cfg.profile_loss_weight > 0:
+                raise ValueError("profile_loss_weight is implemented for one-step and k-step losses, not "
+                                 "for the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
             return pushforward_loss(self.train_model, x, u.to(dev), y.to(dev), autocast, mf)
         # u (B, U·k, 14), y (B, U·k, 2, D, H, W): k-step targets over U calls
         return multistep_loss(self.train_model, x, u.to(dev), y.to(dev), self.k, autocast, mf,
-                              self.step_weights)
+                              self.step_weights, (self.cfg.profile_loss_weight, self.meta.scene))
 
     def train_epoch(self, epoch: int) -> dict[str, Any]:
         """One epoch (from the resumed batch on); returns its metrics.csv row without validation."""

@@ -220,3 +220,33 @@ def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, ru
     args[args.index("--out") + 1] = str(tmp_path / "run3")
     assert main(args) == 2
     assert "a 'fno' checkpoint, training 'nemsim'" in capsys.readouterr().err
+
+
+def test_profile_loss_is_the_soft_metric_error_in_voxels(tiny_scene, make_hole):
+    from nemsim.training.loop import profile_loss
+
+    a = torch.from_numpy(make_hole(tiny_scene, 3.0, 4.0))[None]  # (1, 2, D, H, W)
+    b = torch.from_numpy(make_hole(tiny_scene, 3.0, 6.0))[None]  # 2 voxels deeper, same widths at the top
+    assert profile_loss(a, a, tiny_scene).item() == 0.0
+    # depth differs by 2 voxels -> (2^2 + top 0 + bottom 0 + mask 0) / 4 = 1 (flat bottom: same width there)
+    assert profile_loss(a, b, tiny_scene).item() == pytest.approx(1.0, abs=0.05)
+    p = a.clone().requires_grad_(True)
+    profile_loss(p, b, tiny_scene).backward()
+    assert p.grad is not None and p.grad.abs().sum() > 0  # gradients reach the voxels next to the surface
+
+
+def test_profile_loss_weight_adds_lambda_times_the_profile_term(tiny_scene, make_hole):
+    from nemsim.training.loop import profile_loss
+
+    x = torch.from_numpy(make_hole(tiny_scene, 3.0, 4.0))[None]
+    y = torch.from_numpy(make_hole(tiny_scene, 3.0, 6.0))[None, None]  # (1, 1, 2, D, H, W)
+
+    class Hold(torch.nn.Module):  # predicts x_t for every step
+        def forward(self, x, u, all_steps=False):
+            return x[:, None] if all_steps else x
+
+    base = multistep_loss(Hold(), x, torch.zeros(1, 1, 14), y, 1, nullcontext())
+    both = multistep_loss(Hold(), x, torch.zeros(1, 1, 14), y, 1, nullcontext(), profile=(0.5, tiny_scene))
+    assert both.item() == pytest.approx(base.item() + 0.5 * profile_loss(x, y[:, 0], tiny_scene).item())
+    with pytest.raises(ValueError, match="profile_loss_weight"):
+        TrainConfig(profile_loss_weight=-1.0)
