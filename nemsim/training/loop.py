@@ -339,6 +339,9 @@ class _Run:
         self.cfg, self.data, self.out_dir, self.meta, self.clock = cfg, data, out_dir, meta, clock
         self.k = steps_per_call(model)
         self.window = _check_items(cfg, data, self.k)
+        if cfg.profile_loss_weight > 0 and self.k == 1 and self.window > 1:
+            raise ValueError("profile_loss_weight is implemented for the one-step and k-step losses, not for "
+                             "the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
         self.distributed = dist.is_available() and dist.is_initialized()
         rank, world = (dist.get_rank(), dist.get_world_size()) if self.distributed else (0, 1)
         self.is_main = rank == 0
@@ -447,9 +450,6 @@ class _Run:
                 loss = loss + self.cfg.profile_loss_weight * profile_loss(pred.float(), y, self.meta.scene)
             return loss
         if self.k == 1:  # u (B, U, 14), y (B, U, 2, D, H, W): pushforward over U transitions
-            if self.cfg.profile_loss_weight > 0:
-                raise ValueError("profile_loss_weight is implemented for one-step and k-step losses, not "
-                                 "for the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
             return pushforward_loss(self.train_model, x, u.to(dev), y.to(dev), autocast, mf)
         # u (B, U·k, 14), y (B, U·k, 2, D, H, W): k-step targets over U calls
         return multistep_loss(self.train_model, x, u.to(dev), y.to(dev), self.k, autocast, mf,

@@ -250,3 +250,20 @@ def test_profile_loss_weight_adds_lambda_times_the_profile_term(tiny_scene, make
     assert both.item() == pytest.approx(base.item() + 0.5 * profile_loss(x, y[:, 0], tiny_scene).item())
     with pytest.raises(ValueError, match="profile_loss_weight"):
         TrainConfig(profile_loss_weight=-1.0)
+
+
+def test_profile_loss_weight_trains_k_step_and_refuses_the_one_step_pushforward(
+    tmp_path, tiny_data, tiny_manifest, tiny_scene, rules
+):
+    from nemsim.data.dataset import TrajectoryDataset, TransitionDataset
+
+    _, summary = _run(tmp_path / "k2", _cfg(profile_loss_weight=1e-3), tiny_data, tiny_manifest, tiny_scene,
+                      rules, k=2)
+    rows = list(csv.DictReader((tmp_path / "k2" / "metrics.csv").open()))
+    assert summary["epochs"] == 1 and float(rows[0]["train_loss"]) > 0 and rows[0]["val_avg_rmse"]
+    model = build_model("nemsim", tiny_scene, rules, {})
+    meta = ModelMeta("nemsim", {}, tiny_scene, rules)
+    items = TransitionDataset(tiny_data, tiny_manifest, "train", visible_transitions=VISIBLE, unroll=2)
+    two = TrainData(items, TrajectoryDataset(tiny_data, tiny_manifest, "val"))
+    with pytest.raises(ValueError, match="one-step pushforward"):
+        train(_cfg(unroll_steps=2, profile_loss_weight=1e-3), model, two, tmp_path / "pf", meta)
