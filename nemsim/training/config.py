@@ -30,7 +30,8 @@ Choices where the paper is silent (each a field, so a config file can change it)
     in voxels^2, of the differentiable profile metrics (``nemsim.geometry.soft_profile``: etch depth, top
     and bottom width, mask loss) of every predicted state against its target. Why: the field MSE weighs a
     width error of a voxel at the hole's bottom like noise in a few voxels, and a model trained on it alone
-    missed the neutral-Cl responses of the bottom width even on its training cases (checkpoints/README.md).
+    missed the neutral-Cl responses of the bottom width even on its training cases
+    (benchmarks/small/physics/levers.md).
     A one-voxel metric error costs lambda; the field MSE of a trained model is ~2e-5.
   * ``max_train_minutes`` is a budget in wall-clock minutes (the equal-wall-time comparison of models that
     run at different speeds, e.g. NEMSim against its baselines or multi-step models of different k).
