@@ -258,6 +258,11 @@ def lhs_design(n: int = DESIGN_N, seed: int = DESIGN_SEED) -> np.ndarray:
     return from_unit(lhs_unit(n, seed))
 
 
+def box_corner(signs: np.ndarray) -> np.ndarray:
+    """(..., 14) signs (> 0: maximum, else minimum) -> raw controls exactly at the design box's bounds."""
+    return np.where(np.asarray(signs) > 0, HIGH, LOW)
+
+
 def corner_design(n: int, seed: int, exclude: np.ndarray | None = None) -> np.ndarray:
     """(n, 14) raw controls at n distinct random corners of the design box, none of them in ``exclude``.
 
@@ -286,7 +291,7 @@ def corner_design(n: int, seed: int, exclude: np.ndarray | None = None) -> np.nd
             continue
         seen.add(key)
         picked.append(bits)
-    return np.where(np.stack(picked) > 0, HIGH, LOW)  # (n, 14) the bounds exactly
+    return box_corner(np.stack(picked))  # (n, 14)
 
 
 def check_admissible(raw: np.ndarray) -> list[str]:

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from nemsim.controls import HIGH, INT_INDICES, LOW, N_CONTROLS, from_unit, lhs_unit
+from nemsim.controls import INT_INDICES, N_CONTROLS, box_corner, from_unit, lhs_unit
 from nemsim.evaluation.invariants import ION_ENERGIES, centre_raw, set_axis
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
@@ -96,7 +96,7 @@ def box_corners(n: int, seed: int) -> np.ndarray:
     signs = [np.full(N_CONTROLS, -1.0), np.full(N_CONTROLS, 1.0)]
     while len(signs) < n:
         signs.append(rng.choice([-1.0, 1.0], size=N_CONTROLS))
-    return np.where(np.stack(signs[:n]) > 0, HIGH, LOW)  # the bounds exactly
+    return box_corner(np.stack(signs[:n]))
 
 
 def heldout_recipes(cfg: PhysicsConfig) -> tuple[list[str], np.ndarray]:
