@@ -1320,6 +1320,35 @@ def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
                    help="output directory (default runs/bench/physics)")
     p.set_defaults(handler=_cmd_bench_physics)
 
+    p = bench_sub.add_parser(
+        "responses",
+        help="surrogate vs a data file: slopes of each profile metric on the 14 controls, no new simulation",
+        description=(
+            "Roll the surrogate out on the cases of a data file (all of them, or one split with --setting) "
+            "and fit each final profile metric (depth, top and bottom width, mask loss, bowing), the "
+            "simulator's and the surrogate's, by least squares on the 14 normalized controls. Reports every "
+            "slope the simulator's data resolve (beyond 2 standard errors), the ratio surrogate/simulator, "
+            "how many are within +-25 %% and how many have the wrong sign. On a training design it asks "
+            "whether a response was learned, on a test split whether it generalizes. Writes responses.md, "
+            ".json and .png to --out. Example: nemsim bench responses --checkpoint "
+            "checkpoints/nemsim-small.pt --data data/small.h5"
+        ),
+    )
+    p.add_argument("--checkpoint", required=True, help="checkpoint .pt")
+    p.add_argument("--data", required=True, metavar="FILE.h5",
+                   help="trajectory file (from `nemsim generate`)")
+    p.add_argument("--setting", default=None,
+                   help="use one split of this setting (e.g. control-id); default: every complete case")
+    p.add_argument("--splits", default=None, metavar="DIR", help="split manifests directory with --setting")
+    p.add_argument("--split", default="test", help="split with --setting (default test)")
+    p.add_argument("--max-cases", type=int, default=None, help="the first N of those cases")
+    p.add_argument("--batch-size", type=int, default=8, help="rollouts run together (default 8)")
+    _add_monotone_option(p)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--out", default="runs/bench/responses", metavar="DIR",
+                   help="output directory (default runs/bench/responses)")
+    p.set_defaults(handler=_cmd_bench_responses)
+
 
     p = bench_sub.add_parser(
         "extrapolation",
@@ -1529,6 +1558,46 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     if args.json_out:
         _write_json(args.json_out, report)
     return 0 if passed else 1
+
+
+def _cmd_bench_responses(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.evaluation import responses
+
+    if not Path(args.data).is_file():
+        raise UserError(f"{args.data} does not exist")
+    if args.max_cases is not None and args.max_cases < 1:
+        raise UserError(f"--max-cases must be >= 1, got {args.max_cases}")
+    if args.batch_size < 1:
+        raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
+    loaded = _load_truth_checkpoint(args.checkpoint, args)
+    with open_trajectories(args.data) as tf:
+        if tf.scene != loaded.scene:
+            raise UserError(f"{args.data} is on scene {tf.scene.name!r}, the checkpoint on "
+                            f"{loaded.scene.name!r}")
+        if args.setting is None:
+            rows = [r for r in range(tf.n_cases) if tf.complete[r]]
+            cases = "every complete case"
+        else:
+            try:
+                manifest = _load_setting_manifest(args.data, args.setting, args.splits)
+                rows = [tf.row_of(c) for c in manifest[args.split]]
+            except KeyError as exc:
+                raise UserError(f"split {args.split!r} of {args.setting!r}: {exc}") from None
+            cases = f"the {args.split} split of {args.setting}"
+        rows = rows[: args.max_cases]
+        try:
+            rep = responses.run_responses(loaded.model, tf.states, tf.controls_raw, rows, tf.scene,
+                                          batch_size=args.batch_size, progress=not args.no_progress)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+    rep.update(checkpoint=str(args.checkpoint), data=str(args.data), cases=cases)
+    paths = responses.write_outputs(rep, args.out)
+    print(responses.format_markdown(rep))  # noqa: T201
+    print("wrote " + ", ".join(paths.values()))  # noqa: T201
+    return 0
 
 
 def _add_truth_options(p: argparse.ArgumentParser) -> None:

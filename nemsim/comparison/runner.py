@@ -24,6 +24,7 @@ cut off at the end of a session on a machine that does not survive is lost.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -118,6 +119,19 @@ def _environment() -> dict[str, str]:
     return tuned_environ(env) or env
 
 
+def config_changes(stored: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """The keys where a started run's stored configuration and the plan's now differ. A training key the
+    stored file lacks counts as its default (a field added to ``TrainConfig`` after the run started, with a
+    default that keeps the old behaviour, does not change the run)."""
+    from dataclasses import asdict
+
+    from nemsim.training.config import TrainConfig
+
+    defaults = json.loads(json.dumps(asdict(TrainConfig())))
+    stored = {**{k: v for k, v in defaults.items() if k in now}, **stored}
+    return sorted(k for k in {*stored, *now} if stored.get(k) != now.get(k))
+
+
 def _write_config(plan: Plan, status: RunStatus, out: Path) -> None:
     """RUN/config.yaml: written for a fresh run; for a started one it must match what the plan gives now."""
     import yaml
@@ -126,9 +140,8 @@ def _write_config(plan: Plan, status: RunStatus, out: Path) -> None:
     path = out / "config.yaml"
     started = (out / "last.pt").is_file() or (out / "summary.json").is_file()
     if started and path.is_file():
-        stored, now = yaml.safe_load(path.read_text()), run_config(plan, status.entry, status.choice)
-        if stored != now:
-            keys = sorted(k for k in {*stored, *now} if stored.get(k) != now.get(k))
+        keys = config_changes(yaml.safe_load(path.read_text()), run_config(plan, status.entry, status.choice))
+        if keys:
             raise PlanError(f"{path}: the run started with other {keys} than the plan gives now; "
                             f"remove {out} to start it over, or restore the plan")  # fmt: skip
         return

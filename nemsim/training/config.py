@@ -33,6 +33,9 @@ Choices where the paper is silent (each a field, so a config file can change it)
     missed the neutral-Cl responses of the bottom width even on its training cases
     (benchmarks/small/physics/levers.md).
     A one-voxel metric error costs lambda; the field MSE of a trained model is ~2e-5.
+  * ``ema_decay`` (not in the paper; 0 = off) keeps an exponential moving average of the weights, and
+    validation, ``best.pt`` and the final test use the average (``nemsim.training.average``: why, and the
+    warm-up of its decay). 0.999 averages over about the last 1,000 steps.
   * ``max_train_minutes`` is a budget in wall-clock minutes (the equal-wall-time comparison of models that
     run at different speeds, e.g. NEMSim against its baselines or multi-step models of different k).
     It counts everything the training loop spends: optimizer steps, validation rollouts and checkpoint
@@ -79,6 +82,7 @@ class TrainConfig:
     unroll_steps: int = 1  # network calls per sample: 1 = the paper's loss; U > 1 adds U-1 pushforward calls
     step_loss_weights: tuple[float, ...] | None = None  # k-step models: weight of each predicted state's MSE
     profile_loss_weight: float = 0.0  # lambda of the profile-metric term (0 = the paper's loss; docstring)
+    ema_decay: float = 0.0  # validate and keep a moving average of the weights (0 = off; docstring)
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
     max_train_minutes: float | None = None  # wall-clock budget (training + validation, summed over resumes);
@@ -129,6 +133,8 @@ class TrainConfig:
                              f"predicted state; got {w}")
         if not self.profile_loss_weight >= 0:
             raise ValueError(f"profile_loss_weight must be >= 0, got {self.profile_loss_weight}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must be in [0, 1) (0 = off), got {self.ema_decay}")
         if self.select_metric not in ("avg_rmse", "mse"):
             raise ValueError(f"select_metric={self.select_metric!r}; expected one of ['avg_rmse', 'mse']")
 

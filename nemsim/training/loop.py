@@ -61,6 +61,7 @@ from nemsim.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_ch
 from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
 from nemsim.evaluation.rollout import steps_per_call
 from nemsim.scenes import Scene
+from nemsim.training.average import WeightAverage
 from nemsim.training.config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -359,6 +360,8 @@ class _Run:
             self.model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay
         )
         self.step_weights = None if cfg.step_loss_weights is None else torch.tensor(cfg.step_loss_weights)
+        # the weights validation sees (ema_decay > 0): their moving average; None: the trained ones
+        self.average = WeightAverage(self.model, cfg.ema_decay) if cfg.ema_decay > 0 else None
         # ---- data --------------------------------------------------------------------------------------
         self.loader, self.sampler, self.per_rank_batch = _train_loader(data.train, cfg, rank, world,
                                                                        self.device)
@@ -382,6 +385,13 @@ class _Run:
         ts = ckpt["train_state"]
         unwrap(self.model).load_state_dict(ckpt["model_state"])
         self.optimizer.load_state_dict(ts["optimizer"])
+        if self.average is not None:
+            if "ema" in ts:
+                self.average.load_state_dict(ts["ema"])
+            else:
+                log.info("--resume: %s holds no weight average; it starts at the resumed weights",
+                         self.last_path)
+                self.average.reset()
         self.state = RunState.from_train_state(ts, self.steps_per_epoch)
         _set_rng_state(ts["rng"])
         st = self.state
@@ -476,6 +486,8 @@ class _Run:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
             self.optimizer.step()
+            if self.average is not None:
+                self.average.update()
             st.step += 1
             n = torch.tensor(x.shape[0], device=dev, dtype=torch.float64)
             loss_sum += torch.stack([loss.detach().double() * x.shape[0], n])
@@ -513,7 +525,12 @@ class _Run:
         return (epoch + 1) % cfg.val_every == 0 or end
 
     def validate(self, epoch: int, row: dict[str, Any]) -> None:
-        """Validation rollout: fills ``row``, updates best / patience, writes best.pt on improvement."""
+        """Validation rollout: fills ``row``, updates best / patience, writes best.pt on improvement. With
+        ``ema_decay`` the averaged weights are rolled out and written."""
+        with nullcontext() if self.average is None else self.average.applied():
+            self._validate(epoch, row)
+
+    def _validate(self, epoch: int, row: dict[str, Any]) -> None:
         cfg, st, dev = self.cfg, self.state, self.device
         t_val = self.clock.wall()
         self.model.eval()
@@ -565,6 +582,8 @@ class _Run:
         ckpt = self.checkpoint(self.state.history, epoch_done)
         ckpt["train_state"] = self.state.train_state(self.optimizer, epoch_done, partial, batches,
                                                      wall_s=self.wall(), cpu_s=self.cpu())
+        if self.average is not None:
+            ckpt["train_state"]["ema"] = self.average.state_dict()
         write_checkpoint_dict(self.last_path, ckpt)
 
     def checkpoint(self, history: list[dict[str, Any]], epochs: int) -> dict[str, Any]:

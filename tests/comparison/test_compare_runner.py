@@ -172,3 +172,18 @@ def test_one_runner_at_a_time_per_runs_dir(write_plan, tmp_path):
         with pytest.raises(PlanError, match="another `nemsim bench compare` is running in"):
             run_plan(plan, RunnerConfig(runs_dir=runs, cores=(0,)), print)
     assert not (runs / "probes").exists()
+
+
+def test_a_training_key_added_since_a_run_started_keeps_its_default():
+    """A started run's config.yaml written before a TrainConfig field existed (here ``ema_decay``) still
+    matches the plan when the plan gives the field's default, and not when it gives another value."""
+    from dataclasses import asdict
+
+    from nemsim.comparison.runner import config_changes
+    from nemsim.training.config import TrainConfig
+
+    now = {**asdict(TrainConfig(lr=2e-3)), "model": {"width": 10}}
+    stored = {k: v for k, v in now.items() if k != "ema_decay"}
+    assert config_changes(stored, now) == []
+    assert config_changes(stored, {**now, "ema_decay": 0.999}) == ["ema_decay"]
+    assert config_changes({**stored, "lr": 5e-4}, now) == ["lr"]

@@ -308,3 +308,56 @@ def test_wall_budget_spent_outside_a_step_still_validates(tmp_path, tiny_data, t
     assert [int(r["step"]) for r in rows] == [4, 5]
     assert not rows[0]["val_avg_rmse"] and rows[1]["val_avg_rmse"]
     assert summary["steps"] == 5 and summary["budget_spent"] and (tmp_path / "best.pt").is_file()
+
+
+def test_weight_average_by_hand():
+    """avg <- avg + (1 - d_n)(w - avg), d_n = min(decay, (1 + n)/(10 + n)); ``applied`` swaps and restores."""
+    from nemsim.training.average import WeightAverage
+
+    lin = torch.nn.Linear(1, 1, bias=False)
+    with torch.no_grad():
+        lin.weight.fill_(1.0)
+    avg = WeightAverage(lin, decay=0.5)
+    assert avg.rate() == pytest.approx(0.1)  # n = 0: 1/10 < 0.5
+    with torch.no_grad():
+        lin.weight.fill_(2.0)
+    avg.update()  # 1 + 0.9 (2 - 1)
+    assert float(avg.shadow[0]) == pytest.approx(1.9)
+    assert avg.rate() == pytest.approx(2 / 11)
+    avg.updates = 100  # the warm-up is over: the decay itself
+    avg.update()  # 1.9 + 0.5 (2 - 1.9)
+    assert float(avg.shadow[0]) == pytest.approx(1.95)
+    with avg.applied():
+        assert float(lin.weight.detach()) == pytest.approx(1.95)
+    assert float(lin.weight.detach()) == 2.0
+    restored = WeightAverage(lin, decay=0.5)
+    restored.load_state_dict(avg.state_dict())
+    assert float(restored.shadow[0]) == pytest.approx(1.95) and restored.updates == 101
+    with pytest.raises(ValueError, match="decay"):
+        WeightAverage(lin, decay=1.0)
+
+
+def test_ema_validates_the_average_and_resume_carries_it(tmp_path, tiny_data, tiny_manifest, tiny_scene,
+                                                          rules):
+    """With ema_decay, best.pt holds the averaged weights (not the trained ones in last.pt), and a run killed
+    after epoch 1 and resumed ends with the same average as the uninterrupted run."""
+    cfg = _cfg(max_epochs=2, ema_decay=0.9, patience=5)
+    _run(tmp_path / "a", cfg, tiny_data, tiny_manifest, tiny_scene, rules)
+    _run(tmp_path / "b", cfg.replace(max_epochs=1), tiny_data, tiny_manifest, tiny_scene, rules)
+    one_epoch = read_checkpoint(tmp_path / "b" / "last.pt")
+    best_b = _weights(tmp_path / "b" / "best.pt")  # the only validation: the average after epoch 1
+    model = build_model("test-standin", tiny_scene, rules)
+    names = [n for n, p in model.named_parameters() if p.requires_grad]
+    shadow = one_epoch["train_state"]["ema"]["shadow"]
+    assert len(names) == len(shadow) and one_epoch["train_state"]["ema"]["updates"] > 0
+    for name, avg in zip(names, shadow, strict=True):
+        assert torch.equal(best_b[name], avg), name
+    trained = one_epoch["model_state"]
+    assert any(not torch.equal(trained[n], avg) for n, avg in zip(names, shadow, strict=True))
+    _run(tmp_path / "b", cfg, tiny_data, tiny_manifest, tiny_scene, rules, resume=True)
+    ema_a = read_checkpoint(tmp_path / "a" / "last.pt")["train_state"]["ema"]
+    ema_b = read_checkpoint(tmp_path / "b" / "last.pt")["train_state"]["ema"]
+    assert ema_a["updates"] == ema_b["updates"]
+    assert all(torch.equal(x, y) for x, y in zip(ema_a["shadow"], ema_b["shadow"], strict=True))
+    with pytest.raises(ValueError, match="ema_decay"):
+        _cfg(ema_decay=1.0)
