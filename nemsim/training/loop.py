@@ -8,7 +8,8 @@ over ``unroll_steps`` calls chained by their detached last state (``multistep_lo
 
 Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full horizon on the
 validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and training stops after
-``patience`` validation rounds without improvement. ``last.pt`` is written after every epoch (and every
+``patience`` validation rounds without improvement (with ``ema_decay`` the rolled-out and kept weights are
+the moving average of ``nemsim.training.average``). ``last.pt`` is written after every epoch (and every
 ``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states, history and the number
 of batches of the unfinished epoch (``RunState``), so a killed run resumes where it was saved and reproduces
 the uninterrupted run (shuffling is a pure function of seed and epoch through
