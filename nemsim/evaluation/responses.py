@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from nemsim.controls import CONTROL_NAMES, N_CONTROLS
+from nemsim.controls import CONTROL_NAMES, N_CONTROLS, to_normalized
 from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS
 from nemsim.evaluation.truth import predict, write_report
 from nemsim.geometry.profile import profile_metrics_batch
@@ -87,7 +87,7 @@ def run_responses(model: Any, states: Any, raw: np.ndarray, rows: list[int], sce
         model: anything ``rollout`` accepts. states: (N, T, 2, D, H, W) array-like (an HDF5 dataset).
         raw: (N, 14) raw controls. rows: the rows to use (> 15). scene: the data's scene.
     """
-    from nemsim.controls import to_normalized
+    from tqdm import tqdm
 
     if len(rows) <= N_CONTROLS + 1:
         raise ValueError(f"need more than {N_CONTROLS + 1} cases for a linear fit, got {len(rows)}")
@@ -95,17 +95,10 @@ def run_responses(model: Any, states: Any, raw: np.ndarray, rows: list[int], sce
     x0 = np.asarray(states[rows[0], 0])  # every case of a design starts from the scene's initial state
     sim_final = np.stack([np.asarray(states[r, -1]) for r in rows])  # (N, 2, D, H, W)
     pred_final = np.zeros_like(sim_final)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(rows), unit="case", desc="rollouts", dynamic_ncols=True)
-    for i, traj in predict(model, x0, raw[rows], steps, batch_size=batch_size):
-        pred_final[i] = traj[-1]
-        if bar is not None:
+    with tqdm(total=len(rows), unit="case", desc="rollouts", dynamic_ncols=True, disable=not progress) as bar:
+        for i, traj in predict(model, x0, raw[rows], steps, batch_size=batch_size):
+            pred_final[i] = traj[-1]
             bar.update(1)
-    if bar is not None:
-        bar.close()
     ms, mm = profile_metrics_batch(sim_final, scene), profile_metrics_batch(pred_final, scene)
     u = to_normalized(raw[rows])  # (N, 14)
     table = response_rows(u, ms, mm)
