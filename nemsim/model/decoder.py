@@ -8,6 +8,14 @@ no convolution runs at full resolution.
              Δx' = Conv3x3x3(g) with 2·8 output channels
   full grid: Δx = shuffle(Δx') (each 1/2-grid voxel emits its 2x2x2 block of both channels)
 
+Optional refinement (``refine`` = n > 0, ``NEMSimConfig.decoder_refine``; default 0): n residual blocks
+(two 16 -> 16 Conv3x3x3 each) on g before the output convolution, g <- g + GN(Conv(SiLU(GN(Conv(g))))). The
+latent lives on 16 nm cells (``small``) and g mixes it with b and x by 1x1x1 convolutions only, so the one
+3x3x3 output convolution is all the spatial processing at 1/2 resolution; the profile's misses are one-voxel
+details (the floor's rounding, the widths). The blocks start as the identity (last GroupNorm scale zero, no
+activation after the sum): a trained model grown by them predicts exactly what it did, and a continuation
+trains them from there (``--init-from`` keeps their initialization).
+
 ``unshuffle`` / ``shuffle`` are the 3-D space-to-depth / depth-to-space rearrangements (2x2x2 blocks),
 so x enters at full detail and Δx has per-voxel values. Up-sampling 1/4 -> 1/2 is nearest-neighbour
 (applied after the 1x1x1 mix, with which it commutes). Conv1x1(unshuffle(x)) is computed as the equivalent
@@ -55,6 +63,7 @@ class DecoderConfig:
     out_channels: int = 2
     out_scale: float = 0.1  # init scale of the last convolution
     steps: int = 1  # k: cumulative residuals returned per call (k - 1 from the 1x1x1 extra-step head)
+    refine: int = 0  # residual blocks on g at 1/2 resolution, identity at initialization (see docstring)
 
 
 def space_to_depth(x: torch.Tensor) -> torch.Tensor:
@@ -81,6 +90,11 @@ class ResidualDecoder(nn.Module):
         self.mix_latent = Conv3d(w4, w2, 1, bias=False)
         self.mix_skip = Conv3d(cfg.skip_channels, w2, 1, bias=False)
         self.mix_state = Conv3d(8 * C, w2, 1)
+        if cfg.refine < 0:
+            raise ValueError(f"decoder refine must be >= 0, got {cfg.refine}")
+        # only built when asked: refine = 0 keeps the parameters and state dict of the paper-size decoder
+        self.refine = nn.Sequential(*[ResBlock3d(w2, identity_init=True) for _ in range(cfg.refine)]) \
+            if cfg.refine else None
         self.out = Conv3d(w2, 8 * C, 3, padding=1)
         with torch.no_grad():
             self.out.weight.mul_(cfg.out_scale)
@@ -124,6 +138,8 @@ class ResidualDecoder(nn.Module):
         h = self.mix_latent(self.coarse(z_next))  # (B, 16, d, h, w)
         h = upsample2(h, tuple(b.shape[2:]))  # type: ignore[arg-type]  # (B, 16, D/2, H/2, W/2)
         g = F.silu(h + self.mix_skip(b) + self._mix_state(x.to(b.dtype)))  # (B, 16, D/2, H/2, W/2)
+        if self.refine is not None:
+            g = self.refine(g)  # (B, 16, D/2, H/2, W/2)
         return g, self.out(g)  # r_1: Δx before the voxel shuffle
 
     def _mix_state(self, x: torch.Tensor) -> torch.Tensor:

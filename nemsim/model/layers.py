@@ -148,9 +148,13 @@ class ConvGNAct(nn.Sequential):
 
 
 class ResBlock3d(nn.Module):
-    """Pre-activation-free residual block: x + GN(Conv(SiLU(GN(Conv(x))))), then SiLU. Shape preserved."""
+    """Pre-activation-free residual block: x + GN(Conv(SiLU(GN(Conv(x))))), then SiLU. Shape preserved.
 
-    def __init__(self, channels: int) -> None:
+    ``identity_init``: no SiLU after the sum and the last GroupNorm's scale starts at zero, so the block is
+    the identity until trained: inserted into a trained network it leaves its outputs unchanged (growing a
+    model without losing what it learned; the scale still receives gradients, so the block trains)."""
+
+    def __init__(self, channels: int, identity_init: bool = False) -> None:
         super().__init__()
         self.body = nn.Sequential(
             Conv3d(channels, channels, 3, padding=1, bias=False),
@@ -159,7 +163,9 @@ class ResBlock3d(nn.Module):
             Conv3d(channels, channels, 3, padding=1, bias=False),
             group_norm(channels),
         )
-        self.act = nn.SiLU()
+        if identity_init:
+            nn.init.zeros_(self.body[-1].weight)  # type: ignore[arg-type]
+        self.act: nn.Module = nn.Identity() if identity_init else nn.SiLU()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # (B, C, D, H, W)
         return self.act(x + self.body(x))

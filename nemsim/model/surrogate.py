@@ -93,6 +93,7 @@ class NEMSimConfig:
     readout_width: int = 24  # MRC trunk width
     decoder_widths: tuple[int, int] = (24, 16)  # decoder widths at 1/4 and 1/2 resolution
     decoder_out_scale: float = 0.1  # init scale of the decoder's last convolution
+    decoder_refine: int = 0  # residual blocks at 1/2 resolution in the decoder (0 = the paper-size decoder)
     use_eic: bool = True  # False: w/o EIC ablation
     use_mac: bool = True  # False: w/o MAC ablation
     use_mrc: bool = True  # False: w/o MRC ablation
@@ -187,7 +188,7 @@ class NEMSim(nn.Module):
         self.decoder = ResidualDecoder(
             DecoderConfig(latent_channels=cfg.latent_channels, skip_channels=cfg.widths[0],
                           widths=cfg.decoder_widths, out_scale=cfg.decoder_out_scale,
-                          steps=cfg.steps_per_call)
+                          steps=cfg.steps_per_call, refine=cfg.decoder_refine)
         )
         self.multiple = self.encoder.cfg.downsample
 

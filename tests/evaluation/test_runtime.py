@@ -135,6 +135,19 @@ def test_openvino_bf16_close_to_pytorch(trained):
     assert d.abs().max() <= 0.05 and d.pow(2).mean().sqrt() <= 0.01
 
 
+@pytest.mark.slow
+@needs_openvino
+def test_openvino_exports_the_decoder_refinement(tiny_scene):
+    """A model grown by a decoder refinement block (``decoder_refine``; trained, so the block is not the
+    identity) exports and matches PyTorch in f32."""
+    model, x0, u = _trained(tiny_scene, {"steps_per_call": 2, "decoder_refine": 1})
+    assert model.decoder.refine[0].body[-1].weight.abs().max() > 0
+    ref = rollout(model, x0, u)
+    out = rollout(compile_model(model, "openvino", "f32"), x0, u)
+    assert (out[:, 1:] - out[:, :1]).abs().max() > 1e-3
+    assert (out - ref).abs().max() <= 1e-4
+
+
 def test_torch_backend_is_the_reference(trained):
     model, x0, u = trained
     ref = rollout(model, x0, u)
