@@ -35,6 +35,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from nemsim.evaluation.figure import pyplot, save_figure
+
 log = logging.getLogger(__name__)
 
 FACTORS: tuple[float, ...] = (0.5, 1.0, 1.5)
@@ -261,10 +263,7 @@ def write_outputs(result: dict[str, Any], out_dir: str | Path) -> dict[str, Path
     intervention; b: per-pair response change vs ΔR for the four groups)."""
     import csv
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -307,6 +306,5 @@ def write_outputs(result: dict[str, Any], out_dir: str | Path) -> dict[str, Path
     ax_b.set_title("(b) response change vs material-removal change")
     ax_b.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(paths["png"], dpi=110)
-    plt.close(fig)
+    save_figure(fig, paths["png"], dpi=110)
     return paths

@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from nemsim.evaluation import metrics
+from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.metrics import case_step_mse, chamfer_distance, count_params
 from nemsim.evaluation.rollout import rollout
 from nemsim.scenes import Scene
@@ -252,13 +253,8 @@ def write_json(result: EvalResult, path: str | Path, extra: dict | None = None) 
 def plot_evaluation(result: EvalResult, scene: Scene, path: str | Path, title: str = "") -> Path:
     """PNG: RMSE_t over the rollout, and the final-step slice (truth, prediction, |error|) of the Si
     channel through the opening axis (x-z plane at the centre y), mask zero level overlaid."""
-    import matplotlib
+    plt = pyplot()
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig = plt.figure(figsize=(12, 7.5))
     gs = fig.add_gridspec(2, 3, height_ratios=[1.0, 1.4])
     ax = fig.add_subplot(gs[0, :])
@@ -289,6 +285,4 @@ def plot_evaluation(result: EvalResult, scene: Scene, path: str | Path, title: s
             a.set_ylabel("depth index")
             fig.colorbar(im, ax=a, fraction=0.046)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)

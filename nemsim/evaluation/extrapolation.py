@@ -41,6 +41,7 @@ from nemsim.controls import (
     lhs_unit,
     to_normalized,
 )
+from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.invariants import ION_FLUXES, centre_raw
 from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS, box_corners, round_int_controls
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
@@ -196,13 +197,8 @@ def format_markdown(rep: dict[str, Any]) -> str:
 
 def plot_extrapolation(rep: dict[str, Any], path: str | Path) -> Path:
     """PNG: Avg RMSE against the normalized distance from the box, by kind; in-box mean and floor marked."""
-    import matplotlib
+    plt = pyplot()
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
     markers = {"in-box": "o", "corner": "D", "axis": "s", "zero-flux": ">", "angle": "^"}
     for kind, mk in markers.items():
@@ -224,9 +220,7 @@ def plot_extrapolation(rep: dict[str, Any], path: str | Path) -> Path:
                  fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def write_outputs(rep: dict[str, Any], out_dir: str | Path) -> dict[str, str]:

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from nemsim.controls import INT_INDICES, N_CONTROLS, box_corner, from_unit, lhs_unit
+from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.invariants import ION_ENERGIES, centre_raw, set_axis
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
@@ -251,13 +252,8 @@ def format_markdown(rep: dict[str, Any]) -> str:
 
 def plot_physics(rep: dict[str, Any], path: str | Path) -> Path:
     """PNG: one panel per (metric, group): simulator (two seeds, mean) and surrogate against the level."""
-    import matplotlib
+    plt = pyplot()
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     groups = list(rep["sweeps"])
     rows, cols = len(SWEEP_METRICS), len(groups)
     fig, axes = plt.subplots(rows, cols, figsize=(2.4 * cols, 2.0 * rows), squeeze=False, sharex=True)
@@ -283,9 +279,7 @@ def plot_physics(rep: dict[str, Any], path: str | Path) -> Path:
     fig.suptitle(f"one-at-a-time sweeps from the median recipe ({rep['scene']}, final state after "
                  f"{rep['steps']} transitions)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def write_outputs(rep: dict[str, Any], out_dir: str | Path) -> dict[str, str]:

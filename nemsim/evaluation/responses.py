@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from nemsim.controls import CONTROL_NAMES, N_CONTROLS, to_normalized
+from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS
 from nemsim.evaluation.truth import predict, write_report
 from nemsim.geometry.profile import profile_metrics_batch
@@ -137,13 +138,8 @@ def format_markdown(rep: dict[str, Any]) -> str:
 
 def plot_responses(rep: dict[str, Any], path: str | Path) -> Path:
     """PNG: surrogate slope against simulator slope, one panel per metric, resolved slopes filled."""
-    import matplotlib
+    plt = pyplot()
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(1, len(SWEEP_METRICS), figsize=(3.0 * len(SWEEP_METRICS), 3.0), squeeze=False)
     for ax, m in zip(axes[0], SWEEP_METRICS, strict=True):
         rows = [r for r in rep["rows"] if r["metric"] == m]
@@ -163,9 +159,7 @@ def plot_responses(rep: dict[str, Any], path: str | Path) -> Path:
     axes[0, 0].set_ylabel("surrogate slope [nm/1]", fontsize=8)
     axes[0, 0].legend(fontsize=6)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def write_outputs(rep: dict[str, Any], out_dir: str | Path) -> dict[str, str]:

@@ -36,6 +36,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from nemsim.evaluation.figure import pyplot, save_figure
+
 MODEL_KEYS = ("avg_rmse", "final_rmse", "cd", "params", "rollout_s", "budget_min", "steps",
               "final_train_loss", "train_wall_s", "train_cpu_s")
 FIGURE = "budget_curve.png"  # written next to results.json
@@ -244,16 +246,12 @@ def results_markdown(results: dict, figure: str | None = None) -> str:
 def plot_budget_curves(results: dict, path: str | Path) -> Path:
     """PNG of ``results["curves"]``: one panel per table, validation Avg RMSE (log) against the run's
     cumulative wall minutes, one line per model; a dashed line at a table's wall budget."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     tables = sorted(results["curves"])
     models = sorted({m for t in tables for m in results["curves"][t]})
     palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     color = {m: palette[i % len(palette)] for i, m in enumerate(models)}  # one colour per model everywhere
-    path = Path(path)
     fig, axes = plt.subplots(1, len(tables), figsize=(5.5 * len(tables), 4.2), squeeze=False)
     for ax, table in zip(axes[0], tables, strict=True):
         for model, c in sorted(results["curves"][table].items()):
@@ -269,9 +267,7 @@ def plot_budget_curves(results: dict, path: str | Path) -> Path:
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120)
 
 
 def write_results(results: dict, out: str | Path, readme: str | Path | None = None) -> dict[str, Path]:

@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.metrics import StepRmse, chamfer_distance, count_params
 
 log = logging.getLogger(__name__)
@@ -526,13 +527,8 @@ def format_markdown(report: dict[str, Any]) -> str:
 def plot_speed_error(report: dict[str, Any], path: str | Path) -> Path:
     """Log-log PNG: wall seconds per trajectory (x) against Avg RMSE (y); the noise floor marked; hollow
     markers: the same variant's per-trajectory time at the throughput batch."""
-    import matplotlib
+    plt = pyplot()
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
     tiny = 1e-12
     sim = [r for r in report["rows"] if r["kind"] == "simulator"]
@@ -565,9 +561,7 @@ def plot_speed_error(report: dict[str, Any], path: str | Path) -> Path:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120)
 
 
 def write_speed_error(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]:
