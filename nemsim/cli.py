@@ -1343,6 +1343,10 @@ def _add_truth_benches(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="test", help="split with --setting (default test)")
     p.add_argument("--max-cases", type=int, default=None, help="the first N of those cases")
     p.add_argument("--batch-size", type=int, default=8, help="rollouts run together (default 8)")
+    p.add_argument("--one-call", type=int, default=None, metavar="T0",
+                   help="instead of rollouts from x_0: one network call (its k states) from each case's own "
+                        "simulator state at step T0, and the slopes of the metrics' increments over it; "
+                        "separates what one call learned from what a rollout compounds (e.g. 50)")
     _add_monotone_option(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--out", default="runs/bench/responses", metavar="DIR",
@@ -1590,7 +1594,8 @@ def _cmd_bench_responses(args: argparse.Namespace) -> int:
         rows = rows[: args.max_cases]
         try:
             rep = responses.run_responses(loaded.model, tf.states, tf.controls_raw, rows, tf.scene,
-                                          batch_size=args.batch_size, progress=not args.no_progress)
+                                          batch_size=args.batch_size, progress=not args.no_progress,
+                                          one_call=args.one_call)
         except ValueError as exc:
             raise UserError(str(exc)) from None
     rep.update(checkpoint=str(args.checkpoint), data=str(args.data), cases=cases)

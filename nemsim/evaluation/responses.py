@@ -21,6 +21,12 @@ What it shows and what it does not: on a training design it measures whether the
 split it measures whether the response generalizes. A linear fit over the box is a summary, not the
 response itself (curvature shows in the residual, not in the slopes); ``bench physics`` remains the judge
 of single-control sweeps against fresh simulations.
+
+``one_call`` (``--one-call T0``): instead of rollouts from x_0, one network call (its k states) from each
+case's own simulator state at step T0, and the slopes of the metrics' increments over the call,
+m(T0 + k) - m(T0), simulator against surrogate. This separates what one call has learned from how errors
+compound over a rollout: a response right in one call but wrong over the rollout is a drift, one wrong in
+one call was not learned (levers.md: the bottom width's increment is lost in per-call noise).
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ import numpy as np
 from nemsim.controls import CONTROL_NAMES, N_CONTROLS, to_normalized
 from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS
-from nemsim.evaluation.truth import predict, write_report
+from nemsim.evaluation.truth import model_device, predict, write_report
 from nemsim.geometry.profile import profile_metrics_batch
 
 RESOLVED_SE = 2.0  # a simulator slope counts as resolved beyond this many standard errors
@@ -80,44 +86,84 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, int]:
 
 
 def run_responses(model: Any, states: Any, raw: np.ndarray, rows: list[int], scene: Any,
-                  batch_size: int = 8, progress: bool = True) -> dict[str, Any]:
+                  batch_size: int = 8, progress: bool = True, one_call: int | None = None) -> dict[str, Any]:
     """Final metrics of the simulator (``states[row, -1]``) and of the surrogate's rollout (from
     ``states[row, 0]`` under ``raw[row]``) for the given rows of a trajectory file, and their responses.
 
     Args:
         model: anything ``rollout`` accepts. states: (N, T, 2, D, H, W) array-like (an HDF5 dataset).
         raw: (N, 14) raw controls. rows: the rows to use (> 15). scene: the data's scene.
+        one_call: T0: the metrics' increments over one call from the simulator's state at T0 instead
+            (module docstring).
     """
     from tqdm import tqdm
 
     if len(rows) <= N_CONTROLS + 1:
         raise ValueError(f"need more than {N_CONTROLS + 1} cases for a linear fit, got {len(rows)}")
     steps = int(states.shape[1]) - 1
-    x0 = np.asarray(states[rows[0], 0])  # every case of a design starts from the scene's initial state
-    sim_final = np.stack([np.asarray(states[r, -1]) for r in rows])  # (N, 2, D, H, W)
-    pred_final = np.zeros_like(sim_final)
-    with tqdm(total=len(rows), unit="case", desc="rollouts", dynamic_ncols=True, disable=not progress) as bar:
-        for i, traj in predict(model, x0, raw[rows], steps, batch_size=batch_size):
-            pred_final[i] = traj[-1]
-            bar.update(1)
-    ms, mm = profile_metrics_batch(sim_final, scene), profile_metrics_batch(pred_final, scene)
     u = to_normalized(raw[rows])  # (N, 14)
+    bar = tqdm(total=len(rows), unit="case", desc="rollouts", dynamic_ncols=True, disable=not progress)
+    call = None
+    with bar:
+        if one_call is None:
+            x0 = np.asarray(states[rows[0], 0])  # every case of a design starts from the initial state
+            sim_final = np.stack([np.asarray(states[r, -1]) for r in rows])  # (N, 2, D, H, W)
+            pred_final = np.zeros_like(sim_final)
+            for i, traj in predict(model, x0, raw[rows], steps, batch_size=batch_size):
+                pred_final[i] = traj[-1]
+                bar.update(1)
+            ms, mm = profile_metrics_batch(sim_final, scene), profile_metrics_batch(pred_final, scene)
+        else:
+            start, sim_end, pred_end, k = _one_call(model, states, u, rows, one_call, batch_size, bar)
+            m0 = profile_metrics_batch(start, scene)
+            ms = {m: v - m0[m] for m, v in profile_metrics_batch(sim_end, scene).items()}
+            mm = {m: v - m0[m] for m, v in profile_metrics_batch(pred_end, scene).items()}
+            call = {"t0": one_call, "k": k}
     table = response_rows(u, ms, mm)
     return {
-        "scene": scene.name, "steps": steps, "n_cases": len(rows),
+        "scene": scene.name, "steps": steps, "n_cases": len(rows), "one_call": call,
         "mae_nm": {m: float(np.mean(np.abs(mm[m] - ms[m]))) for m in SWEEP_METRICS},
         "bias_nm": {m: float(np.mean(mm[m] - ms[m])) for m in SWEEP_METRICS},
         "rows": table, "summary": summarize(table),
     }
 
 
+def _one_call(model: Any, states: Any, u: np.ndarray, rows: list[int], t0: int, batch_size: int,
+              bar: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """One call of ``model`` from each case's simulator state at ``t0``: the start states, the simulator's and
+    the surrogate's states k steps later (each (N, 2, D, H, W)) and k."""
+    import torch
+
+    from nemsim.evaluation.rollout import rollout, steps_per_call
+
+    k = steps_per_call(model)
+    last = int(states.shape[1]) - 1 - k
+    if not 0 <= t0 <= last:
+        raise ValueError(f"one call of {k} states from step {t0} leaves the data's horizon: "
+                         f"choose a start step from 0 to {last}")
+    start = np.stack([np.asarray(states[r, t0]) for r in rows]).astype(np.float32)  # (N, 2, D, H, W)
+    sim_end = np.stack([np.asarray(states[r, t0 + k]) for r in rows])  # (N, 2, D, H, W)
+    pred_end = np.zeros_like(sim_end, dtype=np.float32)
+    device = model_device(model)
+    for s in range(0, len(rows), batch_size):
+        x = torch.as_tensor(start[s : s + batch_size], device=device)  # (B, 2, D, H, W)
+        uu = torch.as_tensor(u[s : s + batch_size], dtype=torch.float32, device=device)  # (B, 14)
+        pred_end[s : s + len(x)] = rollout(model, x, uu, k, keep=False).float().cpu().numpy()
+        bar.update(len(x))
+    return start, sim_end, pred_end, k
+
+
 def format_markdown(rep: dict[str, Any]) -> str:
     """The resolved slopes per metric, the summary and the per-metric errors."""
     s = rep["summary"]
+    call = rep.get("one_call")
+    what = (f"final state after {rep['steps']} transitions" if not call else
+            f"increments over one call ({call['k']} step{'s' if call['k'] > 1 else ''}) from the simulator's "
+            f"state at step {call['t0']}")
     lines = [f"# Linear responses over a design ({rep['scene']}, {rep['n_cases']} cases of "
-             f"{rep.get('data', 'a data file')}, {rep.get('cases', '')}; final state after {rep['steps']} "
-             "transitions)", "",
-             f"Slopes of each final profile metric on the 14 normalized controls (least squares with an "
+             f"{rep.get('data', 'a data file')}, {rep.get('cases', '')}; {what})", "",
+             f"Slopes of each profile metric's {'increment' if call else 'final value'} on the 14 normalized "
+             f"controls (least squares with an "
              f"intercept; nm per normalized unit). 'Resolved': |simulator slope| > {RESOLVED_SE:g} standard "
              f"errors. Ratio = surrogate / simulator. Checkpoint: {rep.get('checkpoint', '?')}.", "",
              f"**{s['within_25pct']} of {s['resolved']} resolved slopes within ±{RATIO_TOLERANCE:.0%}; "

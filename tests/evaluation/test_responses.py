@@ -82,6 +82,19 @@ def test_cli_bench_responses_on_a_data_file(tiny_checkpoint, tiny_scene, tmp_pat
     depth = next(r for r in rep["rows"] if r["metric"] == "etch_depth" and r["control"] == "flux_cl")
     assert depth["resolved"] and depth["slope_sim"] == pytest.approx(16.0, rel=0.15)
     assert "resolved slopes within" in capsys.readouterr().out
+    # --one-call: one call (k = 1 here) from the simulator's own state at T - 1 (the initial state in this
+    # file) to T (the hole): the increment's slope is the final depth's, from one network call
+    T = tiny_scene.n_states - 1
+    one = tmp_path / "resp-one"
+    assert main(["bench", "responses", "--checkpoint", str(tiny_checkpoint), "--data", str(data),
+                 "--one-call", str(T - 1), "--no-progress", "--out", str(one)]) == 0
+    rep1 = json.loads((one / "responses.json").read_text())
+    assert rep1["one_call"] == {"t0": T - 1, "k": 1} and rep1["n_cases"] == n
+    depth1 = next(r for r in rep1["rows"] if r["metric"] == "etch_depth" and r["control"] == "flux_cl")
+    assert depth1["slope_sim"] == pytest.approx(depth["slope_sim"], rel=1e-6)
+    assert "increments over one call (1 step) from the simulator's state at step" in capsys.readouterr().out
+    assert main(["bench", "responses", "--checkpoint", str(tiny_checkpoint), "--data", str(data),
+                 "--one-call", str(T), "--no-progress", "--out", str(one)]) == 2  # the call leaves the data
     assert main(["bench", "responses", "--checkpoint", str(tiny_checkpoint), "--data", str(data),
                  "--max-cases", "10", "--no-progress", "--out", str(out)]) == 2  # 10 cases: too few
     assert main(["bench", "responses", "--checkpoint", str(tiny_checkpoint), "--data",
