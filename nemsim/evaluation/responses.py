@@ -39,7 +39,7 @@ import numpy as np
 from nemsim.controls import CONTROL_NAMES, N_CONTROLS, to_normalized
 from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS
-from nemsim.evaluation.truth import model_device, predict, write_report
+from nemsim.evaluation.truth import predict, write_report
 from nemsim.geometry.profile import profile_metrics_batch
 
 RESOLVED_SE = 2.0  # a simulator slope counts as resolved beyond this many standard errors
@@ -102,55 +102,35 @@ def run_responses(model: Any, states: Any, raw: np.ndarray, rows: list[int], sce
         raise ValueError(f"need more than {N_CONTROLS + 1} cases for a linear fit, got {len(rows)}")
     steps = int(states.shape[1]) - 1
     u = to_normalized(raw[rows])  # (N, 14)
-    bar = tqdm(total=len(rows), unit="case", desc="rollouts", dynamic_ncols=True, disable=not progress)
-    call = None
-    with bar:
-        if one_call is None:
-            x0 = np.asarray(states[rows[0], 0])  # every case of a design starts from the initial state
-            sim_final = np.stack([np.asarray(states[r, -1]) for r in rows])  # (N, 2, D, H, W)
-            pred_final = np.zeros_like(sim_final)
-            for i, traj in predict(model, x0, raw[rows], steps, batch_size=batch_size):
-                pred_final[i] = traj[-1]
-                bar.update(1)
-            ms, mm = profile_metrics_batch(sim_final, scene), profile_metrics_batch(pred_final, scene)
-        else:
-            start, sim_end, pred_end, k = _one_call(model, states, u, rows, one_call, batch_size, bar)
-            m0 = profile_metrics_batch(start, scene)
-            ms = {m: v - m0[m] for m, v in profile_metrics_batch(sim_end, scene).items()}
-            mm = {m: v - m0[m] for m, v in profile_metrics_batch(pred_end, scene).items()}
-            call = {"t0": one_call, "k": k}
+    if one_call is None:  # rollouts from the initial state every case of a design shares, to the end
+        t0, k = 0, steps
+        start = np.asarray(states[rows[0], 0])  # (2, D, H, W)
+    else:  # one call from each case's own simulator state at t0
+        from nemsim.evaluation.rollout import steps_per_call
+
+        t0, k = one_call, steps_per_call(model)
+        if not 0 <= t0 <= steps - k:
+            raise ValueError(f"one call of {k} states from step {t0} leaves the data's horizon: "
+                             f"choose a start step from 0 to {steps - k}")
+        start = np.stack([np.asarray(states[r, t0]) for r in rows])  # (N, 2, D, H, W)
+    sim_end = np.stack([np.asarray(states[r, t0 + k]) for r in rows])  # (N, 2, D, H, W)
+    pred_end = np.zeros(sim_end.shape, dtype=np.float32)  # the surrogate in full (the data may be float16)
+    with tqdm(total=len(rows), unit="case", desc="rollouts", dynamic_ncols=True, disable=not progress) as bar:
+        for i, traj in predict(model, start, raw[rows], k, batch_size=batch_size):
+            pred_end[i] = traj[-1]
+            bar.update(1)
+    ms, mm = profile_metrics_batch(sim_end, scene), profile_metrics_batch(pred_end, scene)
+    if one_call is not None:  # increments over the call
+        m0 = profile_metrics_batch(start, scene)
+        ms, mm = ({m: v - m0[m] for m, v in d.items()} for d in (ms, mm))
     table = response_rows(u, ms, mm)
     return {
-        "scene": scene.name, "steps": steps, "n_cases": len(rows), "one_call": call,
+        "scene": scene.name, "steps": steps, "n_cases": len(rows),
+        "one_call": None if one_call is None else {"t0": t0, "k": k},
         "mae_nm": {m: float(np.mean(np.abs(mm[m] - ms[m]))) for m in SWEEP_METRICS},
         "bias_nm": {m: float(np.mean(mm[m] - ms[m])) for m in SWEEP_METRICS},
         "rows": table, "summary": summarize(table),
     }
-
-
-def _one_call(model: Any, states: Any, u: np.ndarray, rows: list[int], t0: int, batch_size: int,
-              bar: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """One call of ``model`` from each case's simulator state at ``t0``: the start states, the simulator's and
-    the surrogate's states k steps later (each (N, 2, D, H, W)) and k."""
-    import torch
-
-    from nemsim.evaluation.rollout import rollout, steps_per_call
-
-    k = steps_per_call(model)
-    last = int(states.shape[1]) - 1 - k
-    if not 0 <= t0 <= last:
-        raise ValueError(f"one call of {k} states from step {t0} leaves the data's horizon: "
-                         f"choose a start step from 0 to {last}")
-    start = np.stack([np.asarray(states[r, t0]) for r in rows]).astype(np.float32)  # (N, 2, D, H, W)
-    sim_end = np.stack([np.asarray(states[r, t0 + k]) for r in rows])  # (N, 2, D, H, W)
-    pred_end = np.zeros_like(sim_end, dtype=np.float32)
-    device = model_device(model)
-    for s in range(0, len(rows), batch_size):
-        x = torch.as_tensor(start[s : s + batch_size], device=device)  # (B, 2, D, H, W)
-        uu = torch.as_tensor(u[s : s + batch_size], dtype=torch.float32, device=device)  # (B, 14)
-        pred_end[s : s + len(x)] = rollout(model, x, uu, k, keep=False).float().cpu().numpy()
-        bar.update(len(x))
-    return start, sim_end, pred_end, k
 
 
 def format_markdown(rep: dict[str, Any]) -> str:

@@ -205,7 +205,8 @@ def predict(model: Any, x0: np.ndarray, raw: np.ndarray, steps: int, batch_size:
     """Rollouts of ``model`` from x0 under constant raw controls, one case at a time.
 
     Args:
-        model: anything ``rollout`` accepts. x0: (2, D, H, W) initial state.
+        model: anything ``rollout`` accepts. x0: (2, D, H, W) initial state shared by every case, or
+            (N, 2, D, H, W), one per case.
         raw: (N, 14) raw controls (physical units; normalized here, unclipped).
         steps: transitions per rollout. batch_size: cases rolled out together.
     Yields:
@@ -215,11 +216,14 @@ def predict(model: Any, x0: np.ndarray, raw: np.ndarray, steps: int, batch_size:
 
     raw = np.atleast_2d(np.asarray(raw, dtype=np.float64))
     device = model_device(model)
-    base = torch.as_tensor(np.asarray(x0), dtype=torch.float32, device=device)  # (2, D, H, W)
+    base = torch.as_tensor(np.asarray(x0), dtype=torch.float32, device=device)  # (2 | N, ...)
     u_all = torch.as_tensor(to_normalized(raw), dtype=torch.float32)  # (N, 14)
     for start in range(0, len(raw), batch_size):
         u = u_all[start : start + batch_size].to(device)
-        x = base[None].expand(len(u), *base.shape).contiguous()  # (B, 2, D, H, W)
+        if base.dim() == 5:  # one initial state per case
+            x = base[start : start + len(u)].contiguous()  # (B, 2, D, H, W)
+        else:
+            x = base[None].expand(len(u), *base.shape).contiguous()  # (B, 2, D, H, W)
         traj = rollout(model, x, u, steps)  # (B, steps + 1, 2, D, H, W)
         arr = traj.float().cpu().numpy()
         for i in range(len(u)):
