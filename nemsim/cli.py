@@ -758,6 +758,7 @@ def _cmd_bench_noise(args: argparse.Namespace) -> int:
 def _add_model(sub: argparse._SubParsersAction) -> None:
     from pathlib import Path
 
+    from nemsim.evaluation.speed_error import RUNTIMES as SPEED_ERROR_RUNTIMES
     from nemsim.train import SETTINGS, add_train_arguments
 
     p = sub.add_parser(
@@ -808,6 +809,12 @@ def _add_model(sub: argparse._SubParsersAction) -> None:
                    help="trajectories rolled out together (default 1, the paper's per-trajectory timing)")
     p.add_argument("--no-cd", action="store_true", help="skip the Chamfer distance (the slowest metric)")
     p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N")
+    p.add_argument("--runtime", default="torch-f32", choices=SPEED_ERROR_RUNTIMES,
+                   help="what runs the rollouts: torch-f32 (PyTorch, the reference; default), torch-bf16 "
+                   "(CPU autocast), openvino-f32 or openvino-bf16 (the exported step graph the service runs; "
+                   "falls back to torch, named in the output, when OpenVINO is missing); CPU only")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch and OpenVINO threads (default 1, as the benchmarks and the service)")
     _add_monotone_option(p)
     p.set_defaults(handler=_cmd_evaluate)
 
@@ -881,11 +888,19 @@ def _load_for_eval(args: argparse.Namespace):
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import torch
+
     from nemsim.data.dataset import TrajectoryDataset
     from nemsim.evaluation.evaluate import evaluate, plot_evaluation, write_json
+    from nemsim.evaluation.runtime import compile_model
+    from nemsim.evaluation.speed_error import parse_runtime
 
     if args.batch_size < 1:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if args.threads < 1:
+        raise UserError(f"--threads must be >= 1, got {args.threads}")
+    if args.runtime != "torch-f32" and args.device != "cpu":
+        raise UserError(f"--runtime {args.runtime} runs on the CPU only; drop --device {args.device}")
     loaded, tf, manifest = _load_for_eval(args)
     _apply_monotone(args, loaded.model)
     horizon = loaded.scene.n_transitions
@@ -894,12 +909,20 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     cases = TrajectoryDataset(args.data, manifest, args.split)
     if len(cases) == 0:
         raise UserError(f"split {args.split!r} of setting {args.setting!r} is empty")
+    torch.set_num_threads(args.threads)
+    predictor = None
+    if args.runtime != "torch-f32":
+        predictor = compile_model(loaded.model, *parse_runtime(args.runtime), threads=args.threads)  # type: ignore[arg-type]
     result = evaluate(loaded.model, cases, loaded.scene, steps=args.steps, batch_size=args.batch_size,  # type: ignore[arg-type]
                       device=args.device, chamfer=not args.no_cd, rollout_path=args.save_rollouts,
                       rollout_attrs={"checkpoint": str(args.checkpoint), "setting": args.setting,
-                                     "model": loaded.name})
+                                     "model": loaded.name, "runtime": args.runtime},
+                      predictor=predictor)
     cd = "n/a" if result.cd is None else f"{result.cd:.4f}"
-    print(f"{loaded.name} on {args.setting}/{args.split} ({result.n_cases} cases, {result.steps} steps)")  # noqa: T201
+    print(f"{loaded.name} on {args.setting}/{args.split} ({result.n_cases} cases, {result.steps} steps, "  # noqa: T201
+          f"{result.runtime})")
+    if predictor is not None and predictor.fallback_reason:
+        print(f"  note: {args.runtime} was asked for; {predictor.fallback_reason}")  # noqa: T201
     print(f"  Avg RMSE   {result.avg_rmse:.5f}")  # noqa: T201
     print(f"  Final RMSE {result.final_rmse:.5f}")  # noqa: T201
     print(f"  CD         {cd} voxels")  # noqa: T201

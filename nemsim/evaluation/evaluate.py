@@ -1,7 +1,9 @@
 """Test-time evaluation: the 100-step autoregressive protocol and the paper's metrics ([supp_protocols]).
 
-Rollouts start from the ground-truth x_0 and run without clipping or correction
-(``nemsim.evaluation.rollout``). Metrics come from ``nemsim.evaluation.metrics`` (RMSE_t over cases then
+Rollouts start from the ground-truth x_0 (``nemsim.evaluation.rollout``); the only correction is the monotone
+projection the model's config asks for (NEMSim: on; ``nemsim.model.monotone``). They run in PyTorch f32 (the
+reference) or through a compiled runtime (``predictor``: e.g. the OpenVINO bf16 graph the service runs, so
+what is served is what is scored). Metrics come from ``nemsim.evaluation.metrics`` (RMSE_t over cases then
 √, eqs. supp_step_rmse / supp_avg_rmse / supp_final_rmse; final-step Chamfer distance,
 eq. supp_chamfer_distance; trainable parameters, eq. supp_params).
 
@@ -52,6 +54,7 @@ class EvalResult:
     steps: int
     case_ids: list[int]
     cd_per_case: list[float] = field(default_factory=list)
+    runtime: str = "torch-f32"  # <backend>-<precision> that ran the rollouts (``nemsim.evaluation.runtime``)
     example: dict[str, Any] | None = field(default=None, repr=False)  # arrays for the figure
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -170,6 +173,7 @@ def evaluate(
     chamfer: bool = True,
     rollout_path: str | Path | None = None,
     rollout_attrs: dict | None = None,
+    predictor: Any = None,
 ) -> EvalResult:
     """Evaluate a one-step model on test trajectories with the full autoregressive protocol.
 
@@ -182,9 +186,16 @@ def evaluate(
         batch_size: trajectories rolled out together (1 = the paper's per-trajectory timing).
         chamfer: compute the final-step Chamfer distance (the slowest metric).
         rollout_path: if given, stream predictions to this HDF5 file (``pred``, ``case_ids``).
+        predictor: a runtime of ``model`` (``nemsim.evaluation.runtime.compile_model``, e.g. the served
+            OpenVINO bf16 graph) that runs the rollouts instead of the model itself; CPU only. Its graph is
+            compiled for the first batch's shape before the timing starts (a smaller last batch compiles
+            its own shape inside it).
     """
     device = torch.device(device)
     model = model.to(device).eval()
+    if predictor is not None and device.type != "cpu":
+        raise ValueError(f"a compiled runtime runs on the CPU only, not on {device}")
+    stepper = model if predictor is None else predictor
     n_total = len(trajectories)
     if n_total == 0:
         raise ValueError("no test trajectories to evaluate")
@@ -200,8 +211,10 @@ def evaluate(
         for batch in batched((trajectories[i] for i in range(n_total)), batch_size):
             ids, states, u, T = _stack(batch, T_run, device)
             x0 = states[:, 0].to(device)
+            if predictor is not None and not case_ids:  # compile the graph for this batch shape, untimed
+                rollout(stepper, x0, u, 1, keep=False)
             t0 = time.perf_counter()
-            pred = rollout(model, x0, u, T)  # (B, T+1, 2, D, H, W)
+            pred = rollout(stepper, x0, u, T)  # (B, T+1, 2, D, H, W)
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             seconds += time.perf_counter() - t0
@@ -240,6 +253,7 @@ def evaluate(
         steps=T_run,
         case_ids=case_ids,
         cd_per_case=cds,
+        runtime="torch-f32" if predictor is None else f"{predictor.backend}-{predictor.precision}",
         example=example,
     )
 

@@ -178,13 +178,18 @@ def collect_results(run_dirs: Sequence[str | Path], speed_error: str | Path | di
             "setting": rep.get("setting"),
         }
         out["speed"] = {k: rep["speed"].get(k) for k in SPEED_KEYS}
+        if out["speed"]["nemsim_checkpoint"] is None:  # a report from before the key: its fastest row's
+            out["speed"]["nemsim_checkpoint"] = next(
+                (r.get("checkpoint") for r in rep.get("rows", [])
+                 if r.get("fastest") and r.get("wall_s") == rep["speed"].get("nemsim_s")), None)  # fmt: skip
         out["scene"] = rep.get("scene")
     return out
 
 
 # copied from a speed-error report into results.json
-SPEED_KEYS = ("simulator_s", "simulator_cpu_s", "nemsim_s", "nemsim_cpu_s", "nemsim_runtime",
-              "nemsim_precision", "speedup", "equal_accuracy")
+SPEED_KEYS = ("simulator_s", "simulator_cpu_s", "nemsim_s", "nemsim_cpu_s", "nemsim_checkpoint",
+              "nemsim_runtime", "nemsim_precision", "speedup", "equal_accuracy")
+_BOUND_WORD = {"lower": ">= ", "upper": "<= "}  # equal_accuracy.bound -> how the figure reads
 
 
 def _f(v: Any, spec: str) -> str:
@@ -235,9 +240,17 @@ def results_markdown(results: dict, figure: str | None = None) -> str:
                  f"CD {_f(nf.get('cd'), '.3f')} vox.")  # fmt: skip
     sp = results.get("speed") or {}
     if sp.get("simulator_s") is not None and sp.get("nemsim_s"):
+        which = ", ".join(str(v) for v in (Path(sp["nemsim_checkpoint"]).name if sp.get("nemsim_checkpoint")
+                                           else None, sp.get("nemsim_runtime")) if v)
+        eq = sp.get("equal_accuracy") or {}
+        at_eq = ""
+        if eq.get("speedup"):
+            at_eq = (f"; at equal accuracy (the simulator's time at NEMSim's error) "
+                     f"{_BOUND_WORD.get(str(eq.get('bound')), '')}{eq['speedup']:.1f}x")
         lines.append(
-            f"Speed: simulator {sp['simulator_s']:.3g} s per trajectory, NEMSim {sp['nemsim_s']:.3g} s "
-            f"({sp.get('nemsim_precision') or 'fp32'}), {sp['simulator_s'] / sp['nemsim_s']:.1f}x faster."
+            f"Speed (`nemsim bench speed-error`{', ' + which if which else ''}, batch 1): simulator "
+            f"{sp['simulator_s']:.3g} s per trajectory, NEMSim {sp['nemsim_s']:.3g} s, "
+            f"{sp['simulator_s'] / sp['nemsim_s']:.1f}x faster{at_eq}."
         )
     lines += ["", TABLE_END]
     return "\n".join(lines) + "\n"

@@ -448,6 +448,7 @@ def _speed(sim_full: dict[str, Any], best: dict[str, Any] | None) -> dict[str, A
         "simulator_cpu_s": sim_full["cpu_s"],
         "nemsim_s": best["wall_s"] if best else None,
         "nemsim_cpu_s": best["cpu_s"] if best else None,
+        "nemsim_checkpoint": best["checkpoint"] if best else None,
         "nemsim_runtime": best["runtime"] if best else None,
         "nemsim_precision": best["precision"] if best else None,
         "nemsim_avg_rmse": best["avg_rmse"] if best else None,

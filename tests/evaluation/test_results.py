@@ -64,9 +64,10 @@ def test_collect_budget_tables_fields_and_curve(tmp_path, capsys):
                  [{"epoch": 1, "step": 10, "train_loss": 0.1, "val_avg_rmse": 0.2}]),
     ]
     speed = tmp_path / "speed_error.json"
+    fastest = {"simulator_s": 3.0, "nemsim_s": 0.5, "nemsim_runtime": "openvino-bf16",
+               "nemsim_checkpoint": "checkpoints/x.pt", "equal_accuracy": {"speedup": 4.0, "bound": "lower"}}
     speed.write_text(json.dumps({"noise_floor": {"avg_rmse": 0.01, "cd": 0.2}, "case_ids": [1, 2],
-                                 "setting": "control-id", "scene": "small",
-                                 "speed": {"simulator_s": 3.0, "nemsim_s": 0.5}}))  # fmt: skip
+                                 "setting": "control-id", "scene": "small", "speed": fastest}))  # fmt: skip
     out = tmp_path / "bench" / "results.json"
     assert main(["bench", "collect", "--runs", *runs, "--speed-error", str(speed), "--out", str(out)]) == 0
     res = json.loads(out.read_text())
@@ -92,7 +93,10 @@ def test_collect_budget_tables_fields_and_curve(tmp_path, capsys):
     text = (out.parent / "README.md").read_text()
     assert "| train steps | train wall min | train CPU min | final train loss |" in text
     assert "| nemsim | 0.0200 | 0.0400 | 0.500 | 0.250 | 0.2 | 2.00 | 310 | 46.0 | 45.0 | 7.500e-03 |" in text
-    assert "](budget_curve.png)" in text and "Speed: simulator 3 s per trajectory" in text
+    assert "](budget_curve.png)" in text
+    assert ("(`nemsim bench speed-error`, x.pt, openvino-bf16, batch 1): simulator 3 s per trajectory, "
+            "NEMSim 0.5 s, 6.0x faster; at equal accuracy (the simulator's time at NEMSim's error) "
+            ">= 4.0x.") in text
     assert text.index("### control-id, 45 min") < text.index("| nemsim | 0.0200") < text.index("| fno |")
     assert "budget_curve.png" in capsys.readouterr().out
 

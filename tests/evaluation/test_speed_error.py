@@ -3,7 +3,7 @@
 One simulator-generated data file (3 design cases, full tiny horizon) and one untrained NEMSim
 checkpoint are shared by the module; the bench runs once (1 case, runtimes torch-f32, torch-bf16 and, when
 openvino is installed, openvino-f32; throughput batch 2) through the CLI. The equal-accuracy interpolation
-is checked against hand-computed numbers.
+is checked against hand-computed numbers. `nemsim evaluate --runtime` is scored on the same file.
 """
 
 from __future__ import annotations
@@ -252,3 +252,25 @@ def test_step_budget_runs_get_their_own_table():
     assert setting_key("control-id", {"train_config": {"max_steps": None, "batch_size": 24}}) == "control-id"
     assert setting_key("control-id", {"train_config": {"max_steps": 250, "batch_size": 24}}) == \
         "control-id, 250 steps x batch 24"
+
+
+def test_evaluate_runtime_scores_the_compiled_graph(tmp_path, tiny_sim_data, tiny_checkpoint, capsys):
+    """`nemsim evaluate --runtime` rolls out through the compiled runtime the service uses and records which
+    ran: OpenVINO f32 agrees with PyTorch f32 (the same graph), bf16 is close, and a GPU device is refused."""
+    from nemsim.cli import main
+
+    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--data", str(tiny_sim_data), "--setting",
+            "control-id", "--no-cd", "--batch-size", "2"]  # fmt: skip
+    scores = {}
+    for rt in RUNTIMES:
+        js = tmp_path / f"{rt}.json"
+        assert main([*args, "--runtime", rt, "--json", str(js)]) == 0
+        result = json.loads(js.read_text())
+        assert result["runtime"] == rt and result["n_cases"] == 3
+        assert f"{rt})" in capsys.readouterr().out
+        scores[rt] = result["avg_rmse"]
+    assert scores["torch-bf16"] == pytest.approx(scores["torch-f32"], rel=0.05)
+    if "openvino-f32" in scores:
+        assert scores["openvino-f32"] == pytest.approx(scores["torch-f32"], rel=1e-4)
+    assert main([*args, "--runtime", "openvino-f32", "--device", "cuda"]) == 2
+    assert "CPU only" in capsys.readouterr().err
