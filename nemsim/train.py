@@ -348,9 +348,9 @@ def run(args: argparse.Namespace) -> int:
             _test_best(args, out, manifest, scene, cfg.rollout_steps)
     finally:
         if dist.is_initialized():
-            # the DDP wrapper and its reducer sit in reference cycles: free them while the group they use
-            # still exists, not at interpreter exit after it is gone (a rank then died with SIGABRT,
-            # "terminate called without an active exception", in about 1 of 10-30 test runs)
+            # the DDP wrapper and its reducer can sit in reference cycles: free them while the group they
+            # use still exists, not at interpreter exit after it is gone (without this a rank died with
+            # SIGABRT, "terminate called without an active exception", in about 1 of 10-30 test runs)
             gc.collect()
             dist.destroy_process_group()
     return 0
