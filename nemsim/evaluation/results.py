@@ -240,15 +240,18 @@ def results_markdown(results: dict, figure: str | None = None) -> str:
                  f"CD {_f(nf.get('cd'), '.3f')} vox.")  # fmt: skip
     sp = results.get("speed") or {}
     if sp.get("simulator_s") is not None and sp.get("nemsim_s"):
-        which = ", ".join(str(v) for v in (Path(sp["nemsim_checkpoint"]).name if sp.get("nemsim_checkpoint")
-                                           else None, sp.get("nemsim_runtime")) if v)
+        source = ["`nemsim bench speed-error`"]
+        if sp.get("nemsim_checkpoint"):
+            source.append(Path(sp["nemsim_checkpoint"]).name)
+        if sp.get("nemsim_runtime"):
+            source.append(sp["nemsim_runtime"])
         eq = sp.get("equal_accuracy") or {}
         at_eq = ""
         if eq.get("speedup"):
             at_eq = (f"; at equal accuracy (the simulator's time at NEMSim's error) "
                      f"{_BOUND_WORD.get(str(eq.get('bound')), '')}{eq['speedup']:.1f}x")
         lines.append(
-            f"Speed (`nemsim bench speed-error`{', ' + which if which else ''}, batch 1): simulator "
+            f"Speed ({', '.join(source)}, batch 1): simulator "
             f"{sp['simulator_s']:.3g} s per trajectory, NEMSim {sp['nemsim_s']:.3g} s, "
             f"{sp['simulator_s'] / sp['nemsim_s']:.1f}x faster{at_eq}."
         )
