@@ -172,10 +172,10 @@ def _trajectory_buffer(x0: torch.Tensor, T: int, keep: bool, out: torch.Tensor |
 
 def steps_per_call(model: nn.Module) -> int:
     """k, the states one call of ``model`` predicts: ``model.config.steps_per_call`` if the model has
-    ``predict``, else 1."""
+    ``predict``, else 1 (as ``runtime.model_predict`` calls it)."""
     if not callable(getattr(model, "predict", None)):
         return 1
-    return int(getattr(getattr(model, "config", None), "steps_per_call", 1))
+    return int(getattr(getattr(model, "config", None), "steps_per_call", 1) or 1)
 
 
 def _chunk_length(changed: list[bool], t: int, k: int, T: int) -> int:

@@ -64,6 +64,7 @@ from torch import nn
 from torch.utils import _pytree as pytree
 
 from nemsim.controls import N_CONTROLS
+from nemsim.evaluation.rollout import steps_per_call
 
 log = logging.getLogger(__name__)
 
@@ -94,11 +95,6 @@ def openvino_available() -> bool:
     except ImportError:
         return False
     return True
-
-
-def steps_per_call(model: nn.Module) -> int:
-    """k: states one network call predicts (``model.config.steps_per_call``, 1 when absent)."""
-    return int(getattr(getattr(model, "config", None), "steps_per_call", 1) or 1)
 
 
 def model_precompute(model: nn.Module, u: torch.Tensor) -> dict[str, Any]:
