@@ -65,12 +65,16 @@ class StateEncoder(nn.Module):
         self.to_context = nn.Sequential(nn.Linear(2 * w3, cfg.context_dim), nn.SiLU())
 
     def forward(
-        self, x: torch.Tensor
+        self, x: torch.Tensor, extra: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``extra`` (B, stem, D/2, H/2, W/2), optional: added to the stem's output (the transport input)."""
         B, C, D, H, W = x.shape
         f = self.cfg.downsample
         assert D % f == 0 and H % f == 0 and W % f == 0, f"encoder input {(D, H, W)} not a multiple of {f}"
-        b = self.level1(self.stem(x))  # (B, w1, D/2, H/2, W/2)
+        h = self.stem(x)  # (B, stem, D/2, H/2, W/2)
+        if extra is not None:
+            h = h + extra.to(h.dtype)
+        b = self.level1(h)  # (B, w1, D/2, H/2, W/2)
         e2 = self.level2(b)  # (B, w2, d, h, w)
         e3 = self.level3(e2)  # (B, w3, ~d/2, ~h/2, ~w/2)
         coarse = self.latent_coarse(e3)  # (B, C_z, ~d/2, ~h/2, ~w/2)

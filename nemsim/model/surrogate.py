@@ -42,6 +42,10 @@ Choices where the paper is silent:
     ion-flux gate reads the true controls. The identity on in-box controls, bit for bit, so training and
     in-box predictions are unchanged. Checkpoints written before the key existed load with it on; None
     turns it off (the network reads the controls as given).
+  * ``transport_input`` (default off): the line-of-sight direct flux of the four species with an angular
+    control, computed from the state and the angular exponents (``nemsim.model.transport``), added to the
+    encoder's stem output by a 1x1x1 convolution that starts at zero (a warm start is exact). Checkpoints
+    written before the key existed load with it off.
 
 Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
 the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,
@@ -74,11 +78,13 @@ from nemsim.model.decoder import DecoderConfig, ResidualDecoder
 from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredIntensity
 from nemsim.model.encoder import EncoderConfig, StateEncoder
 from nemsim.model.gate import ion_flux_gate
+from nemsim.model.layers import Conv3d
 from nemsim.model.mac import MACConfig, MechanismAttributionCompiler
 from nemsim.model.monotone import MONOTONE_AXIS_EPS, MONOTONE_EPS
 from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
 from nemsim.model.saturation import CONTROL_SATURATION, check_saturation, saturate_controls
+from nemsim.model.transport import TransportConfig, species_weights, transport_field
 from nemsim.model.window import WindowRun, splice_latent
 
 
@@ -108,6 +114,9 @@ class NEMSimConfig:
     monotone_axis_eps: float | None = MONOTONE_AXIS_EPS
     # (knee, limit) box half-widths: the learned parts read saturated controls; None: off (saturation.py)
     control_saturation: tuple[float, float] | None = CONTROL_SATURATION
+    # line-of-sight direct flux of the four angular species as encoder input (nemsim.model.transport)
+    transport_input: bool = False
+    transport: TransportConfig = field(default_factory=TransportConfig)
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -191,6 +200,14 @@ class NEMSim(nn.Module):
                           steps=cfg.steps_per_call, refine=cfg.decoder_refine)
         )
         self.multiple = self.encoder.cfg.downsample
+        # transport_input: Φ (4 channels at 1/2 resolution) added to the stem's output by a 1x1x1
+        # convolution that starts at zero, so a warm-started model predicts exactly what it did before
+        self.transport_in: Conv3d | None = None
+        if cfg.transport_input:
+            conv = Conv3d(4, cfg.stem, 1)
+            nn.init.zeros_(conv.weight)
+            nn.init.zeros_(conv.bias)  # type: ignore[arg-type]
+            self.transport_in = conv
 
     @property
     def rules_sha256(self) -> str:
@@ -229,6 +246,8 @@ class NEMSim(nn.Module):
             "mrc": self.mrc.precompute(self.rules, fused=fused),
             # flux_gate: g (B, 1, 1, 1, 1) scaling the update (nemsim.model.gate)
             "gate": ion_flux_gate(u_true)[:, None, None, None, None] if self.config.flux_gate else None,
+            # transport_input: species weights of the rays (B, 4, K) (nemsim.model.transport)
+            "transport": species_weights(u, self.config.transport) if self.transport_in is not None else None,
         }
 
     def predict(self, x: torch.Tensor, cache: dict[str, Any], return_aux: bool = False,
@@ -291,7 +310,11 @@ class NEMSim(nn.Module):
         # The output is projected onto the same range (clamp_output, see the module docstring).
         xin = x.clamp(-1.0, 1.0) if self.config.clamp_input else x
         xp = self._pad(xin)  # (B, 2, D', H', W')
-        z, b, z_bar = self.encoder(xp)  # (B, C_z, d, h, w), (B, 12, D'/2, ..), (B, K)
+        extra = None
+        if self.transport_in is not None:  # Φ from the padded state: (B, 4, D'/2, H'/2, W'/2) -> stem width
+            tc = self.config.transport
+            extra = self.transport_in(transport_field(xp, cache["transport"], tc).mul_(tc.gain))
+        z, b, z_bar = self.encoder(xp, extra)  # (B, C_z, d, h, w), (B, 12, D'/2, ..), (B, K)
         eic = self.eic(z_bar, u, self.rules, cache["eic"])
         lam = eic["lam"]  # (B, E)
         alpha = self.mac(lam, z_bar, u, self.rules, cache["mac"])  # (B, E, M)
