@@ -21,11 +21,11 @@ species with an angular control (neutral Cl, Cl+, Cl2+, Ar+, in the order of ``n
     the law the simulator samples its source directions from;
   * S_d(cell): the solid material (mask or Si) a straight ray from the cell towards direction d crosses before
     it leaves the top of the box, in 1/2-resolution cells; the ray's transmittance is max(0, 1 - κ S_d)
-    (``kappa``; 1: one cell of solid blocks it; a clamp, not exp(-κ S): a third of the cost, and direct flux
-    through solid is nil either way). The
-    material fraction of a voxel is read from its normalized distance: clamp(1/2 - ``sdf_scale`` · min(x), 0,
-    1), ``sdf_scale`` = the SDF clipping distance in voxels (7.5 on ``small``: 30 nm / 4 nm), then averaged
-    over the 2x2x2 voxels of a cell;
+    (``kappa``; 1: one cell of solid blocks it; a clamp rather than exp(-κ S), one exponential fewer per ray
+    and cell, and direct flux through solid is nil either way). The material fraction of a voxel is read
+    from its normalized distance: clamp(1/2 - ``sdf_scale`` · min(x), 0, 1), ``sdf_scale`` = the SDF
+    clipping distance in voxels (7.5 on ``small``: 30 nm / 4 nm), then averaged over the 2x2x2 voxels of a
+    cell;
   * rays run on the cell grid: i levels below the top of the box the ray is shifted laterally by
     -round(i · tan θ) cells, periodic in x and y as the simulator's domain is (a shear of the volume, a
     cumulative sum down each sheared column and the inverse shear: two gathers and a cumsum, no loop over
@@ -35,7 +35,8 @@ Choices and limits: no reflection, re-emission or surface reaction (the simulato
 direct flux, the part of transport that is pure geometry; the network still learns the rest. Only material
 above a cell shadows it, so a depth-windowed call (``nemsim.model.window``: a slab from ``a`` to the top of
 the box) computes it exactly on its slab. The weights depend only on the controls (``precompute``); the
-rays only on the state.
+rays only on the state. What it did for the model, and what it costs per rollout:
+``benchmarks/small/physics/levers.md``.
 """
 
 from __future__ import annotations
@@ -61,8 +62,7 @@ class TransportConfig:
     sdf_scale: float = 7.5  # SDF clipping distance in voxels (x = SDF / d_max): material fraction from x
     # NEMSim multiplies Φ by gain before its zero-initialized input convolution: with Adam a weight moves by
     # about the learning rate per step whatever its gradient's scale, so gain is that path's learning-rate
-    # multiplier (a warm start's gentle rate left a new path at 1 nearly unused: weights ~4e-3 after 2,500
-    # steps at 5e-5)
+    # multiplier (at 1, a warm start's gentle rate left the new path nearly unused; levers.md)
     gain: float = 1.0
 
     def __post_init__(self) -> None:
@@ -92,9 +92,9 @@ def directions(cfg: TransportConfig) -> tuple[torch.Tensor, torch.Tensor, torch.
 
 def species_weights(u: torch.Tensor, cfg: TransportConfig) -> torch.Tensor:
     """w (B, 4, K) float32 from normalized controls u (B, 14): cos^m(θ_d) Ω_d, normalized over d."""
-    theta, _, omega = directions(cfg)
+    theta, _, omega = (t.to(u.device) for t in directions(cfg))
     idx = [control_index(n) for n in ANGLE_CONTROLS]
-    low, high = torch.from_numpy(T_LOW[idx]), torch.from_numpy(T_HIGH[idx])  # exponents: linear, not logged
+    low, high = (torch.from_numpy(a[idx]).to(u.device) for a in (T_LOW, T_HIGH))  # exponents: linear scale
     m = (low + (u[:, idx].double() + 1) / 2 * (high - low)).clamp_min(0.0)  # (B, 4) physical exponents
     logw = m[:, :, None] * torch.log(torch.cos(theta))[None, None] + torch.log(omega)[None, None]  # (B, 4, K)
     return torch.softmax(logw, dim=-1).float()
@@ -135,7 +135,7 @@ def transport_field(x: torch.Tensor, weights: torch.Tensor, cfg: TransportConfig
     cell, from the padded state x (B, 2, D, H, W) and ``weights = species_weights(u)`` (B, 4, K)."""
     o = material_cells(x, cfg).flip(1)  # (B, d, h, w), top level first
     B, d, h, w = o.shape
-    fwd, inv = shear_index(d, h, w, cfg)  # (d, K*h*w)
+    fwd, inv = (t.to(o.device) for t in shear_index(d, h, w, cfg))  # (d, K*h*w)
     K = fwd.shape[1] // (h * w)
     sheared = torch.gather(o.reshape(B, d, h * w), 2, fwd.expand(B, d, K * h * w))  # (B, d, K*h*w): rays
     above = sheared.cumsum(1).sub_(sheared)  # material strictly above each cell along its ray
