@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from nemsim.controls import T_HIGH, T_LOW, control_index
+from nemsim.controls import control_index, denormalize
 
 # the four angular controls, in the order of the output channels
 ANGLE_CONTROLS = ("angle_cl", "angle_cl_plus", "angle_cl2_plus", "angle_ar_plus")
@@ -73,8 +73,10 @@ class TransportConfig:
             raise ValueError("azimuths must be >= 1, kappa, sdf_scale and gain > 0")
 
 
+@functools.lru_cache(maxsize=16)
 def directions(cfg: TransportConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(θ (K,) rad, lateral step per level (K, 2) as (dy, dx) cells, solid angle Ω (K,)) of the K rays."""
+    """(θ (K,) rad, lateral step per level (K, 2) as (dy, dx) cells, solid angle Ω (K,)) of the K rays
+    (cached: every ``precompute`` asks for them; callers do not modify them)."""
     theta = [math.radians(t) for t in cfg.polar_deg]
     edges = [0.0] + [(a + b) / 2 for a, b in zip(theta[:-1], theta[1:], strict=True)] + [math.pi / 2]
     th, step, omega = [], [], []
@@ -94,8 +96,7 @@ def species_weights(u: torch.Tensor, cfg: TransportConfig) -> torch.Tensor:
     """w (B, 4, K) float32 from normalized controls u (B, 14): cos^m(θ_d) Ω_d, normalized over d."""
     theta, _, omega = (t.to(u.device) for t in directions(cfg))
     idx = [control_index(n) for n in ANGLE_CONTROLS]
-    low, high = (torch.from_numpy(a[idx]).to(u.device) for a in (T_LOW, T_HIGH))  # exponents: linear scale
-    m = (low + (u[:, idx].double() + 1) / 2 * (high - low)).clamp_min(0.0)  # (B, 4) physical exponents
+    m = denormalize(u.double())[:, idx].clamp_min(0.0)  # (B, 4) physical exponents (not log-transformed)
     logw = m[:, :, None] * torch.log(torch.cos(theta))[None, None] + torch.log(omega)[None, None]  # (B, 4, K)
     return torch.softmax(logw, dim=-1).float()
 
