@@ -180,14 +180,20 @@ def _add_data(sub: argparse._SubParsersAction) -> None:
             "The defaults reproduce the paper's 500-case design. --kind corners draws distinct random "
             "corners of the box instead (every control at its minimum or maximum), never the physics "
             "benchmark's held-out corners: extra training cases where the Latin hypercube has none. "
+            "--kind pairs writes N/2 sweep pairs: a Latin-hypercube recipe, then the same recipe with one "
+            "control group (each flux, the ion energies, the ion angular exponents, the neutral angular "
+            "exponent, in turn) moved to another level, and a seed_id column that gives both rows one "
+            "simulator seed (common random numbers): training data for `pair_loss_weight`. "
             "Examples: nemsim design --out data/design.csv; "
-            "nemsim design --kind corners --n 300 --seed 44 --out data/design-corners.csv"
+            "nemsim design --kind corners --n 300 --seed 44 --out data/design-corners.csv; "
+            "nemsim design --kind pairs --n 600 --seed 45 --out data/design-pairs.csv"
         ),
     )
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
     p.add_argument("--seed", type=int, default=42, help="random seed (default 42, the paper's design)")
-    p.add_argument("--kind", choices=("lhs", "corners"), default="lhs",
-                   help="lhs: Latin hypercube (default, the paper's); corners: random corners of the box")
+    p.add_argument("--kind", choices=("lhs", "corners", "pairs"), default="lhs",
+                   help="lhs: Latin hypercube (default, the paper's); corners: random corners of the box; "
+                        "pairs: N/2 one-group sweep pairs with shared seeds (N even)")
     p.add_argument("--out", required=True, metavar="FILE.csv",
                    help="output CSV (overwritten; missing folders are created)")
     p.set_defaults(handler=_cmd_design)
@@ -280,11 +286,17 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
 
 
 def _cmd_design(args: argparse.Namespace) -> int:
-    from nemsim.controls import corner_design, lhs_design, write_controls_csv
+    from nemsim.controls import corner_design, lhs_design, pair_design, write_controls_csv
 
     if args.n < 1:
         raise UserError(f"--n must be >= 1, got {args.n}")
-    if args.kind == "corners":
+    seed_ids = None
+    if args.kind == "pairs":
+        if args.n % 2:
+            raise UserError(f"--kind pairs needs an even --n (two cases per pair), got {args.n}")
+        raw, seed_ids = pair_design(args.n // 2, args.seed)
+        what = f"{args.n // 2} sweep pairs, seed {args.seed}, each pair one simulator seed (column seed_id)"
+    elif args.kind == "corners":
         from nemsim.evaluation.physics import PhysicsConfig, box_corners
 
         held_out = box_corners(PhysicsConfig.corners, PhysicsConfig.heldout_seed)
@@ -295,7 +307,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
         what = f"random box corners, seed {args.seed}, none of the physics benchmark's {len(held_out)}"
     else:
         raw, what = lhs_design(args.n, args.seed), f"LHS seed {args.seed}"
-    write_controls_csv(_output_path(args.out), raw)
+    write_controls_csv(_output_path(args.out), raw, seed_ids)
     print(f"wrote {args.out}: {args.n} cases x 14 controls ({what})")  # noqa: T201
     return 0
 
@@ -358,7 +370,8 @@ def _add_sim(sub: argparse._SubParsersAction) -> None:
                    help="base simulator seed; per-case seeds derive from it and the case id (default 0)")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output trajectory file")
     p.add_argument("--controls", metavar="FILE.csv", default=None,
-                   help="simulate these control rows instead of the design (header as `nemsim design`)")
+                   help="simulate these control rows instead of the design (header as `nemsim design`; "
+                        "a seed_id column gives a row the seed of that case id)")
     p.add_argument("--cases", metavar="A-B", default=None,
                    help="only rows A..B (0-based, inclusive) of the selected cases, e.g. 0-9 (default: all)")
     p.add_argument("--workers", type=int, default=1, help="parallel simulations, one core each (default 1)")
@@ -644,7 +657,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from nemsim.controls import DESIGN_N, check_admissible, lhs_design, read_controls_csv
+    from nemsim.controls import DESIGN_N, check_admissible, lhs_design, read_controls_csv, read_seed_ids
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
     from nemsim.sim.generate import generate_dataset
@@ -657,7 +670,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         if not os.path.isfile(args.controls):
             raise UserError(f"no such file: {args.controls}")
         try:
-            controls = read_controls_csv(args.controls)
+            controls, seed_ids = read_controls_csv(args.controls), read_seed_ids(args.controls)
         except ValueError as exc:
             raise UserError(str(exc)) from exc
         if args.n is not None:
@@ -666,11 +679,12 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         n = DESIGN_N if args.n is None else args.n
         if not 1 <= n <= DESIGN_N:
             raise UserError(f"--n must be in [1, {DESIGN_N}], got {n}")
-        controls = lhs_design()[:n]
+        controls, seed_ids = lhs_design()[:n], None
     case_ids = np.arange(len(controls))
+    seeds_from = case_ids if seed_ids is None else seed_ids[: len(controls)]
     if args.cases:
         lo, hi = _parse_range(args.cases, len(controls))
-        controls, case_ids = controls[lo : hi + 1], case_ids[lo : hi + 1]
+        controls, case_ids, seeds_from = controls[lo : hi + 1], case_ids[lo : hi + 1], seeds_from[lo : hi + 1]
     for cid, row in zip(case_ids, controls, strict=True):
         bad = check_admissible(row)
         if bad:
@@ -680,7 +694,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         report = generate_dataset(
             args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,  # type: ignore[arg-type]
             workers=args.workers, executor=args.executor, progress=not args.no_progress,
-            state_dtype=args.state_dtype,
+            state_dtype=args.state_dtype, seed_ids=[int(s) for s in seeds_from],
         )  # fmt: skip
     except RuntimeError as exc:  # e.g. Ray missing
         raise UserError(str(exc)) from exc

@@ -118,6 +118,20 @@ CONTROL_INDEX: dict[str, int] = {n: i for i, n in enumerate(CONTROL_NAMES)}
 FLUX_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "log")
 INT_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "int")
 
+ION_ENERGIES = ("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus")
+# The controls an engineer moves together: each flux alone, the three ion energies, the three ion angular
+# exponents, the neutral angular exponent. The physics benchmark sweeps each group from the median recipe;
+# ``pair_design`` moves one group per pair.
+CONTROL_GROUPS: dict[str, tuple[str, ...]] = {
+    "flux_cl_plus": ("flux_cl_plus",),
+    "flux_ar_plus": ("flux_ar_plus",),
+    "flux_cl2_plus": ("flux_cl2_plus",),
+    "flux_cl": ("flux_cl",),
+    "ion_energy": ION_ENERGIES,
+    "ion_angle": ("angle_cl_plus", "angle_cl2_plus", "angle_ar_plus"),
+    "neutral_angle": ("angle_cl",),
+}
+
 # Fixed bounds as arrays (14,)
 LOW = np.array([s.low for s in CONTROL_SPECS], dtype=np.float64)
 HIGH = np.array([s.high for s in CONTROL_SPECS], dtype=np.float64)
@@ -258,6 +272,55 @@ def lhs_design(n: int = DESIGN_N, seed: int = DESIGN_SEED) -> np.ndarray:
     return from_unit(lhs_unit(n, seed))
 
 
+def round_int_controls(raw: np.ndarray) -> np.ndarray:
+    """raw (..., 14) with the integer controls (angular exponents) rounded to the nearest integer."""
+    out = np.array(raw, dtype=np.float64)
+    out[..., list(INT_INDICES)] = np.round(out[..., list(INT_INDICES)])
+    return out
+
+
+def set_group(raw: np.ndarray, names: tuple[str, ...], u: float) -> np.ndarray:
+    """raw (14,) with the controls ``names`` set to the normalized value ``u`` (integers not rounded)."""
+    at = from_normalized(np.full(N_CONTROLS, float(u)))
+    out = np.array(raw, dtype=np.float64)
+    for n in names:
+        out[CONTROL_INDEX[n]] = at[CONTROL_INDEX[n]]
+    return out
+
+
+def pair_design(n_pairs: int, seed: int, min_move: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Sweep pairs: (2 n_pairs, 14) raw controls and (2 n_pairs,) seed ids, rows (base_i, partner_i).
+
+    Base i is point i of a Latin hypercube of ``n_pairs`` points (seed ``seed``). Its partner moves one
+    control group (``CONTROL_GROUPS``, in turn: pair i moves group i mod 7) to one normalized level v, drawn
+    uniformly in [-1, 1] at least ``min_move`` away from the mean normalized level of the base's group, as
+    a one-at-a-time sweep does; every other control is the base's. Both rows get the seed id of the base
+    (row 2i): simulated with that one seed (``nemsim generate`` reads the ``seed_id`` column), the pair
+    shares its random numbers, so the simulated difference of the pair carries the response to the group
+    with little of the Monte Carlo noise of two independent runs (common random numbers).
+    Why: a Latin hypercube moves every control at once, and the responses to the angular exponents and the
+    neutral flux were missed by every model trained on one (benchmarks/small/physics/levers.md); the pairs
+    give a training loss on the predicted difference (``TrainConfig.pair_loss_weight``).
+    """
+    if n_pairs < 1:
+        raise ValueError(f"n_pairs must be >= 1, got {n_pairs}")
+    if not 0.0 <= min_move <= 1.0:
+        raise ValueError(f"min_move must be in [0, 1], got {min_move}")
+    bases = lhs_design(n_pairs, seed)  # (P, 14)
+    rng = np.random.default_rng([seed, 1])  # the levels: independent of the hypercube's stream
+    groups = list(CONTROL_GROUPS.values())
+    rows, seed_ids = [], []
+    for i, base in enumerate(bases):
+        names = groups[i % len(groups)]
+        mean = float(np.mean(to_normalized(base)[[CONTROL_INDEX[n] for n in names]]))
+        v = float(rng.uniform(-1.0, 1.0))
+        while abs(v - mean) < min_move:
+            v = float(rng.uniform(-1.0, 1.0))
+        rows += [base, round_int_controls(set_group(base, names, v))]
+        seed_ids += [2 * i, 2 * i]
+    return np.stack(rows), np.array(seed_ids, dtype=np.int64)
+
+
 def box_corner(signs: np.ndarray) -> np.ndarray:
     """(..., 14) signs (> 0: maximum, else minimum) -> raw controls exactly at the design box's bounds."""
     return np.where(np.asarray(signs) > 0, HIGH, LOW)
@@ -323,25 +386,51 @@ def outside_design_range(raw: np.ndarray) -> list[str]:
 # --- CSV -----------------------------------------------------------------------------------------------
 
 
-def write_controls_csv(path: str | Path, raw: np.ndarray) -> None:
-    """Write raw controls (N, 14): header = CONTROL_NAMES, one row per case, full float precision."""
+def write_controls_csv(path: str | Path, raw: np.ndarray, seed_ids: np.ndarray | None = None) -> None:
+    """Write raw controls (N, 14): header = CONTROL_NAMES, one row per case, full float precision; with
+    ``seed_ids`` (N,) a last column ``seed_id``: the case id whose simulator seed the case uses."""
     raw = np.asarray(raw, dtype=np.float64)
     if raw.ndim != 2 or raw.shape[1] != N_CONTROLS:
         raise ValueError(f"controls must have shape (N, {N_CONTROLS}); got {raw.shape}")
+    if seed_ids is not None and len(seed_ids) != len(raw):
+        raise ValueError(f"{len(seed_ids)} seed ids for {len(raw)} cases")
     is_int = [s.kind == "int" for s in CONTROL_SPECS]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(CONTROL_NAMES)
-        for row in raw:
-            w.writerow([str(int(v)) if k and float(v).is_integer() else repr(float(v))
-                        for v, k in zip(row, is_int, strict=True)])
+        w.writerow(CONTROL_NAMES + (() if seed_ids is None else ("seed_id",)))
+        for i, row in enumerate(raw):
+            cells = [str(int(v)) if k and float(v).is_integer() else repr(float(v))
+                     for v, k in zip(row, is_int, strict=True)]
+            w.writerow(cells if seed_ids is None else cells + [str(int(seed_ids[i]))])
+
+
+def read_seed_ids(path: str | Path) -> np.ndarray | None:
+    """The ``seed_id`` column of a controls CSV as (N,) int64 (written by ``pair_design``'s ``nemsim design
+    --kind pairs``), or None if it has none."""
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    header = [h.strip() for h in rows[0]] if rows else []
+    if "seed_id" not in header:
+        return None
+    j = header.index("seed_id")
+    out = np.empty(len(rows) - 1, dtype=np.int64)
+    for r, row in enumerate(rows[1:]):
+        try:
+            out[r] = int(row[j])
+        except (ValueError, IndexError):
+            raise ValueError(f"{path}: row {r + 2}, column 'seed_id': not an integer: "
+                             f"{row[j] if j < len(row) else ''!r}") from None
+        if out[r] < 0:
+            raise ValueError(f"{path}: row {r + 2}, column 'seed_id': must be >= 0, got {out[r]}")
+    return out
 
 
 def read_controls_csv(path: str | Path) -> np.ndarray:
     """Read a controls CSV -> (N, 14) float64 in CONTROL_NAMES order.
 
-    The header must name each of the 14 controls exactly once (any order); an optional ``case_id`` column is
-    ignored. Raises ValueError naming missing, unknown or duplicate columns, or the row/column of a bad value.
+    The header must name each of the 14 controls exactly once (any order); optional ``case_id`` and
+    ``seed_id`` columns are ignored (``read_seed_ids`` reads the latter). Raises ValueError naming missing,
+    unknown or duplicate columns, or the row/column of a bad value.
     """
     with open(path, newline="") as fh:
         rows = list(csv.reader(fh))
@@ -349,7 +438,7 @@ def read_controls_csv(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: empty file; expected a header with {list(CONTROL_NAMES)}")
     header = [h.strip() for h in rows[0]]
     dup = sorted({h for h in header if header.count(h) > 1})
-    unknown = [h for h in header if h not in CONTROL_INDEX and h != "case_id"]
+    unknown = [h for h in header if h not in CONTROL_INDEX and h not in ("case_id", "seed_id")]
     missing = [n for n in CONTROL_NAMES if n not in header]
     problems = []
     if missing:

@@ -67,6 +67,12 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "design of the same scene, simulator configuration and rules, e.g. `nemsim "
                         "design --n 1500 --seed 43` simulated with `nemsim generate --controls`; validation "
                         "and test stay those of --data's split, so the paper protocol's cases are unchanged")
+    p.add_argument("--pair-data", type=Path, metavar="FILE.h5",
+                   help="sweep pairs to add to every batch (`pairs_per_step`, default 4) with a loss on "
+                        "their predicted difference (`pair_loss_weight` in --config): the cases of this "
+                        "file that share a simulator seed, e.g. `nemsim design --kind pairs --n 600 --seed "
+                        "45` simulated with `nemsim generate --controls`; same scene, simulator "
+                        "configuration and rules as --data")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init-from", type=Path,
                    help="start from this checkpoint's weights (same model and rules); parameters it "
@@ -225,24 +231,41 @@ def _log_to_file(out: Path) -> None:
         logging.getLogger().setLevel(logging.INFO)
 
 
-def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
-    """Every complete case of an extra trajectory file as training items, after checking that it was made
-    by the same scene, simulator configuration and rules as the main data file (``--extra-data``)."""
-    from nemsim.data.dataset import TransitionDataset
+def _check_like_data(path: Path, tf: Any, flag: str) -> None:
+    """Refuse a further trajectory file (``flag`` = --extra-data or --pair-data) that is missing, has no
+    complete case, or was not made by the main data file's scene, simulator configuration and rules."""
     from nemsim.data.hdf5 import open_trajectories
 
     if not Path(path).is_file():
-        raise TrainInputError(f"--extra-data {path} does not exist")
-    with open_trajectories(path) as extra:
-        checks = (("scene", extra.scene, tf.scene), ("rules", extra.rules_sha256, tf.rules_sha256),
-                  ("simulator configuration", extra.generator.get("config"), tf.generator.get("config")),
-                  ("states per case", extra.n_states, tf.n_states))
+        raise TrainInputError(f"{flag} {path} does not exist")
+    with open_trajectories(path) as other:
+        checks = (("scene", other.scene, tf.scene), ("rules", other.rules_sha256, tf.rules_sha256),
+                  ("simulator configuration", other.generator.get("config"), tf.generator.get("config")),
+                  ("states per case", other.n_states, tf.n_states))
         for what, theirs, ours in checks:
             if theirs != ours:
-                raise TrainInputError(f"--extra-data {path}: its {what} differs from {tf.path}'s")
-        if not extra.complete.any():
-            raise TrainInputError(f"--extra-data {path} has no complete case")
+                raise TrainInputError(f"{flag} {path}: its {what} differs from {tf.path}'s")
+        if not other.complete.any():
+            raise TrainInputError(f"{flag} {path} has no complete case")
+
+
+def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
+    """Every complete case of an extra trajectory file as training items (``--extra-data``)."""
+    from nemsim.data.dataset import TransitionDataset
+
+    _check_like_data(path, tf, "--extra-data")
     return TransitionDataset(path, None, "train", visible_transitions=visible, unroll=unroll)
+
+
+def _pair_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
+    """The sweep pairs of a pair file (``--pair-data``; ``TrainConfig.pair_loss_weight``)."""
+    from nemsim.data.dataset import PairDataset
+
+    _check_like_data(path, tf, "--pair-data")
+    try:
+        return PairDataset(path, unroll=unroll, visible_transitions=visible)
+    except ValueError as exc:
+        raise TrainInputError(str(exc)) from None
 
 
 def _load_data(args: argparse.Namespace, cfg: Any, model_overrides: dict[str, Any]) -> tuple[Any, dict, Any]:
@@ -278,7 +301,14 @@ def _load_data(args: argparse.Namespace, cfg: Any, model_overrides: dict[str, An
     if extra_sets:
         log.info("extra training data: %s", ", ".join(f"{e.path} ({len(e.rows)} cases)" for e in extra_sets))
         train_set = TransitionSets([train_set, *extra_sets])
-    data = TrainData(train=train_set, val=TrajectoryDataset(args.data, manifest, "val"))
+    pairs = None if args.pair_data is None else _pair_set(args.pair_data, tf, visible, unroll)
+    if pairs is not None:
+        log.info("sweep pairs: %s (%d pairs), %d per step, pair_loss_weight %g", args.pair_data,
+                 len(pairs.pairs), cfg.pairs_per_step, cfg.pair_loss_weight)
+    elif cfg.pair_loss_weight > 0:
+        raise TrainInputError("pair_loss_weight > 0 needs --pair-data FILE.h5 (sweep pairs: `nemsim design "
+                              "--kind pairs`, then `nemsim generate --controls`)")
+    data = TrainData(train=train_set, val=TrajectoryDataset(args.data, manifest, "val"), pairs=pairs)
     log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", args.setting,
              len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)
     return tf, manifest, data

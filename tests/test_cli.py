@@ -325,3 +325,15 @@ def test_make_test_runs_pytest_with_a_single_quiet_flag():
     )
     quiet = sum(tok.count("q") for tok in (recipe[0] + " " + addopts).split() if tok.startswith("-q"))
     assert len(recipe) == 1 and quiet == 1  # -qq hides the "N passed, M skipped" line
+
+
+def test_design_pairs_write_a_seed_id_column_and_need_an_even_n(tmp_path, capsys):
+    from nemsim.controls import read_controls_csv, read_seed_ids
+
+    out = tmp_path / "pairs.csv"
+    assert main(["design", "--kind", "pairs", "--n", "14", "--seed", "3", "--out", str(out)]) == 0
+    assert read_controls_csv(out).shape == (14, 14)
+    np.testing.assert_array_equal(read_seed_ids(out), np.repeat(np.arange(0, 14, 2), 2))
+    assert "7 sweep pairs" in capsys.readouterr().out
+    assert main(["design", "--kind", "pairs", "--n", "7", "--out", str(out)]) == 2
+    assert "even --n" in capsys.readouterr().err

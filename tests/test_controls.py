@@ -151,3 +151,30 @@ def test_n_controls_is_defined_once():
     defining = [p.relative_to(root).as_posix() for p in root.rglob("*.py") if pattern.search(p.read_text())]
     assert defining == ["controls.py"]
     assert C.N_CONTROLS == len(C.CONTROL_SPECS) == 14
+
+
+def test_pair_design_moves_one_group_per_pair_and_shares_the_seed(tmp_path):
+    raw, seed_ids = C.pair_design(21, 5)
+    assert raw.shape == (42, 14) and not C.check_admissible(raw) and not C.outside_design_range(raw)
+    np.testing.assert_array_equal(seed_ids, np.repeat(np.arange(0, 42, 2), 2))  # the base's case id, twice
+    np.testing.assert_array_equal(raw[0::2], C.lhs_design(21, 5))  # the bases are a Latin hypercube
+    groups = list(C.CONTROL_GROUPS.values())
+    norm = C.to_normalized(raw)
+    for i in range(21):
+        cols = [C.CONTROL_INDEX[n] for n in groups[i % 7]]  # the groups in turn
+        others = [j for j in range(14) if j not in cols]
+        np.testing.assert_array_equal(raw[2 * i + 1, others], raw[2 * i, others])
+        level = norm[2 * i + 1, cols]  # one normalized level for the whole group (integers rounded)
+        assert np.ptp(level) < 0.01
+        assert abs(level.mean() - norm[2 * i, cols].mean()) >= 0.5 - 0.01  # moved at least min_move
+    again, _ = C.pair_design(21, 5)
+    np.testing.assert_array_equal(again, raw)  # the seed decides
+    with pytest.raises(ValueError, match="n_pairs"):
+        C.pair_design(0, 5)
+
+    path = tmp_path / "pairs.csv"  # the seed ids travel in a column the controls reader ignores
+    C.write_controls_csv(path, raw, seed_ids)
+    np.testing.assert_array_equal(C.read_controls_csv(path), raw)
+    np.testing.assert_array_equal(C.read_seed_ids(path), seed_ids)
+    C.write_controls_csv(path, raw)
+    assert C.read_seed_ids(path) is None

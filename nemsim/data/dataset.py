@@ -186,3 +186,56 @@ class TrajectoryDataset(_H5Backed):
         k = int(i) % len(self)
         states = np.asarray(self._dataset()[int(self.rows[k])], dtype=np.float32)  # (T, 2, D, H, W)
         return int(self.case_ids[k]), torch.from_numpy(states), torch.from_numpy(np.array(self.u[k]))
+
+
+class PairDataset(Dataset):
+    """Sweep pairs of a trajectory file (``nemsim design --kind pairs``) as paired k-step samples.
+
+    The pairs are the cases that share a stored simulator seed, two by two (``nemsim.sim.generate``: the
+    ``seed_id`` column); cases with a seed of their own are not used, and a seed held by more than two
+    cases is refused. Item (pair p, start t) is the two cases' items at the same t of a
+    ``TransitionDataset`` over the whole file (its ``unroll`` and ``visible_transitions``), stacked on a new
+    leading axis: x (2, 2, D, H, W), u (2, n, 14), y (2, n, 2, D, H, W) with n = ``unroll`` (n = 1:
+    u (2, 14), y (2, 2, D, H, W)).
+    Ordering: pair-major (p, t), pairs in the order of their first case's row.
+    """
+
+    def __init__(self, path: str | Path, unroll: int = 1, visible_transitions: int | None = None) -> None:
+        self.base = TransitionDataset(path, None, "train", visible_transitions=visible_transitions,
+                                      unroll=unroll)
+        self.scene, self.unroll = self.base.scene, self.base.unroll
+        with open_trajectories(self.base.path) as tf:
+            seeds = tf.seeds[self.base.rows]  # (n,) seed of each complete case
+        members: dict[int, list[int]] = {}
+        for k, s in enumerate(seeds.tolist()):
+            members.setdefault(int(s), []).append(k)
+        crowded = {s: m for s, m in members.items() if len(m) > 2}
+        if crowded:
+            s, m = next(iter(crowded.items()))
+            ids = [int(self.base.case_ids[k]) for k in m]
+            raise ValueError(f"{path}: {len(crowded)} seeds are shared by more than two cases (seed {s}: "
+                             f"case ids {ids}); a pair file pairs two cases")
+        self.pairs = np.array(sorted(m for m in members.values() if len(m) == 2), dtype=np.int64)  # (P, 2)
+        if not len(self.pairs):
+            raise ValueError(f"{path}: no two complete cases share a simulator seed, so it holds no sweep "
+                             "pair; make one with `nemsim design --kind pairs` and `nemsim generate "
+                             "--controls`")
+        self._starts = self.base._starts
+
+    def __len__(self) -> int:
+        return len(self.pairs) * self._starts
+
+    def case_ids(self, p: int) -> tuple[int, int]:
+        """The two case ids of pair p."""
+        a, b = self.pairs[p]
+        return int(self.base.case_ids[a]), int(self.base.case_ids[b])
+
+    def __getitem__(self, i: int):
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} pair samples")
+        p, t = divmod(int(i) % len(self), self._starts)
+        a, b = (self.base[int(k) * self._starts + t] for k in self.pairs[p])
+        return tuple(torch.stack([ta, tb]) for ta, tb in zip(a, b, strict=True))
+
+    def close(self) -> None:
+        self.base.close()

@@ -46,12 +46,20 @@ from typing import Any
 
 import numpy as np
 
-from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, N_CONTROLS, from_normalized, from_unit, lhs_unit
+from nemsim.controls import (
+    CONTROL_INDEX,
+    FLUX_INDICES,
+    ION_ENERGIES,
+    N_CONTROLS,
+    from_normalized,
+    from_unit,
+    lhs_unit,
+    set_group,
+)
 from nemsim.evaluation.truth import SimTruth, predict, step_rmse
 from nemsim.geometry.profile import profile_metrics_batch
 
 ION_FLUXES = ("flux_ar_plus", "flux_cl_plus", "flux_cl2_plus")
-ION_ENERGIES = ("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus")
 MONOTONE_AXES: dict[str, tuple[str, ...]] = {
     "flux_ar_plus": ("flux_ar_plus",),
     "flux_cl_plus": ("flux_cl_plus",),
@@ -120,17 +128,6 @@ def grid_bases(n: int) -> np.ndarray:
     return np.stack(rows)
 
 
-def set_axis(raw: np.ndarray, names: tuple[str, ...], u: float) -> np.ndarray:
-    """raw (14,) with the controls ``names`` set to normalized value ``u``."""
-    norm = np.zeros(N_CONTROLS)
-    norm[[CONTROL_INDEX[n] for n in names]] = u
-    at = from_normalized(norm)
-    out = np.array(raw, dtype=np.float64)
-    for n in names:
-        out[CONTROL_INDEX[n]] = at[CONTROL_INDEX[n]]
-    return out
-
-
 def monotone_grid(cfg: InvariantConfig) -> list[dict[str, Any]]:
     """Grid lines: [{"axis", "base", "levels" (L,), "raw" (L, 14)}], one per axis and base."""
     lines = []
@@ -138,7 +135,7 @@ def monotone_grid(cfg: InvariantConfig) -> list[dict[str, Any]]:
     for b, base in enumerate(grid_bases(cfg.pair_bases)):
         for axis, names in MONOTONE_AXES.items():
             lines.append({"axis": axis, "base": b, "levels": levels,
-                          "raw": np.stack([set_axis(base, names, float(v)) for v in levels])})
+                          "raw": np.stack([set_group(base, names, float(v)) for v in levels])})
     return lines
 
 

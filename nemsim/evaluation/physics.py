@@ -34,20 +34,19 @@ from typing import Any
 
 import numpy as np
 
-from nemsim.controls import INT_INDICES, N_CONTROLS, box_corner, from_unit, lhs_unit
+from nemsim.controls import (
+    CONTROL_GROUPS,
+    N_CONTROLS,
+    box_corner,
+    from_unit,
+    lhs_unit,
+    round_int_controls,
+    set_group,
+)
 from nemsim.evaluation.figure import pyplot, save_figure
-from nemsim.evaluation.invariants import ION_ENERGIES, centre_raw, set_axis
+from nemsim.evaluation.invariants import centre_raw
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
-SWEEP_GROUPS: dict[str, tuple[str, ...]] = {
-    "flux_cl_plus": ("flux_cl_plus",),
-    "flux_ar_plus": ("flux_ar_plus",),
-    "flux_cl2_plus": ("flux_cl2_plus",),
-    "flux_cl": ("flux_cl",),
-    "ion_energy": ION_ENERGIES,
-    "ion_angle": ("angle_cl_plus", "angle_cl2_plus", "angle_ar_plus"),
-    "neutral_angle": ("angle_cl",),
-}
 SWEEP_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss", "bowing")
 RESOLVED_SE = 2.0  # a simulator slope counts as resolved beyond this many standard errors
 HELDOUT_DESIGN_SEED = 2026  # Latin-hypercube seed of the fresh held-out controls (training design: 42)
@@ -72,19 +71,13 @@ class PhysicsConfig:
             raise ValueError(f"seeds must be two different integers, got {self.seeds}")
 
 
-def round_int_controls(raw: np.ndarray) -> np.ndarray:
-    out = np.array(raw, dtype=np.float64)
-    out[..., list(INT_INDICES)] = np.round(out[..., list(INT_INDICES)])
-    return out
-
-
 def sweep_recipes(levels: int) -> dict[str, dict[str, Any]]:
     """{group: {"levels" (L,) normalized, "raw" (L, 14)}} from the median recipe."""
     base = centre_raw()
     u = np.linspace(-1.0, 1.0, levels)
     out = {}
-    for g, names in SWEEP_GROUPS.items():
-        raw = np.stack([set_axis(base, names, float(v)) for v in u])  # (L, 14)
+    for g, names in CONTROL_GROUPS.items():
+        raw = np.stack([set_group(base, names, float(v)) for v in u])  # (L, 14)
         out[g] = {"levels": u, "raw": round_int_controls(raw)}
     return out
 
@@ -156,7 +149,7 @@ def run_physics(model: Any, truth: SimTruth, x0: np.ndarray, cfg: PhysicsConfig,
                 "same_sign": bool(np.sign(s_mod) == np.sign(s_sim)),
                 "resolved": bool(abs(s_sim) > RESOLVED_SE * noise),
             }
-        sweeps[group] = {"controls": list(SWEEP_GROUPS[group]), "levels": x.tolist(),
+        sweeps[group] = {"controls": list(CONTROL_GROUPS[group]), "levels": x.tolist(),
                          "raw": rec["raw"].tolist(), "metrics": metrics, "cases": cases}
 
     held = [dict(name=n, **c) for n, c in zip(names, records(held_raw), strict=True)]

@@ -9,7 +9,9 @@ Seeds: case ``c`` of a run with base seed ``S`` uses ``np.random.default_rng(cas
 ``case_seed(S, c) = SeedSequence([S, c]).generate_state(1, uint64)[0] >> 1`` (a non-negative int64); the
 seed is stored per case (``seeds``) and the base seed, simulator version and all ``SimConfig`` constants in
 the file's ``generator`` attribute. A case's trajectory does not depend on the worker count or the order
-in which cases finish.
+in which cases finish. ``seed_ids`` (the ``seed_id`` column of ``nemsim design --kind pairs``) gives a case
+the seed of another case id instead of its own: the two members of a sweep pair share their random numbers
+(``nemsim.controls.pair_design``), and equal stored ``seeds`` mark them in the file.
 
 Stopping and failures: Ctrl-C and ``kill -TERM`` (turned into KeyboardInterrupt while generating) both
 terminate the pool's workers and close the file with every finished case kept; workers also exit on their
@@ -238,6 +240,7 @@ def generate_dataset(
     progress: bool = True,
     on_case: Callable[[int, dict], None] | None = None,
     state_dtype: str = "float32",
+    seed_ids: Sequence[int] | None = None,
 ) -> dict:
     """Simulate ``case_ids`` (rows of ``controls_raw``) into ``out``, resuming a compatible existing file.
 
@@ -249,6 +252,7 @@ def generate_dataset(
       workers: parallel simulations (1 = in-process). executor: "process" or "ray".
       progress: show a tqdm bar. on_case: callback(row, meta) after each written case.
       state_dtype: "float32" or "float16" storage of the states (``nemsim.data.hdf5``; reads are float32).
+      seed_ids: optional (N,) case id whose seed each row uses (default: its own case id).
     Returns: {"written": int, "skipped": int, "wall_s": float, "path": str}.
     """
     from nemsim.data.hdf5 import TrajectoryWriter
@@ -260,6 +264,9 @@ def generate_dataset(
     config = (config or SimConfig()).resolved(scene)
     controls_raw = np.asarray(controls_raw, dtype=np.float64)
     case_ids = [int(c) for c in case_ids]
+    seed_of = case_ids if seed_ids is None else [int(c) for c in seed_ids]
+    if len(seed_of) != len(case_ids):
+        raise ValueError(f"{len(seed_of)} seed ids for {len(case_ids)} cases")
     if controls_raw.shape != (len(case_ids), 14):
         raise ValueError(f"controls_raw must be ({len(case_ids)}, 14) for {len(case_ids)} cases, got "
                          f"{controls_raw.shape}")  # fmt: skip
@@ -282,7 +289,7 @@ def generate_dataset(
             sched = controls_schedule
             tasks = [
                 CaseTask(
-                    row=row, case_id=cid, seed=case_seed(seed, cid),
+                    row=row, case_id=cid, seed=case_seed(seed, seed_of[row]),
                     controls=controls_raw[row] if sched is None else np.asarray(sched[row]),
                 )  # fmt: skip
                 for row, cid in enumerate(case_ids)

@@ -33,6 +33,17 @@ Choices where the paper is silent (each a field, so a config file can change it)
     missed the neutral-Cl responses of the bottom width even on its training cases
     (benchmarks/small/physics/levers.md).
     A one-voxel metric error costs lambda; the field MSE of a trained model is ~2e-5.
+  * ``pair_loss_weight`` (not in the paper; needs ``nemsim train --pair-data``): every optimizer step adds
+    ``pairs_per_step`` sweep pairs (``nemsim.data.dataset.PairDataset``: two recipes that differ in one
+    control group, simulated with one seed) to the batch, at the same time step for both members, and adds
+    lambda times the MSE of the predicted difference of each pair (x_b - x_a, every predicted state)
+    against the simulated one. Why: a Latin hypercube moves every control at once, and the field MSE of
+    single cases weighs a control's response no more than the Monte Carlo noise around it; every model
+    trained so far missed the responses to the angular exponents and the neutral flux
+    (benchmarks/small/physics/levers.md). Simulated with common random numbers, a pair's difference holds
+    the response with less of the noise, and the loss asks for it directly. lambda 0 with pair data: the
+    members only join the batch. The pairs are drawn at random (a function of seed and step, so a resumed
+    run draws the same pairs) and count toward the step's cost but not toward the epoch.
   * ``ema_decay`` (not in the paper; 0 = off) keeps an exponential moving average of the weights, and
     validation, ``best.pt`` and the final test use the average (``nemsim.training.average``: why, and the
     warm-up of its decay). 0.999 averages over about the last 1,000 steps.
@@ -83,6 +94,8 @@ class TrainConfig:
     step_loss_weights: tuple[float, ...] | None = None  # k-step models: weight of each predicted state's MSE
     profile_loss_weight: float = 0.0  # lambda of the profile-metric term (0 = the paper's loss; docstring)
     ema_decay: float = 0.0  # validate and keep a moving average of the weights (0 = off; docstring)
+    pair_loss_weight: float = 0.0  # lambda of the sweep-pair difference term (needs --pair-data; docstring)
+    pairs_per_step: int = 4  # sweep pairs added to every batch when training with --pair-data
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
     max_train_minutes: float | None = None  # wall-clock budget (training + validation, summed over resumes);
@@ -133,6 +146,10 @@ class TrainConfig:
                              f"predicted state; got {w}")
         if not self.profile_loss_weight >= 0:
             raise ValueError(f"profile_loss_weight must be >= 0, got {self.profile_loss_weight}")
+        if not self.pair_loss_weight >= 0:
+            raise ValueError(f"pair_loss_weight must be >= 0, got {self.pair_loss_weight}")
+        if self.pairs_per_step < 1:
+            raise ValueError(f"pairs_per_step must be >= 1, got {self.pairs_per_step}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must be in [0, 1) (0 = off), got {self.ema_decay}")
         if self.select_metric not in ("avg_rmse", "mse"):

@@ -84,10 +84,12 @@ class Clock:
 
 @dataclass
 class TrainData:
-    """train: items (x_t (2,D,H,W), u_t (14,), x_{t+1}); val: indexable of (case_id, states, u)."""
+    """train: items (x_t (2,D,H,W), u_t (14,), x_{t+1}); val: indexable of (case_id, states, u);
+    pairs: optional sweep pairs (``nemsim.data.dataset.PairDataset``, the same items stacked per pair)."""
 
     train: Dataset
     val: Any
+    pairs: Dataset | None = None
 
 
 @dataclass
@@ -159,10 +161,22 @@ def profile_loss(pred: torch.Tensor, target: torch.Tensor, scene: Scene) -> torc
     return torch.mean(err**2)
 
 
+def pair_loss(pred: torch.Tensor, target: torch.Tensor, n_pairs: int) -> torch.Tensor:
+    """MSE of the predicted pair differences against the simulated ones: the last 2P samples of pred and
+    target (N, ...) are P pairs, the P first members then the P second ones
+    (``TrainConfig.pair_loss_weight``).
+    """
+    p = n_pairs
+    d_pred = pred[-p:] - pred[-2 * p:-p]  # (P, ...)
+    d_true = target[-p:] - target[-2 * p:-p]
+    return torch.mean((d_pred - d_true) ** 2)
+
+
 def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, k: int, autocast,
                    memory_format=torch.contiguous_format,
                    weights: torch.Tensor | None = None,
-                   profile: tuple[float, Scene] | None = None) -> torch.Tensor:
+                   profile: tuple[float, Scene] | None = None,
+                   pairs: tuple[int, float] | None = None) -> torch.Tensor:
     """Loss of a model predicting k states per call, over U = u.shape[1] / k calls chained by their detached
     last state (the pushforward term over calls of k; U = 1: plain k-step supervision).
 
@@ -171,6 +185,8 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
     controls of its first transition u_{t+ck} (as the rollout does with constant controls). Returns the mean
     over calls of Σ_j w_j MSE_j. With k = 1 this is ``pushforward_loss`` (model called as model(x, u)).
     ``profile`` = (lambda, scene) adds lambda times ``profile_loss`` over every predicted state of each call.
+    ``pairs`` = (P, lambda): the batch ends with P sweep pairs (``pair_loss``), and lambda times the MSE of
+    their predicted differences over every predicted state is added to each call.
     """
     n = u.shape[1]
     if n % k:
@@ -189,6 +205,8 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
         if profile is not None and profile[0] > 0:
             target = y[:, c * k:(c + 1) * k]
             total = total + profile[0] * profile_loss(pred.flatten(0, 1), target.flatten(0, 1), profile[1])
+        if pairs is not None and pairs[1] > 0:
+            total = total + pairs[1] * pair_loss(pred, y[:, c * k:(c + 1) * k], pairs[0])
         state = pred[:, -1].detach()
     return total / (n // k)
 
@@ -344,6 +362,18 @@ class _Run:
         if cfg.profile_loss_weight > 0 and self.k == 1 and self.window > 1:
             raise ValueError("profile_loss_weight is implemented for the one-step and k-step losses, not for "
                              "the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
+        self.pairs = data.pairs
+        if self.pairs is not None:
+            if self.k == 1 and self.window > 1:
+                raise ValueError("sweep pairs are implemented for the one-step and k-step losses, not for "
+                                 "the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
+            if getattr(self.pairs, "unroll", 1) != self.window:
+                held = getattr(self.pairs, "unroll", 1)
+                raise ValueError(f"the pair data's items hold {held} transitions; the training items hold "
+                                 f"{self.window}")
+        elif cfg.pair_loss_weight > 0:
+            raise ValueError("pair_loss_weight > 0 needs sweep pairs to train on: give --pair-data "
+                             "(made by `nemsim design --kind pairs` and `nemsim generate --controls`)")
         self.distributed = dist.is_available() and dist.is_initialized()
         rank, world = (dist.get_rank(), dist.get_world_size()) if self.distributed else (0, 1)
         self.is_main = rank == 0
@@ -447,9 +477,28 @@ class _Run:
         self.state.budget_spent = self.budget_s is not None and wall >= self.budget_s
         return self.state.budget_spent
 
+    def pair_batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``pairs_per_step`` random sweep pairs as (x, u, y) of 2P samples, the P first members then the P
+        second ones (``pair_loss``). The draw is a function of (seed, step, rank): a resumed run repeats
+        it."""
+        assert self.pairs is not None
+        rank = dist.get_rank() if self.distributed else 0
+        rng = np.random.default_rng([self.cfg.seed, self.state.step, rank])
+        picks = rng.integers(0, len(cast(Sized, self.pairs)), size=self.cfg.pairs_per_step)
+        items = [self.pairs[int(i)] for i in picks]  # each (x (2, ...), u (2, ...), y (2, ...))
+        return cast(tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+                    tuple(torch.cat([torch.stack([it[j][m] for it in items]) for m in (0, 1)])
+                          for j in range(3)))
+
     def loss(self, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """Training loss of one batch: one-step MSE (eq. training_loss), its pushforward or k-step form."""
-        dev, mf, autocast = self.device, self.memory_format, self.autocast
+        """Training loss of one batch: one-step MSE (eq. training_loss), its pushforward or k-step form; with
+        sweep pairs, 2P pair members join the batch and their difference term is added."""
+        dev, mf, autocast, cfg = self.device, self.memory_format, self.autocast, self.cfg
+        pairs = None
+        if self.pairs is not None:
+            xp, up, yp = self.pair_batch()
+            x, u, y = torch.cat([x, xp]), torch.cat([u, up]), torch.cat([y, yp])
+            pairs = (cfg.pairs_per_step, cfg.pair_loss_weight)
         x = x.to(dev, non_blocking=True).contiguous(memory_format=mf)  # (B, 2, D, H, W)
         if self.window == 1:
             y = y.to(dev, non_blocking=True).contiguous(memory_format=mf)
@@ -457,14 +506,16 @@ class _Run:
             with autocast:
                 pred = self.train_model(x, u)
             loss = torch.mean((pred.float() - y) ** 2)
-            if self.cfg.profile_loss_weight > 0:
-                loss = loss + self.cfg.profile_loss_weight * profile_loss(pred.float(), y, self.meta.scene)
+            if cfg.profile_loss_weight > 0:
+                loss = loss + cfg.profile_loss_weight * profile_loss(pred.float(), y, self.meta.scene)
+            if pairs is not None and pairs[1] > 0:
+                loss = loss + pairs[1] * pair_loss(pred.float(), y, pairs[0])
             return loss
         if self.k == 1:  # u (B, U, 14), y (B, U, 2, D, H, W): pushforward over U transitions
             return pushforward_loss(self.train_model, x, u.to(dev), y.to(dev), autocast, mf)
         # u (B, U·k, 14), y (B, U·k, 2, D, H, W): k-step targets over U calls
         return multistep_loss(self.train_model, x, u.to(dev), y.to(dev), self.k, autocast, mf,
-                              self.step_weights, (self.cfg.profile_loss_weight, self.meta.scene))
+                              self.step_weights, (cfg.profile_loss_weight, self.meta.scene), pairs)
 
     def train_epoch(self, epoch: int) -> dict[str, Any]:
         """One epoch (from the resumed batch on); returns its metrics.csv row without validation."""

@@ -75,3 +75,35 @@ def test_lazy_handle_pickles_and_works_in_workers(make_file, decode):
     loader = torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2, shuffle=False)
     xs = torch.cat([b[0] for b in loader])
     assert xs.shape[0] == 10 and decode(xs[9]) == (1, 4)
+
+
+def test_pair_items_stack_the_two_cases_that_share_a_seed(make_file, tiny_scene, decode):
+    import h5py
+
+    from nemsim.data.dataset import PairDataset
+
+    path = make_file()  # rows 0..5 written as synthetic seeds 0..5
+    with h5py.File(path, "r+") as f:
+        f["seeds"][:] = [7, 7, 9, 9, 11, 12]  # two pairs; rows 4 and 5 have seeds of their own
+    ds = PairDataset(path, unroll=2)
+    n = tiny_scene.n_transitions - 1  # start times per case with two transitions per item
+    assert ds.pairs.tolist() == [[0, 1], [2, 3]] and len(ds) == 2 * n
+    assert ds.case_ids(1) == (102, 103)
+    x, u, y = ds[n + 3]  # pair 1 at t = 3
+    assert x.shape == (2, *tiny_scene.state_shape) and u.shape == (2, 2, 14)
+    assert y.shape == (2, 2, *tiny_scene.state_shape)
+    assert [decode(x[m]) for m in (0, 1)] == [(2, 3), (3, 3)]
+    assert [decode(y[m, j]) for m in (0, 1) for j in (0, 1)] == [(2, 4), (2, 5), (3, 4), (3, 5)]
+    one = PairDataset(path)  # one transition per item: (2, 14) controls, (2, C, D, H, W) targets
+    x1, u1, y1 = one[3]
+    assert u1.shape == (2, 14) and decode(y1[1]) == (1, 4)
+    ds.close(), one.close()
+
+    with h5py.File(path, "r+") as f:
+        f["seeds"][:] = [7, 7, 7, 9, 11, 12]
+    with pytest.raises(ValueError, match="more than two cases"):
+        PairDataset(path)
+    with h5py.File(path, "r+") as f:
+        f["seeds"][:] = [1, 2, 3, 4, 5, 6]
+    with pytest.raises(ValueError, match="no two complete cases share"):
+        PairDataset(path)

@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from nemsim.controls import CONTROL_INDEX, HIGH, LOW, to_normalized
+from nemsim.controls import CONTROL_GROUPS, CONTROL_INDEX, HIGH, LOW, to_normalized
 from nemsim.evaluation.physics import (
-    SWEEP_GROUPS,
     PhysicsConfig,
     box_corners,
     format_markdown,
@@ -30,9 +29,9 @@ CFG = PhysicsConfig(levels=3, heldout=1, corners=2)
 
 def test_sweeps_move_only_their_group():
     sweeps = sweep_recipes(4)
-    assert list(sweeps) == list(SWEEP_GROUPS) and len(sweeps) == 7
+    assert list(sweeps) == list(CONTROL_GROUPS) and len(sweeps) == 7
     for group, rec in sweeps.items():
-        idx = [CONTROL_INDEX[n] for n in SWEEP_GROUPS[group]]
+        idx = [CONTROL_INDEX[n] for n in CONTROL_GROUPS[group]]
         u = to_normalized(rec["raw"])  # (4, 14)
         rest = [j for j in range(14) if j not in idx]
         assert np.allclose(rec["raw"][:, rest], rec["raw"][0, rest])
@@ -94,7 +93,7 @@ def test_cli_bench_physics(tiny_checkpoint, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "planned: " in text and "simulator runs" in text
     rep = json.loads((out / "physics.json").read_text())
-    assert set(rep["sweeps"]) == set(SWEEP_GROUPS) and len(rep["heldout"]) == 1
+    assert set(rep["sweeps"]) == set(CONTROL_GROUPS) and len(rep["heldout"]) == 1
     assert (out / "physics.png").stat().st_size > 1000
     assert (out / "physics.md").read_text().startswith("# Physics")
     assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--levels", "2"]) == 2

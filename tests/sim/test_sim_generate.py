@@ -121,3 +121,28 @@ def test_cli_generate_from_controls_csv(tmp_path, low_flux, capsys):
     assert main([*args, "--cases", "2-7"]) == 2
     assert main(["generate", "--scene", "tiny", "--n", "2", "--set", "nope=1", "--out", str(out)]) == 2
     assert "--cases" in capsys.readouterr().err
+
+
+def test_cli_generate_gives_a_row_the_seed_of_its_seed_id(tmp_path, tiny_scene, rules, low_flux):
+    """A ``seed_id`` column (``nemsim design --kind pairs``) gives a row the seed of another case id: the
+    file stores the shared seed, and the row's trajectory is the one that seed gives."""
+    from nemsim.cli import main
+    from nemsim.controls import write_controls_csv
+
+    csv = tmp_path / "pairs.csv"
+    write_controls_csv(csv, low_flux, seed_ids=np.array([0, 0, 2]))
+    out = tmp_path / "pairs.h5"
+    assert main(["generate", "--scene", "tiny", "--controls", str(csv), "--seed", "3", "--out", str(out),
+                 "--no-progress"]) == 0  # fmt: skip
+    with h5py.File(out, "r") as f:
+        assert list(f["seeds"][()]) == [case_seed(3, 0), case_seed(3, 0), case_seed(3, 2)]
+        states = f["states"][()]
+    rng = np.random.default_rng(case_seed(3, 0))
+    direct = run_trajectory(tiny_scene, rules, low_flux[1], rng, SimConfig())
+    np.testing.assert_array_equal(states[1], direct.states)
+    sliced = tmp_path / "sliced.h5"  # --cases keeps each row's seed id
+    assert main(["generate", "--scene", "tiny", "--controls", str(csv), "--seed", "3", "--cases", "1-2",
+                 "--out", str(sliced), "--no-progress"]) == 0  # fmt: skip
+    with h5py.File(sliced, "r") as f:
+        assert list(f["seeds"][()]) == [case_seed(3, 0), case_seed(3, 2)]
+        np.testing.assert_array_equal(f["states"][0], states[1])

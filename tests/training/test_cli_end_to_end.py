@@ -182,3 +182,24 @@ def test_extra_data_adds_training_cases(tmp_path, tiny_data, capsys):
     assert "simulator configuration differs" in capsys.readouterr().err
     assert main(_train_args(tiny_data, tmp_path / "bad", "--extra-data", str(tmp_path / "none.h5"))) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_pair_data_joins_every_batch_and_is_required_by_its_weight(tmp_path, tiny_data, capsys):
+    import shutil
+
+    pairs = tmp_path / "pairs.h5"
+    shutil.copy(tiny_data, pairs)
+    with h5py.File(pairs, "r+") as f:
+        f["seeds"][:] = [0, 0, 2, 2, 4, 5]  # cases (0, 1) and (2, 3) are sweep pairs
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("pair_loss_weight: 1.0\npairs_per_step: 2\n")
+    out = tmp_path / "pair-run"
+    args = _train_args(tiny_data, out, "--no-test", "--config", str(cfg), "--pair-data", str(pairs))
+    args[args.index("--epochs") + 1] = "1"
+    assert main(args) == 0
+    log = (out / "train.log").read_text()
+    assert f"sweep pairs: {pairs} (2 pairs), 2 per step, pair_loss_weight 1" in log
+    assert main(_train_args(tiny_data, tmp_path / "bad", "--no-test", "--config", str(cfg))) == 2
+    assert "needs --pair-data" in capsys.readouterr().err
+    assert main(_train_args(tiny_data, tmp_path / "bad", "--pair-data", str(tiny_data))) == 2
+    assert "no two complete cases share a simulator seed" in capsys.readouterr().err

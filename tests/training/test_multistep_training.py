@@ -267,3 +267,62 @@ def test_profile_loss_weight_trains_k_step_and_refuses_the_one_step_pushforward(
     two = TrainData(items, TrajectoryDataset(tiny_data, tiny_manifest, "val"))
     with pytest.raises(ValueError, match="one-step pushforward"):
         train(_cfg(unroll_steps=2, profile_loss_weight=1e-3), model, two, tmp_path / "pf", meta)
+
+
+def test_pair_loss_adds_lambda_times_the_error_of_the_predicted_differences():
+    from nemsim.training.loop import pair_loss
+
+    m = Affine(2)  # predictions 2x, 4x
+    x = torch.tensor([1.0, 1.0, 3.0]).reshape(3, 1, 1, 1, 1).expand(3, 2, 1, 1, 1)  # a sample, then a pair
+    y = torch.zeros(3, 2, 2, 1, 1, 1)
+    y[2] = 1.0  # the simulated difference of the pair is 1 at both steps
+    u = torch.zeros(3, 2, 14)
+    base = multistep_loss(m, x, u, y, 2, nullcontext())
+    # predicted differences 2 (3 - 1) = 4 and 4 (3 - 1) = 8 against 1: errors 3 and 7 -> (9 + 49) / 2 = 29
+    both = multistep_loss(m, x, u, y, 2, nullcontext(), pairs=(1, 0.5))
+    assert both.item() == pytest.approx(base.item() + 0.5 * 29.0)
+    with torch.no_grad():
+        pred = m(x, u[:, 0], all_steps=True)
+    assert pair_loss(pred, y, 1).item() == pytest.approx(29.0)
+    assert multistep_loss(m, x, u, y, 2, nullcontext(), pairs=(1, 0.0)).item() == pytest.approx(base.item())
+    with pytest.raises(ValueError, match="pair_loss_weight"):
+        TrainConfig(pair_loss_weight=-1.0)
+
+
+def _pair_copy(tiny_data, tmp_path):
+    """A copy of the tiny data whose cases (0, 1) and (2, 3) share a simulator seed: two sweep pairs."""
+    import shutil
+
+    import h5py
+
+    path = tmp_path / "pairs.h5"
+    shutil.copy(tiny_data, path)
+    with h5py.File(path, "r+") as f:
+        f["seeds"][:] = [0, 0, 2, 2, 4, 5]
+    return path
+
+
+def test_training_with_sweep_pairs_adds_them_to_every_batch(tmp_path, tiny_data, tiny_manifest, tiny_scene,
+                                                            rules):
+    from nemsim.data.dataset import PairDataset, TrajectoryDataset, TransitionDataset
+    from nemsim.training.loop import Clock, _Run
+
+    pairs = PairDataset(_pair_copy(tiny_data, tmp_path), unroll=K)
+    overrides = {"steps_per_call": K, **SMALL_NET}
+    seed_everything(0)
+    model = build_model("nemsim", tiny_scene, rules, overrides)
+    meta = ModelMeta("nemsim", dataclasses.asdict(model_config("nemsim", tiny_scene, overrides)), tiny_scene,
+                     rules)
+    items = TransitionDataset(tiny_data, tiny_manifest, "train", visible_transitions=VISIBLE, unroll=K)
+    val = TrajectoryDataset(tiny_data, tiny_manifest, "val")
+    cfg = _cfg(pair_loss_weight=1.0, pairs_per_step=3)
+    run = _Run(cfg, model, TrainData(items, val, pairs), tmp_path / "pairs-run", meta, Clock())
+    x, u, y = run.pair_batch()  # 3 pairs: the first members, then the second ones, at the same times
+    assert x.shape == (6, *tiny_scene.state_shape) and u.shape == (6, K, 14) and y.shape[:2] == (6, K)
+    again = run.pair_batch()
+    assert all(torch.equal(a, b) for a, b in zip((x, u, y), again, strict=True))  # a function of the step
+    summary = train(cfg, model, TrainData(items, val, pairs), tmp_path / "pairs-train", meta)
+    rows = list(csv.DictReader((tmp_path / "pairs-train" / "metrics.csv").open()))
+    assert summary["epochs"] == 1 and float(rows[0]["train_loss"]) > 0 and rows[0]["val_avg_rmse"]
+    with pytest.raises(ValueError, match="needs sweep pairs"):
+        train(cfg, model, TrainData(items, val), tmp_path / "no-pairs", meta)
