@@ -205,17 +205,9 @@ class PairDataset(Dataset):
                                       unroll=unroll)
         self.scene, self.unroll = self.base.scene, self.base.unroll
         with open_trajectories(self.base.path) as tf:
-            seeds = tf.seeds[self.base.rows]  # (n,) seed of each complete case
-        members: dict[int, list[int]] = {}
-        for k, s in enumerate(seeds.tolist()):
-            members.setdefault(int(s), []).append(k)
-        crowded = {s: m for s, m in members.items() if len(m) > 2}
-        if crowded:
-            s, m = next(iter(crowded.items()))
-            ids = [int(self.base.case_ids[k]) for k in m]
-            raise ValueError(f"{path}: {len(crowded)} seeds are shared by more than two cases (seed {s}: "
-                             f"case ids {ids}); a pair file pairs two cases")
-        self.pairs = np.array(sorted(m for m in members.values() if len(m) == 2), dtype=np.int64)  # (P, 2)
+            file_pairs = tf.seed_pairs()  # (P, 2) file rows
+        k_of = {int(r): k for k, r in enumerate(self.base.rows)}
+        self.pairs = np.array([[k_of[a], k_of[b]] for a, b in file_pairs], dtype=np.int64).reshape(-1, 2)
         if not len(self.pairs):
             raise ValueError(f"{path}: no two complete cases share a simulator seed, so it holds no sweep "
                              "pair; make one with `nemsim design --kind pairs` and `nemsim generate "

@@ -414,6 +414,19 @@ class TrajectoryFile:
     def n_cases(self) -> int:
         return int(self.case_ids.shape[0])
 
+    def seed_pairs(self) -> np.ndarray:
+        """(P, 2) rows of the complete cases that share a simulator seed, two by two, in the order of their
+        first row: the sweep pairs of ``nemsim design --kind pairs``. A seed of more than two complete cases
+        is a ValueError naming their ids."""
+        members: dict[int, list[int]] = {}
+        for r in np.flatnonzero(self.complete):
+            members.setdefault(int(self.seeds[r]), []).append(int(r))
+        for s, rows in members.items():
+            if len(rows) > 2:
+                raise ValueError(f"{self.path}: seed {s} is shared by {len(rows)} cases (case ids "
+                                 f"{self.case_ids[rows].tolist()}); a pair file pairs two cases")
+        return np.array(sorted(r for r in members.values() if len(r) == 2), dtype=np.int64).reshape(-1, 2)
+
     @property
     def n_states(self) -> int:
         return int(self.states.shape[1])

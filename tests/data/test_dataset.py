@@ -101,7 +101,7 @@ def test_pair_items_stack_the_two_cases_that_share_a_seed(make_file, tiny_scene,
 
     with h5py.File(path, "r+") as f:
         f["seeds"][:] = [7, 7, 7, 9, 11, 12]
-    with pytest.raises(ValueError, match="more than two cases"):
+    with pytest.raises(ValueError, match="a pair file pairs two cases"):
         PairDataset(path)
     with h5py.File(path, "r+") as f:
         f["seeds"][:] = [1, 2, 3, 4, 5, 6]
