@@ -288,16 +288,53 @@ def set_group(raw: np.ndarray, names: tuple[str, ...], u: float) -> np.ndarray:
     return out
 
 
+def _log_level(j: int) -> bool:
+    """Whether control j's sweep level is linear in log m: the ion angular exponents (m from 50 to 3,000)."""
+    return CONTROL_SPECS[j].kind == "int" and LOW[j] > 0
+
+
+def sweep_coordinate(raw: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """The level of the controls ``names`` of raw (..., 14) in [-1, 1], one column per name: the normalized
+    control, except for the ion angular exponents, whose level is linear in log m (-1 and +1 at the design
+    bounds). Why: the angular width of a cos^m distribution goes as 1 / sqrt(m), so the profile responds
+    at small m: the simulated top width of the median recipe changes by 4.8 nm from m = 50 to 1,525 and by
+    0.5 nm from 1,525 to 3,000 (benchmarks/small/physics/levers/transport.md). The neutral exponent (0 to
+    20) stays linear: its depth response spreads over the range (32, 48, 53 nm at m = 0, 10, 20)."""
+    cols = [CONTROL_INDEX[n] for n in names]
+    x = np.asarray(raw, dtype=np.float64)
+    out = np.asarray(to_normalized(x))[..., cols]
+    for k, j in enumerate(cols):
+        if _log_level(j):
+            lo, hi = math.log(LOW[j]), math.log(HIGH[j])
+            out[..., k] = 2.0 * (np.log(x[..., j]) - lo) / (hi - lo) - 1.0
+    return out
+
+
+def set_sweep_level(raw: np.ndarray, names: tuple[str, ...], v: float) -> np.ndarray:
+    """raw (14,) with the controls ``names`` at level ``v`` of ``sweep_coordinate`` (integers not rounded)."""
+    out = set_group(raw, names, v)
+    for n in names:
+        j = CONTROL_INDEX[n]
+        if _log_level(j):
+            lo, hi = math.log(LOW[j]), math.log(HIGH[j])
+            out[j] = math.exp(lo + (v + 1.0) / 2.0 * (hi - lo))
+    return out
+
+
 def pair_design(n_pairs: int, seed: int, min_move: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Sweep pairs: (2 n_pairs, 14) raw controls and (2 n_pairs,) seed ids, rows (base_i, partner_i).
 
     Base i is point i of a Latin hypercube of ``n_pairs`` points (seed ``seed``). Its partner moves one
-    control group (``CONTROL_GROUPS``, in turn: pair i moves group i mod 7) to one normalized level v, drawn
-    uniformly in [-1, 1] at least ``min_move`` away from the mean normalized level of the base's group, as
-    a one-at-a-time sweep does; every other control is the base's. Both rows get the seed id of the base
-    (row 2i): simulated with that one seed (``nemsim generate`` reads the ``seed_id`` column), the pair
-    shares its random numbers, so the simulated difference of the pair carries the response to the group
-    with little of the Monte Carlo noise of two independent runs (common random numbers).
+    control group (``CONTROL_GROUPS``, in turn: pair i moves group i mod 7) to one level v of
+    ``sweep_coordinate``, drawn uniformly in [-1, 1] at least ``min_move`` away from the mean level of the
+    base's group, as a one-at-a-time sweep does; every other control is the base's. For the ion angular
+    exponents the level is uniform in log m, not in m: a Latin hypercube, uniform in m, puts few recipes
+    where the profile responds (of the 1,500 cases of the seed-43 design, 7 have all three ion exponents
+    below 500), and the pairs are to carry the responses.
+    Both rows get the seed id of the base (row 2i): simulated with that one seed (``nemsim generate``
+    reads the ``seed_id`` column), the pair shares its random numbers, so the simulated difference of the
+    pair carries the response to the group with less of the Monte Carlo noise of two independent runs
+    (common random numbers; ``nemsim bench pair-noise`` measures how much less).
     Why: a Latin hypercube moves every control at once, and the responses to the angular exponents and the
     neutral flux were missed by every model trained on one (benchmarks/small/physics/levers.md); the pairs
     give a training loss on the predicted difference (``TrainConfig.pair_loss_weight``).
@@ -312,11 +349,11 @@ def pair_design(n_pairs: int, seed: int, min_move: float = 0.5) -> tuple[np.ndar
     rows, seed_ids = [], []
     for i, base in enumerate(bases):
         names = groups[i % len(groups)]
-        mean = float(np.mean(to_normalized(base)[[CONTROL_INDEX[n] for n in names]]))
+        mean = float(np.mean(sweep_coordinate(base, names)))
         v = float(rng.uniform(-1.0, 1.0))
         while abs(v - mean) < min_move:
             v = float(rng.uniform(-1.0, 1.0))
-        rows += [base, round_int_controls(set_group(base, names, v))]
+        rows += [base, round_int_controls(set_sweep_level(base, names, v))]
         seed_ids += [2 * i, 2 * i]
     return np.stack(rows), np.array(seed_ids, dtype=np.int64)
 

@@ -159,18 +159,27 @@ def test_pair_design_moves_one_group_per_pair_and_shares_the_seed(tmp_path):
     np.testing.assert_array_equal(seed_ids, np.repeat(np.arange(0, 42, 2), 2))  # the base's case id, twice
     np.testing.assert_array_equal(raw[0::2], C.lhs_design(21, 5))  # the bases are a Latin hypercube
     groups = list(C.CONTROL_GROUPS.values())
-    norm = C.to_normalized(raw)
     for i in range(21):
-        cols = [C.CONTROL_INDEX[n] for n in groups[i % 7]]  # the groups in turn
+        names = groups[i % 7]  # the groups in turn
+        cols = [C.CONTROL_INDEX[n] for n in names]
         others = [j for j in range(14) if j not in cols]
         np.testing.assert_array_equal(raw[2 * i + 1, others], raw[2 * i, others])
-        level = norm[2 * i + 1, cols]  # one normalized level for the whole group (integers rounded)
-        assert np.ptp(level) < 0.01
-        assert abs(level.mean() - norm[2 * i, cols].mean()) >= 0.5 - 0.01  # moved at least min_move
+        level = C.sweep_coordinate(raw[2 * i + 1], names)  # one level for the whole group (integers rounded)
+        assert np.ptp(level) < 0.02
+        assert abs(level.mean() - C.sweep_coordinate(raw[2 * i], names).mean()) >= 0.5 - 0.02  # min_move
+    many, _ = C.pair_design(700, 5)  # 100 pairs per group
+    ions = many[1::2][5::7, C.CONTROL_INDEX["angle_cl_plus"]]  # the partners of the ion-angle pairs
+    assert 0.5 < np.mean(ions < 500) < 0.95  # uniform in log m, moved away from the bases: uniform in m, 15 %
     again, _ = C.pair_design(21, 5)
     np.testing.assert_array_equal(again, raw)  # the seed decides
     with pytest.raises(ValueError, match="n_pairs"):
         C.pair_design(0, 5)
+    lo, hi = C.LOW.copy(), C.HIGH.copy()  # the sweep coordinate: -1 and +1 at the design bounds
+    np.testing.assert_allclose(C.sweep_coordinate(np.stack([lo, hi]), tuple(C.CONTROL_NAMES)),
+                               [[-1.0] * 14, [1.0] * 14], atol=1e-12)
+    mid = C.set_sweep_level(lo, ("angle_cl_plus", "angle_cl"), 0.0)  # log m for the ions, m for the neutral
+    assert mid[C.CONTROL_INDEX["angle_cl_plus"]] == pytest.approx(math.sqrt(50.0 * 3000.0))
+    assert mid[C.CONTROL_INDEX["angle_cl"]] == pytest.approx(10.0)
 
     path = tmp_path / "pairs.csv"  # the seed ids travel in a column the controls reader ignores
     C.write_controls_csv(path, raw, seed_ids)
