@@ -26,6 +26,13 @@ Choices where the paper is silent (each a field, so a config file can change it)
     ``step_loss_weights`` if given, normalized to sum 1). ``unroll_steps`` counts network calls: with U > 1 a
     sample is U·k consecutive transitions and call c starts from the detached k-th state of call c-1 (the
     pushforward term over calls of k). A k = 1 model reads both keys as before.
+  * ``unroll_grad`` (not in the paper; default off = the pushforward's detached chain): with U > 1 calls,
+    backpropagate through the whole chain, so the loss of call c reaches the parameters through calls
+    1..c-1 too (backpropagation through time over U calls; memory and backward cost ~U calls). Why: the
+    depth error of a k = 10 rollout at t = 100 (4.9 nm on its own training cases) is ten times that of one
+    call from the true state at t = 90 (0.6 nm): each call is a little off in the same direction, which a
+    one-call loss hardly sees under the Monte Carlo noise of one call's targets, while over U chained
+    calls the error grows as U and the noise as sqrt(U) (benchmarks/small/physics/levers.md).
   * ``profile_loss_weight`` (not in the paper; 0 = the paper's loss) adds lambda times the mean squared error,
     in voxels^2, of the differentiable profile metrics (``nemsim.geometry.soft_profile``: etch depth, top
     and bottom width, mask loss) of every predicted state against its target. Why: the field MSE weighs a
@@ -91,6 +98,7 @@ class TrainConfig:
     grad_clip: float = 1.0  # max global gradient norm
     batch_size: int = 24  # transitions per optimizer step (global, split over DDP ranks)
     unroll_steps: int = 1  # network calls per sample: 1 = the paper's loss; U > 1 adds U-1 pushforward calls
+    unroll_grad: bool = False  # U > 1: backpropagate through the chained calls instead of detaching them
     step_loss_weights: tuple[float, ...] | None = None  # k-step models: weight of each predicted state's MSE
     profile_loss_weight: float = 0.0  # lambda of the profile-metric term (0 = the paper's loss; docstring)
     ema_decay: float = 0.0  # validate and keep a moving average of the weights (0 = off; docstring)

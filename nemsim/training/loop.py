@@ -131,11 +131,12 @@ def lr_at(step: int, steps_per_epoch: int, cfg: TrainConfig, wall_s: float = 0.0
 
 
 def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, autocast,
-                     memory_format=torch.contiguous_format) -> torch.Tensor:
+                     memory_format=torch.contiguous_format, detach: bool = True) -> torch.Tensor:
     """Mean of k one-step MSEs along a k-transition window, each step fed the previous detached prediction.
 
     x (B, 2, D, H, W) = x_t; u (B, k, 14); y (B, k, 2, D, H, W) = x_{t+1..t+k}. Gradients flow only
     through each single step (no backpropagation through time): cost and memory are those of k steps.
+    ``detach`` False: each step is fed the prediction itself, and gradients flow through the whole chain.
     """
     k = u.shape[1]
     state, total = x, cast(Any, 0.0)  # a tensor after the first step
@@ -144,7 +145,7 @@ def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torc
             pred = model(state.contiguous(memory_format=memory_format), u[:, j])
         pred = pred.float()
         total = total + torch.mean((pred - y[:, j]) ** 2)
-        state = pred.detach()
+        state = pred.detach() if detach else pred
     return total / k
 
 
@@ -176,7 +177,7 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
                    memory_format=torch.contiguous_format,
                    weights: torch.Tensor | None = None,
                    profile: tuple[float, Scene] | None = None,
-                   pairs: tuple[int, float] | None = None) -> torch.Tensor:
+                   pairs: tuple[int, float] | None = None, detach: bool = True) -> torch.Tensor:
     """Loss of a model predicting k states per call, over U = u.shape[1] / k calls chained by their detached
     last state (the pushforward term over calls of k; U = 1: plain k-step supervision).
 
@@ -187,6 +188,8 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
     ``profile`` = (lambda, scene) adds lambda times ``profile_loss`` over every predicted state of each call.
     ``pairs`` = (P, lambda): the batch ends with P sweep pairs (``pair_loss``), and lambda times the MSE of
     their predicted differences over every predicted state is added to each call.
+    ``detach`` False (``TrainConfig.unroll_grad``): call c starts from call c-1's last state itself, and
+    gradients flow through the whole chain of calls.
     """
     n = u.shape[1]
     if n % k:
@@ -207,7 +210,7 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
             total = total + profile[0] * profile_loss(pred.flatten(0, 1), target.flatten(0, 1), profile[1])
         if pairs is not None and pairs[1] > 0:
             total = total + pairs[1] * pair_loss(pred, y[:, c * k:(c + 1) * k], pairs[0])
-        state = pred[:, -1].detach()
+        state = pred[:, -1].detach() if detach else pred[:, -1]
     return total / (n // k)
 
 
@@ -512,10 +515,12 @@ class _Run:
                 loss = loss + pairs[1] * pair_loss(pred.float(), y, pairs[0])
             return loss
         if self.k == 1:  # u (B, U, 14), y (B, U, 2, D, H, W): pushforward over U transitions
-            return pushforward_loss(self.train_model, x, u.to(dev), y.to(dev), autocast, mf)
+            return pushforward_loss(self.train_model, x, u.to(dev), y.to(dev), autocast, mf,
+                                    detach=not cfg.unroll_grad)
         # u (B, U·k, 14), y (B, U·k, 2, D, H, W): k-step targets over U calls
         return multistep_loss(self.train_model, x, u.to(dev), y.to(dev), self.k, autocast, mf,
-                              self.step_weights, (cfg.profile_loss_weight, self.meta.scene), pairs)
+                              self.step_weights, (cfg.profile_loss_weight, self.meta.scene), pairs,
+                              detach=not cfg.unroll_grad)
 
     def train_epoch(self, epoch: int) -> dict[str, Any]:
         """One epoch (from the resumed batch on); returns its metrics.csv row without validation."""

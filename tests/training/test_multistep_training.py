@@ -326,3 +326,25 @@ def test_training_with_sweep_pairs_adds_them_to_every_batch(tmp_path, tiny_data,
     assert summary["epochs"] == 1 and float(rows[0]["train_loss"]) > 0 and rows[0]["val_avg_rmse"]
     with pytest.raises(ValueError, match="needs sweep pairs"):
         train(cfg, model, TrainData(items, val), tmp_path / "no-pairs", meta)
+
+
+def test_unroll_grad_backpropagates_through_the_chained_calls():
+    x = torch.ones(1, 2, 1, 1, 1)
+    y = torch.zeros(1, 4, 2, 1, 1, 1)
+    grads = []
+    for detach in (True, False):
+        m = Affine(2)  # call 1: a, a^2; call 2 from s = a^2: a s, a^2 s
+        loss = multistep_loss(m, x, torch.zeros(1, 4, 14), y, 2, nullcontext(), detach=detach)
+        assert loss.item() == pytest.approx(((4 + 16) / 2 + (64 + 256) / 2) / 2)  # the same value
+        loss.backward()
+        grads.append(m.a.grad.item())
+    # loss = (a^2 + a^4 + (a s)^2 + (a^2 s)^2) / 4 at a = 2: with s = 4 held (detached)
+    # (2a + 4a^3 + 2a s^2 + 4a^3 s^2) / 4 = 153; through the chain (s = a^2)
+    # (2a + 4a^3 + 6a^5 + 8a^7) / 4 = 313
+    assert grads == pytest.approx([153.0, 313.0])
+    grads = []
+    for detach in (True, False):
+        one = Affine(1)  # steps a, a s with s = a: loss (a^2 + (a s)^2) / 2
+        pushforward_loss(one, x, torch.zeros(1, 2, 14), y[:, :2], nullcontext(), detach=detach).backward()
+        grads.append(one.a.grad.item())
+    assert grads == pytest.approx([10.0, 18.0])  # (2a + 2a s^2) / 2 with s = 2 held; (2a + 4a^3) / 2
