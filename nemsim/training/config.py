@@ -29,10 +29,11 @@ Choices where the paper is silent (each a field, so a config file can change it)
   * ``unroll_grad`` (not in the paper; default off = the pushforward's detached chain): with U > 1 calls,
     backpropagate through the whole chain, so the loss of call c reaches the parameters through calls
     1..c-1 too (backpropagation through time over U calls; memory and backward cost ~U calls). Why: the
-    depth error of a k = 10 rollout at t = 100 (4.9 nm on its own training cases) is ten times that of one
-    call from the true state at t = 90 (0.6 nm): each call is a little off in the same direction, which a
-    one-call loss hardly sees under the Monte Carlo noise of one call's targets, while over U chained
-    calls the error grows as U and the noise as sqrt(U) (benchmarks/small/physics/levers.md).
+    final depth error of a k = 10 rollout (4.8 nm over the 500 design cases, most of them its training
+    cases) is eight times that of one call from the simulator's own state (0.6 nm): each call is a little
+    off in the same direction, which a one-call loss hardly sees under the Monte Carlo noise of one call's
+    targets, while over U chained calls the error grows as U and the noise as sqrt(U)
+    (benchmarks/small/physics/levers.md).
   * ``profile_loss_weight`` (not in the paper; 0 = the paper's loss) adds lambda times the mean squared error,
     in voxels^2, of the differentiable profile metrics (``nemsim.geometry.soft_profile``: etch depth, top
     and bottom width, mask loss) of every predicted state against its target. Why: the field MSE weighs a
