@@ -169,28 +169,6 @@ def _cmd_rules_compile(args: argparse.Namespace) -> int:
 # ==== section: controls, design, splits, data ====================================
 
 
-def _add_pair_noise(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser(
-        "pair-noise",
-        help="Monte Carlo noise of sweep-pair differences: common random numbers vs independent seeds",
-        description=(
-            "Read one sweep-pair design (`nemsim design --kind pairs`) simulated with two base seeds and "
-            "print, per control group and over all pairs, the RMS of the pairs' simulated difference "
-            "(the response) beside its Monte Carlo noise when both members share a seed (common random "
-            "numbers) and when they do not: the whole field over time (normalized SDF) and the final etch "
-            "depth, top and bottom width and mask loss (nm). Writes nothing unless --json is given. "
-            "Example: nemsim generate --scene small --controls data/design-pairs.csv --n 28 --seed 4 "
-            "--out data/small-pairs-seed4.h5; nemsim bench pair-noise --data data/small-pairs.h5 "
-            "--other data/small-pairs-seed4.h5"
-        ),
-    )
-    p.add_argument("--data", required=True, metavar="FILE.h5", help="the pair design under one base seed")
-    p.add_argument("--other", required=True, metavar="FILE.h5",
-                   help="the same design (or its first cases) under another base seed")
-    p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
-    p.set_defaults(handler=_cmd_bench_pair_noise)
-
-
 def _add_data(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "design",
@@ -673,6 +651,28 @@ def _parse_range(text: str, n: int) -> tuple[int, int]:
     if not 0 <= lo <= hi < n:
         raise UserError(f"--cases {text!r}: need 0 <= A <= B < {n} (number of available cases)")
     return lo, hi
+
+
+def _add_pair_noise(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser(
+        "pair-noise",
+        help="Monte Carlo noise of sweep-pair differences: common random numbers vs independent seeds",
+        description=(
+            "Read one sweep-pair design (`nemsim design --kind pairs`) simulated with two base seeds and "
+            "print, per control group and over all pairs, the RMS of the pairs' simulated difference "
+            "(the response) beside its Monte Carlo noise when both members share a seed (common random "
+            "numbers) and when they do not: the whole field over time (normalized SDF) and the final etch "
+            "depth, top and bottom width and mask loss (nm). Writes nothing unless --json is given. "
+            "Example: nemsim generate --scene small --controls data/design-pairs.csv --n 28 --seed 4 "
+            "--out data/small-pairs-seed4.h5; nemsim bench pair-noise --data data/small-pairs.h5 "
+            "--other data/small-pairs-seed4.h5"
+        ),
+    )
+    p.add_argument("--data", required=True, metavar="FILE.h5", help="the pair design under one base seed")
+    p.add_argument("--other", required=True, metavar="FILE.h5",
+                   help="the same design (or its first cases) under another base seed")
+    p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
+    p.set_defaults(handler=_cmd_bench_pair_noise)
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:

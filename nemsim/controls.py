@@ -441,17 +441,24 @@ def write_controls_csv(path: str | Path, raw: np.ndarray, seed_ids: np.ndarray |
             w.writerow(cells if seed_ids is None else cells + [str(int(seed_ids[i]))])
 
 
+def _csv_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
+    """(header with names stripped, data rows) of a controls CSV; ValueError on an empty file."""
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise ValueError(f"{path}: empty file; expected a header with {list(CONTROL_NAMES)}")
+    return [h.strip() for h in rows[0]], rows[1:]
+
+
 def read_seed_ids(path: str | Path) -> np.ndarray | None:
     """The ``seed_id`` column of a controls CSV as (N,) int64 (written by ``pair_design``'s ``nemsim design
     --kind pairs``), or None if it has none."""
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
-    header = [h.strip() for h in rows[0]] if rows else []
+    header, body = _csv_table(path)
     if "seed_id" not in header:
         return None
     j = header.index("seed_id")
-    out = np.empty(len(rows) - 1, dtype=np.int64)
-    for r, row in enumerate(rows[1:]):
+    out = np.empty(len(body), dtype=np.int64)
+    for r, row in enumerate(body):
         try:
             out[r] = int(row[j])
         except (ValueError, IndexError):
@@ -469,11 +476,7 @@ def read_controls_csv(path: str | Path) -> np.ndarray:
     ``seed_id`` columns are ignored (``read_seed_ids`` reads the latter). Raises ValueError naming missing,
     unknown or duplicate columns, or the row/column of a bad value.
     """
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
-    if not rows:
-        raise ValueError(f"{path}: empty file; expected a header with {list(CONTROL_NAMES)}")
-    header = [h.strip() for h in rows[0]]
+    header, body = _csv_table(path)
     dup = sorted({h for h in header if header.count(h) > 1})
     unknown = [h for h in header if h not in CONTROL_INDEX and h not in ("case_id", "seed_id")]
     missing = [n for n in CONTROL_NAMES if n not in header]
@@ -487,8 +490,8 @@ def read_controls_csv(path: str | Path) -> np.ndarray:
     if problems:
         raise ValueError(f"{path}: bad header: {'; '.join(problems)}; expected {list(CONTROL_NAMES)}")
     cols = [header.index(n) for n in CONTROL_NAMES]
-    out = np.empty((len(rows) - 1, N_CONTROLS), dtype=np.float64)
-    for r, row in enumerate(rows[1:]):
+    out = np.empty((len(body), N_CONTROLS), dtype=np.float64)
+    for r, row in enumerate(body):
         if len(row) != len(header):
             raise ValueError(f"{path}: row {r + 2} has {len(row)} fields; header has {len(header)}")
         for j, c in enumerate(cols):

@@ -47,9 +47,9 @@ from typing import Any
 import numpy as np
 
 from nemsim.controls import (
+    CONTROL_GROUPS,
     CONTROL_INDEX,
     FLUX_INDICES,
-    ION_ENERGIES,
     N_CONTROLS,
     from_normalized,
     from_unit,
@@ -60,12 +60,8 @@ from nemsim.evaluation.truth import SimTruth, predict, step_rmse
 from nemsim.geometry.profile import profile_metrics_batch
 
 ION_FLUXES = ("flux_ar_plus", "flux_cl_plus", "flux_cl2_plus")
-MONOTONE_AXES: dict[str, tuple[str, ...]] = {
-    "flux_ar_plus": ("flux_ar_plus",),
-    "flux_cl_plus": ("flux_cl_plus",),
-    "flux_cl2_plus": ("flux_cl2_plus",),
-    "ion_energy": ION_ENERGIES,
-}
+MONOTONE_AXES: dict[str, tuple[str, ...]] = {  # the control groups along which the etch must not slow
+    g: CONTROL_GROUPS[g] for g in ("flux_ar_plus", "flux_cl_plus", "flux_cl2_plus", "ion_energy")}
 NOISE_KEYS = ("rmse", "depth_nm", "mask_loss_nm", "depth_decrease_nm")
 BASE_DESIGN_SEED = 7  # Latin-hypercube seed of the grid's extra base recipes (not the training design's 42)
 

@@ -362,14 +362,13 @@ class _Run:
         self.cfg, self.data, self.out_dir, self.meta, self.clock = cfg, data, out_dir, meta, clock
         self.k = steps_per_call(model)
         self.window = _check_items(cfg, data, self.k)
-        if cfg.profile_loss_weight > 0 and self.k == 1 and self.window > 1:
-            raise ValueError("profile_loss_weight is implemented for the one-step and k-step losses, not for "
-                             "the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
         self.pairs = data.pairs
+        extras = [n for n, on in (("profile_loss_weight", cfg.profile_loss_weight > 0),
+                                  ("sweep pairs", self.pairs is not None)) if on]
+        if extras and self.k == 1 and self.window > 1:
+            raise ValueError(f"{' and '.join(extras)}: implemented for the one-step and k-step losses, not "
+                             "for the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
         if self.pairs is not None:
-            if self.k == 1 and self.window > 1:
-                raise ValueError("sweep pairs are implemented for the one-step and k-step losses, not for "
-                                 "the one-step pushforward (unroll_steps > 1 with steps_per_call 1)")
             if getattr(self.pairs, "unroll", 1) != self.window:
                 held = getattr(self.pairs, "unroll", 1)
                 raise ValueError(f"the pair data's items hold {held} transitions; the training items hold "
@@ -507,12 +506,12 @@ class _Run:
             y = y.to(dev, non_blocking=True).contiguous(memory_format=mf)
             u = u.to(dev, non_blocking=True)  # (B, 14)
             with autocast:
-                pred = self.train_model(x, u)
-            loss = torch.mean((pred.float() - y) ** 2)
+                pred = self.train_model(x, u).float()
+            loss = torch.mean((pred - y) ** 2)
             if cfg.profile_loss_weight > 0:
-                loss = loss + cfg.profile_loss_weight * profile_loss(pred.float(), y, self.meta.scene)
+                loss = loss + cfg.profile_loss_weight * profile_loss(pred, y, self.meta.scene)
             if pairs is not None and pairs[1] > 0:
-                loss = loss + pairs[1] * pair_loss(pred.float(), y, pairs[0])
+                loss = loss + pairs[1] * pair_loss(pred, y, pairs[0])
             return loss
         if self.k == 1:  # u (B, U, 14), y (B, U, 2, D, H, W): pushforward over U transitions
             return pushforward_loss(self.train_model, x, u.to(dev), y.to(dev), autocast, mf,
