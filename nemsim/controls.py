@@ -119,6 +119,8 @@ FLUX_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if 
 INT_INDICES: tuple[int, ...] = tuple(i for i, s in enumerate(CONTROL_SPECS) if s.kind == "int")
 
 ION_ENERGIES = ("energy_mean_cl_plus", "energy_mean_cl2_plus", "energy_mean_ar_plus")
+# the four cosine-power exponents: neutral Cl, then the ions
+ANGLE_CONTROLS = ("angle_cl", "angle_cl_plus", "angle_cl2_plus", "angle_ar_plus")
 # The controls an engineer moves together: each flux alone, the three ion energies, the three ion angular
 # exponents, the neutral angular exponent. The physics benchmark sweeps each group from the median recipe;
 # ``pair_design`` moves one group per pair.

@@ -148,8 +148,18 @@ def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> Non
         log.warning("--init-from %s: weights of scene %r (%g nm voxels, state %s) start a model of scene %r "
                     "(%g nm voxels, state %s)", path, stored.name, stored.voxel_nm, stored.state_shape,
                     scene.name, scene.voxel_nm, scene.state_shape)
+    state = ckpt["model_state"]
+    cfg = getattr(model, "config", None)
+    if getattr(cfg, "angle_features", False) and not ckpt["model_config"].get("angle_features", False):
+        from nemsim.model.angle_features import widen_control_inputs
+
+        try:  # the angle columns start at zero: the warm-started model predicts what the stored one did
+            state = widen_control_inputs(state, model.state_dict(), cfg.context_dim)
+        except ValueError as exc:
+            raise TrainInputError(f"--init-from {path}: weights do not fit the model: {exc}") from None
+        log.info("--init-from %s: the angle-feature columns of the control inputs start at zero", path)
     try:
-        missing, unexpected = model.load_state_dict(ckpt["model_state"], strict=False)
+        missing, unexpected = model.load_state_dict(state, strict=False)
     except RuntimeError as exc:  # shape mismatches
         first = str(exc).splitlines()[0]
         raise TrainInputError(f"--init-from {path}: weights do not fit the model: {first}") from None

@@ -41,6 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nemsim.controls import N_CONTROLS
 from nemsim.model.layers import mlp
 from nemsim.rules.kinetics import Kinetics, check_kinetics, dependency_base, primary_terms, product_pool
 
@@ -94,7 +95,9 @@ class EventIntensityCompiler(nn.Module):
             u32 = u.float()
             # fp32 rule tensors on u's device, converted once (kinetics accepts the dict as ``rules``)
             bufs = {k: v.to(u32.device) for k, v in rules.torch_buffers(torch.float32).items()}
-            f, p, Y = primary_terms(u32, bufs, self.kinetics)  # each (B, E), zero where d_e = 1 or dropped
+            # the rule kinetics read the 14 controls (u may carry the angle columns after them); f, p, Y
+            # (B, E) each, zero where d_e = 1 or dropped
+            f, p, Y = primary_terms(u32[:, :N_CONTROLS], bufs, self.kinetics)
             s, d = self._modulation(u32)  # (B, K) each
             return {"u": u32, "Y": Y, "lam_pb": f * p * Y, "s": s, "d": d, "rules": bufs}  # type: ignore[dict-item]
 

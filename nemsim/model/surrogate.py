@@ -46,6 +46,10 @@ Choices where the paper is silent:
     control, computed from the state and the angular exponents (``nemsim.model.transport``), added to the
     encoder's stem output by a 1x1x1 convolution that starts at zero (a warm start is exact). Checkpoints
     written before the key existed load with it off.
+  * ``angle_features`` (default off): the learned parts read four more control columns, the angular spread
+    of each angular species on a 1/sqrt(m) scale (``nemsim.model.angle_features``); the rule kinetics and
+    the transport input keep the 14 controls. A warm start from a model without them is exact
+    (``widen_control_inputs``). Checkpoints written before the key existed load with it off.
 
 Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
 the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,
@@ -74,6 +78,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from nemsim.controls import N_CONTROLS
+from nemsim.model.angle_features import N_ANGLE_FEATURES, angle_features
 from nemsim.model.decoder import DecoderConfig, ResidualDecoder
 from nemsim.model.eic import EICConfig, EventIntensityCompiler, UnstructuredIntensity
 from nemsim.model.encoder import EncoderConfig, StateEncoder
@@ -117,6 +122,8 @@ class NEMSimConfig:
     # line-of-sight direct flux of the four angular species as encoder input (nemsim.model.transport)
     transport_input: bool = False
     transport: TransportConfig = field(default_factory=TransportConfig)
+    # the learned parts read the angular spread of the four angular species too (nemsim.model.angle_features)
+    angle_features: bool = False
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -171,7 +178,8 @@ class NEMSim(nn.Module):
         self.rules = RuleBuffers(rules)  # fixed buffers, never parameters
         E = self.rules.n_events
         desc_dim = int(self.rules.phi.shape[1])
-        shared = dict(context_dim=cfg.context_dim, n_controls=N_CONTROLS)
+        n_in = N_CONTROLS + (N_ANGLE_FEATURES if cfg.angle_features else 0)  # control columns the nets read
+        shared = dict(context_dim=cfg.context_dim, n_controls=n_in)
         self.encoder = StateEncoder(
             EncoderConfig(stem=cfg.stem, widths=cfg.widths, latent_channels=cfg.latent_channels,
                           context_dim=cfg.context_dim)
@@ -239,9 +247,13 @@ class NEMSim(nn.Module):
         sat = check_saturation(self.config.control_saturation)
         if sat is not None:  # the learned parts read saturated controls (the identity in the box)
             u = saturate_controls(u, *sat)  # (B, 14)
+        u_net = u
+        if self.config.angle_features:  # (B, 18): the 14 controls, then the four angular spreads
+            a = angle_features(u)
+            u_net = torch.cat([u, saturate_controls(a, *sat) if sat is not None else a], dim=1)
         return {
-            "u": u,  # what the learned parts read
-            "eic": self.eic.precompute(u, self.rules),  # type: ignore[operator]
+            "u": u_net,  # what the learned parts read
+            "eic": self.eic.precompute(u_net, self.rules),  # type: ignore[operator]
             "mac": self.mac.precompute(self.rules),
             "mrc": self.mrc.precompute(self.rules, fused=fused),
             # flux_gate: g (B, 1, 1, 1, 1) scaling the update (nemsim.model.gate)

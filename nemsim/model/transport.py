@@ -48,10 +48,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from nemsim.controls import control_index, denormalize
-
-# the four angular controls, in the order of the output channels
-ANGLE_CONTROLS = ("angle_cl", "angle_cl_plus", "angle_cl2_plus", "angle_ar_plus")
+from nemsim.controls import ANGLE_CONTROLS, control_index, denormalize
 
 
 @dataclass(frozen=True)

@@ -137,11 +137,13 @@ def test_openvino_bf16_close_to_pytorch(trained):
 
 @pytest.mark.slow
 @needs_openvino
-def test_openvino_exports_the_decoder_refinement(tiny_scene):
+def test_openvino_exports_the_decoder_refinement_and_angle_columns(tiny_scene):
     """A model grown by a decoder refinement block (``decoder_refine``; trained, so the block is not the
-    identity) exports and matches PyTorch in f32."""
-    model, x0, u = _trained(tiny_scene, {"steps_per_call": 2, "decoder_refine": 1})
+    identity) and reading the angle columns (``angle_features``: 18 control columns) exports and matches
+    PyTorch in f32."""
+    model, x0, u = _trained(tiny_scene, {"steps_per_call": 2, "decoder_refine": 1, "angle_features": True})
     assert model.decoder.refine[0].body[-1].weight.abs().max() > 0
+    assert model.eic.h_s.weight.shape[1] == 18 and model.eic.h_s.weight[:, 14:].abs().max() > 0
     ref = rollout(model, x0, u)
     out = rollout(compile_model(model, "openvino", "f32"), x0, u)
     assert (out[:, 1:] - out[:, :1]).abs().max() > 1e-3

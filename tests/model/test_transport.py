@@ -9,9 +9,8 @@ import math
 
 import torch
 
-from nemsim.controls import control_index
+from nemsim.controls import ANGLE_CONTROLS, control_index
 from nemsim.model.transport import (
-    ANGLE_CONTROLS,
     TransportConfig,
     directions,
     material_cells,
