@@ -183,17 +183,22 @@ def _add_data(sub: argparse._SubParsersAction) -> None:
             "--kind pairs writes N/2 sweep pairs: a Latin-hypercube recipe, then the same recipe with one "
             "control group (each flux, the ion energies, the ion angular exponents, the neutral angular "
             "exponent, in turn) moved to another level, and a seed_id column that gives both rows one "
-            "simulator seed (common random numbers): training data for `pair_loss_weight`. "
+            "simulator seed (common random numbers): training data for `pair_loss_weight`. --kind "
+            "lhs-log-angles is the Latin hypercube with the ion angular exponents uniform in log m (the "
+            "profile follows the angular spread, ~1/sqrt(m); uniform in m leaves few recipes where it "
+            "changes most): extra training data for the angular responses. "
             "Examples: nemsim design --out data/design.csv; "
             "nemsim design --kind corners --n 300 --seed 44 --out data/design-corners.csv; "
-            "nemsim design --kind pairs --n 600 --seed 45 --out data/design-pairs.csv"
+            "nemsim design --kind pairs --n 600 --seed 45 --out data/design-pairs.csv; "
+            "nemsim design --kind lhs-log-angles --n 1000 --seed 46 --out data/design-log-angles.csv"
         ),
     )
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
     p.add_argument("--seed", type=int, default=42, help="random seed (default 42, the paper's design)")
-    p.add_argument("--kind", choices=("lhs", "corners", "pairs"), default="lhs",
+    p.add_argument("--kind", choices=("lhs", "corners", "pairs", "lhs-log-angles"), default="lhs",
                    help="lhs: Latin hypercube (default, the paper's); corners: random corners of the box; "
-                        "pairs: N/2 one-group sweep pairs with shared seeds (N even)")
+                        "pairs: N/2 one-group sweep pairs with shared seeds (N even); lhs-log-angles: "
+                        "Latin hypercube with the ion angular exponents uniform in log m")
     p.add_argument("--out", required=True, metavar="FILE.csv",
                    help="output CSV (overwritten; missing folders are created)")
     p.set_defaults(handler=_cmd_design)
@@ -305,6 +310,9 @@ def _cmd_design(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise UserError(str(e)) from None
         what = f"random box corners, seed {args.seed}, none of the physics benchmark's {len(held_out)}"
+    elif args.kind == "lhs-log-angles":
+        raw = lhs_design(args.n, args.seed, log_angles=True)
+        what = f"LHS seed {args.seed}, ion exponents log m"
     else:
         raw, what = lhs_design(args.n, args.seed), f"LHS seed {args.seed}"
     write_controls_csv(_output_path(args.out), raw, seed_ids)

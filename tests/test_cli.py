@@ -85,6 +85,15 @@ def test_design_creates_missing_parent_dirs(tmp_path):
     assert main(["rules", "compile", "--out", str(npz)]) == 0 and npz.is_file()
 
 
+def test_design_log_angles_writes_the_log_m_design(tmp_path, capsys):
+    from nemsim.controls import lhs_design, read_controls_csv
+
+    out = tmp_path / "log-angles.csv"
+    assert main(["design", "--kind", "lhs-log-angles", "--n", "40", "--seed", "5", "--out", str(out)]) == 0
+    np.testing.assert_allclose(read_controls_csv(out), lhs_design(40, 5, log_angles=True), rtol=1e-12)
+    assert "ion exponents log m" in capsys.readouterr().out
+
+
 def test_design_corners_leave_out_the_physics_benchmarks_held_out_corners(tmp_path, capsys):
     from nemsim.controls import read_controls_csv
     from nemsim.evaluation.physics import PhysicsConfig, box_corners

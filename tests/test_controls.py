@@ -65,6 +65,23 @@ def test_lhs_design_properties():
     np.testing.assert_array_equal(C.lhs_design(500, 42), d)
 
 
+def test_log_angle_design_spreads_the_ion_exponents_in_log_m():
+    """lhs-log-angles: the same design except the three ion exponents, which are integers in [50, 3000]
+    uniform in log m: 28.7 % of them below m = 162 (ln 3.24 / ln 60), against 3.8 % in the paper's design."""
+    d, lin = C.lhs_design(2000, 7, log_angles=True), C.lhs_design(2000, 7)
+    ions = [C.control_index(n) for n in C.CONTROL_GROUPS["ion_angle"]]
+    rest = [j for j in range(14) if j not in ions]
+    np.testing.assert_array_equal(d[:, rest], lin[:, rest])
+    m = d[:, ions]
+    assert np.all(m == np.round(m)) and m.min() >= 50 and m.max() <= 3000
+    assert np.mean(m < 162) == pytest.approx(math.log(162 / 50) / math.log(60), abs=0.01)
+    assert np.mean(lin[:, ions] < 162) == pytest.approx(112 / 2951, abs=0.01)
+    # the stratification carries over: the log of each column fills its 20 equal bins with 100 points each
+    bins = np.floor((np.log(m) - math.log(50)) / math.log(60) * 20).clip(0, 19)
+    for k in range(3):
+        assert np.bincount(bins[:, k].astype(int), minlength=20).tolist() == pytest.approx([100] * 20, abs=3)
+
+
 def test_corner_design_draws_distinct_corners_and_never_an_excluded_one():
     banned = np.stack([C.LOW, C.HIGH])  # all-min and all-max
     d = C.corner_design(200, 3, exclude=banned)
