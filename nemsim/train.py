@@ -150,7 +150,8 @@ def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> Non
                     scene.name, scene.voxel_nm, scene.state_shape)
     state = ckpt["model_state"]
     cfg = getattr(model, "config", None)
-    if getattr(cfg, "angle_features", False) and not ckpt["model_config"].get("angle_features", False):
+    if cfg is not None and getattr(cfg, "angle_features", False) \
+            and not ckpt["model_config"].get("angle_features", False):
         from nemsim.model.angle_features import widen_control_inputs
 
         try:  # the angle columns start at zero: the warm-started model predicts what the stored one did
