@@ -282,7 +282,7 @@ def lhs_design(n: int = DESIGN_N, seed: int = DESIGN_SEED, log_angles: bool = Fa
     if log_angles:
         for j in range(N_CONTROLS):
             if _log_level(j):
-                lo, hi = math.log(LOW[j]), math.log(HIGH[j])
+                lo, hi = _log_range(j)
                 raw[:, j] = np.clip(np.round(np.exp(lo + xi[:, j] * (hi - lo))), LOW[j], HIGH[j])
     return raw
 
@@ -308,6 +308,11 @@ def _log_level(j: int) -> bool:
     return CONTROL_SPECS[j].kind == "int" and LOW[j] > 0
 
 
+def _log_range(j: int) -> tuple[float, float]:
+    """(log m_low, log m_high) of a control whose level is linear in log m (``_log_level``)."""
+    return math.log(LOW[j]), math.log(HIGH[j])
+
+
 def sweep_coordinate(raw: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     """The level of the controls ``names`` of raw (..., 14) in [-1, 1], one column per name: the normalized
     control, except for the ion angular exponents, whose level is linear in log m (-1 and +1 at the design
@@ -320,7 +325,7 @@ def sweep_coordinate(raw: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     out = np.asarray(to_normalized(x))[..., cols]
     for k, j in enumerate(cols):
         if _log_level(j):
-            lo, hi = math.log(LOW[j]), math.log(HIGH[j])
+            lo, hi = _log_range(j)
             out[..., k] = 2.0 * (np.log(x[..., j]) - lo) / (hi - lo) - 1.0
     return out
 
@@ -331,7 +336,7 @@ def set_sweep_level(raw: np.ndarray, names: tuple[str, ...], v: float) -> np.nda
     for n in names:
         j = CONTROL_INDEX[n]
         if _log_level(j):
-            lo, hi = math.log(LOW[j]), math.log(HIGH[j])
+            lo, hi = _log_range(j)
             out[j] = math.exp(lo + (v + 1.0) / 2.0 * (hi - lo))
     return out
 

@@ -35,6 +35,12 @@ from nemsim.controls import ANGLE_CONTROLS, CONTROL_SPECS, N_CONTROLS, control_i
 N_ANGLE_FEATURES = len(ANGLE_CONTROLS)  # 4
 
 
+def angle_exponents(u: torch.Tensor) -> torch.Tensor:
+    """The physical cosine-power exponents m (B, 4) of ``ANGLE_CONTROLS`` from normalized controls u (B, 14),
+    float64, clamped at >= 0 (the law the simulator samples its launch directions from)."""
+    return denormalize(u.double())[:, [control_index(n) for n in ANGLE_CONTROLS]].clamp_min(0.0)
+
+
 def angular_spread(m: torch.Tensor) -> torch.Tensor:
     """s(m) = sqrt(2 / (m + 3)), the RMS sine of the polar angle under cos θ = U^(1/(m+1)); m >= 0."""
     return torch.sqrt(2.0 / (m + 3.0))
@@ -44,7 +50,7 @@ def angle_features(u: torch.Tensor) -> torch.Tensor:
     """The four columns a (B, 4) of the module docstring from normalized controls u (B, 14), float64 inside,
     u's dtype out (not yet saturated)."""
     idx = [control_index(n) for n in ANGLE_CONTROLS]
-    m = denormalize(u.double())[:, idx].clamp_min(0.0)  # (B, 4) physical exponents
+    m = angle_exponents(u)  # (B, 4)
     lo = torch.tensor([CONTROL_SPECS[i].low for i in idx], dtype=torch.float64, device=u.device)
     hi = torch.tensor([CONTROL_SPECS[i].high for i in idx], dtype=torch.float64, device=u.device)
     s, s_broad, s_narrow = angular_spread(m), angular_spread(lo), angular_spread(hi)

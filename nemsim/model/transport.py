@@ -48,7 +48,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from nemsim.controls import ANGLE_CONTROLS, control_index, denormalize
+from nemsim.controls import ANGLE_CONTROLS
+from nemsim.model.angle_features import angle_exponents
 
 
 @dataclass(frozen=True)
@@ -92,8 +93,7 @@ def directions(cfg: TransportConfig) -> tuple[torch.Tensor, torch.Tensor, torch.
 def species_weights(u: torch.Tensor, cfg: TransportConfig) -> torch.Tensor:
     """w (B, 4, K) float32 from normalized controls u (B, 14): cos^m(θ_d) Ω_d, normalized over d."""
     theta, _, omega = (t.to(u.device) for t in directions(cfg))
-    idx = [control_index(n) for n in ANGLE_CONTROLS]
-    m = denormalize(u.double())[:, idx].clamp_min(0.0)  # (B, 4) physical exponents (not log-transformed)
+    m = angle_exponents(u)  # (B, 4) physical exponents (not log-transformed)
     logw = m[:, :, None] * torch.log(torch.cos(theta))[None, None] + torch.log(omega)[None, None]  # (B, 4, K)
     return torch.softmax(logw, dim=-1).float()
 
