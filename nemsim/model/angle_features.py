@@ -33,12 +33,13 @@ import torch
 from nemsim.controls import ANGLE_CONTROLS, CONTROL_SPECS, N_CONTROLS, control_index, denormalize
 
 N_ANGLE_FEATURES = len(ANGLE_CONTROLS)  # 4
+ANGLE_INDEX = [control_index(n) for n in ANGLE_CONTROLS]  # their columns among the 14 controls
 
 
 def angle_exponents(u: torch.Tensor) -> torch.Tensor:
     """The physical cosine-power exponents m (B, 4) of ``ANGLE_CONTROLS`` from normalized controls u (B, 14),
     float64, clamped at >= 0 (the law the simulator samples its launch directions from)."""
-    return denormalize(u.double())[:, [control_index(n) for n in ANGLE_CONTROLS]].clamp_min(0.0)
+    return denormalize(u.double())[:, ANGLE_INDEX].clamp_min(0.0)
 
 
 def angular_spread(m: torch.Tensor) -> torch.Tensor:
@@ -49,10 +50,9 @@ def angular_spread(m: torch.Tensor) -> torch.Tensor:
 def angle_features(u: torch.Tensor) -> torch.Tensor:
     """The four columns a (B, 4) of the module docstring from normalized controls u (B, 14), float64 inside,
     u's dtype out (not yet saturated)."""
-    idx = [control_index(n) for n in ANGLE_CONTROLS]
     m = angle_exponents(u)  # (B, 4)
-    lo = torch.tensor([CONTROL_SPECS[i].low for i in idx], dtype=torch.float64, device=u.device)
-    hi = torch.tensor([CONTROL_SPECS[i].high for i in idx], dtype=torch.float64, device=u.device)
+    lo = torch.tensor([CONTROL_SPECS[i].low for i in ANGLE_INDEX], dtype=torch.float64, device=u.device)
+    hi = torch.tensor([CONTROL_SPECS[i].high for i in ANGLE_INDEX], dtype=torch.float64, device=u.device)
     s, s_broad, s_narrow = angular_spread(m), angular_spread(lo), angular_spread(hi)
     return (2.0 * (s - s_narrow) / (s_broad - s_narrow) - 1.0).to(u.dtype)  # (B, 4)
 
