@@ -62,7 +62,7 @@ def train_step_cost(checkpoint: str, batch: int, steps: int) -> dict[str, float]
 
     import torch
 
-    from nemsim.checkpoint import load_checkpoint
+    from nemsim.inference.checkpoint import load_checkpoint
 
     torch.set_num_threads(1)
     loaded = load_checkpoint(checkpoint)

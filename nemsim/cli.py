@@ -302,7 +302,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
         raw, seed_ids = pair_design(args.n // 2, args.seed)
         what = f"{args.n // 2} sweep pairs, seed {args.seed}, each pair one simulator seed (column seed_id)"
     elif args.kind == "corners":
-        from nemsim.evaluation.physics import PhysicsConfig, box_corners
+        from bench.physics import PhysicsConfig, box_corners
 
         held_out = box_corners(PhysicsConfig.corners, PhysicsConfig.heldout_seed)
         try:
@@ -512,7 +512,7 @@ def _cmd_bench_bowing(args: argparse.Namespace) -> int:
 
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
-    from nemsim.sim.bowing import before_variants, bowing_map, design_points, to_markdown
+    from bench.bowing import before_variants, bowing_map, design_points, to_markdown
 
     try:
         scene = get_scene(args.scene)
@@ -554,7 +554,7 @@ def _cmd_bench_bowing(args: argparse.Namespace) -> int:
 
 def _cmd_bench_allocator(args: argparse.Namespace) -> int:
     from nemsim.allocator import bench
-    from nemsim.machine import cpu_name
+    from bench.machine import cpu_name
 
     for name in ("batch", "steps", "rounds"):
         if getattr(args, name) < 1:
@@ -581,7 +581,7 @@ def _cmd_bench_yields(args: argparse.Namespace) -> int:
     import os
 
     from nemsim.rules import compile_rules, load_rules
-    from nemsim.sim.yields import compare, measure_yields, to_markdown
+    from bench.yields import compare, measure_yields, to_markdown
 
     if args.n < 2:
         raise UserError(f"--n must be >= 2 projectiles per point, got {args.n}")
@@ -742,7 +742,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
     from nemsim.controls import lhs_design
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
-    from nemsim.sim.speed import bench_speed
+    from bench.sim_speed import bench_speed
 
     try:
         scenes = [get_scene(name.strip()) for name in args.scenes.split(",") if name.strip()]
@@ -771,7 +771,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
 
 def _cmd_bench_noise(args: argparse.Namespace) -> int:
     from nemsim.controls import lhs_design
-    from nemsim.evaluation.noise import bench_noise
+    from bench.noise import bench_noise
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
 
@@ -800,7 +800,7 @@ def _cmd_bench_noise(args: argparse.Namespace) -> int:
 def _cmd_bench_pair_noise(args: argparse.Namespace) -> int:
     import os
 
-    from nemsim.evaluation.noise import PAIR_METRICS, bench_pair_noise
+    from bench.noise import PAIR_METRICS, bench_pair_noise
 
     for path in (args.data, args.other):
         if not os.path.isfile(path):
@@ -830,7 +830,7 @@ def _cmd_bench_pair_noise(args: argparse.Namespace) -> int:
 def _add_model(sub: argparse._SubParsersAction) -> None:
     from pathlib import Path
 
-    from nemsim.evaluation.speed_error import RUNTIMES as SPEED_ERROR_RUNTIMES
+    from bench.speed_error import RUNTIMES as SPEED_ERROR_RUNTIMES
     from nemsim.train import SETTINGS, add_train_arguments
 
     p = sub.add_parser(
@@ -944,7 +944,7 @@ def _load_for_eval(args: argparse.Namespace):
     """(loaded model, trajectory file, manifest) with the data file's scene checked against the checkpoint."""
     from pathlib import Path
 
-    from nemsim.checkpoint import load_checkpoint
+    from nemsim.inference.checkpoint import load_checkpoint
     from nemsim.data.hdf5 import open_trajectories
     from nemsim.data.splits import resolve_manifest
 
@@ -964,8 +964,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from nemsim.data.dataset import TrajectoryDataset
     from nemsim.evaluation.evaluate import evaluate, plot_evaluation, write_json
-    from nemsim.evaluation.runtime import compile_model
-    from nemsim.evaluation.speed_error import parse_runtime
+    from nemsim.inference.runtime import compile_model
+    from bench.speed_error import parse_runtime
 
     if args.batch_size < 1:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
@@ -1240,7 +1240,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _bench_service_load(args: argparse.Namespace) -> int:
-    from service.bench import bench_load
+    from bench.serving import bench_load
 
     if args.clients < 1 or not args.seconds > 0:
         raise UserError(f"--clients must be >= 1 and --seconds > 0, got {args.clients} and {args.seconds}")
@@ -1276,7 +1276,7 @@ def _bench_service_load(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_service(args: argparse.Namespace) -> int:
-    from service.bench import bench_service
+    from bench.serving import bench_service
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would drown the report
     if args.steps < 1 or args.requests < 1 or args.cached_requests < 1:
@@ -1528,8 +1528,8 @@ def _cmd_bench_monotone_eps(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
-    from nemsim.evaluation import extrapolation as ex
-    from nemsim.evaluation.stress import initial_state
+    from bench import extrapolation as ex
+    from bench.stress import initial_state
 
     loaded = _load_truth_checkpoint(args.checkpoint, args)
     try:
@@ -1554,7 +1554,7 @@ def _cmd_bench_extrapolation(args: argparse.Namespace) -> int:
 
 
 def _load_truth_checkpoint(path: str, args: argparse.Namespace | None = None):
-    from nemsim.checkpoint import load_checkpoint
+    from nemsim.inference.checkpoint import load_checkpoint
 
     try:
         loaded = load_checkpoint(path)
@@ -1566,8 +1566,8 @@ def _load_truth_checkpoint(path: str, args: argparse.Namespace | None = None):
 
 
 def _cmd_bench_physics(args: argparse.Namespace) -> int:
-    from nemsim.evaluation import physics
-    from nemsim.evaluation.stress import initial_state
+    from bench import physics
+    from bench.stress import initial_state
 
     loaded = _load_truth_checkpoint(args.checkpoint, args)
     try:
@@ -1608,8 +1608,8 @@ def _cmd_bench_physics(args: argparse.Namespace) -> int:
 
 
 def _cmd_stress(args: argparse.Namespace) -> int:
-    from nemsim.checkpoint import load_checkpoint
-    from nemsim.evaluation.stress import StressConfig, format_table, initial_state, run_stress
+    from nemsim.inference.checkpoint import load_checkpoint
+    from bench.stress import StressConfig, format_table, initial_state, run_stress
 
     if args.steps < 1 or args.batch_size < 1 or args.noise_cases < 0:
         raise UserError("--steps and --batch-size must be >= 1, --noise-cases >= 0")
@@ -1628,7 +1628,7 @@ def _cmd_stress(args: argparse.Namespace) -> int:
     print(format_table(report))  # noqa: T201
     passed = report["summary"]["passed"]
     if not args.no_invariants:
-        from nemsim.evaluation.invariants import (
+        from bench.invariants import (
             InvariantConfig,
             format_invariants,
             planned_runs,
@@ -1663,7 +1663,7 @@ def _cmd_bench_responses(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from nemsim.data.hdf5 import open_trajectories
-    from nemsim.evaluation import responses
+    from bench import responses
 
     if not Path(args.data).is_file():
         raise UserError(f"{args.data} does not exist")
@@ -1783,8 +1783,8 @@ def _print_plan(truth, runs) -> None:
 def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     import torch
 
-    from nemsim.evaluation.rollout_speed import VARIANTS, bench_rollout, format_bench
-    from nemsim.evaluation.stress import initial_state
+    from bench.rollout_speed import VARIANTS, bench_rollout, format_bench
+    from bench.stress import initial_state
 
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     bad = [v for v in variants if v not in VARIANTS]
@@ -1795,7 +1795,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.checkpoint:
-        from nemsim.checkpoint import load_checkpoint
+        from nemsim.inference.checkpoint import load_checkpoint
 
         try:
             loaded = load_checkpoint(args.checkpoint)
@@ -1827,7 +1827,7 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
 
 
 def _add_speed_error(sub: argparse._SubParsersAction) -> None:
-    from nemsim.evaluation.speed_error import RUNTIMES as SPEED_ERROR_RUNTIMES
+    from bench.speed_error import RUNTIMES as SPEED_ERROR_RUNTIMES
 
     bench_sub = _bench_subparsers(sub)
     p = bench_sub.add_parser(
@@ -1935,8 +1935,8 @@ def _add_bench_compare(bench_sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_bench_compare(args: argparse.Namespace) -> int:
-    from nemsim.comparison.plan import format_status, plan_status, read_plan
-    from nemsim.comparison.runner import RunnerConfig, run_plan
+    from bench.comparison.plan import format_status, plan_status, read_plan
+    from bench.comparison.runner import RunnerConfig, run_plan
 
     plan = read_plan(args.plan)
     try:
@@ -1979,7 +1979,7 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
 
     import torch
 
-    from nemsim.evaluation.speed_error import (
+    from bench.speed_error import (
         SpeedErrorConfig,
         format_markdown,
         parse_runtime,
@@ -2021,7 +2021,7 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_collect(args: argparse.Namespace) -> int:
-    from nemsim.evaluation.results import collect_results, results_markdown, write_results
+    from bench.results import collect_results, results_markdown, write_results
 
     try:
         results = collect_results(args.runs, args.speed_error)
@@ -2200,7 +2200,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_inverse(args: argparse.Namespace) -> int:
-    from nemsim.analysis.inverse_bench import format_bench, run_bench, write_bench
+    from bench.inverse import format_bench, run_bench, write_bench
     from nemsim.analysis.inverse_refine import refine_config_from_dict
 
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())

@@ -16,7 +16,7 @@ Choices where the paper is silent:
 
 This module is the process entry point (the ``nemsim train`` command and ``python -m nemsim.train`` under
 torchrun), a peer of ``nemsim.cli``; the loop, its config and checkpoints live in ``nemsim.training`` and
-``nemsim.checkpoint``. What the model trains on is decided in one function, ``_load_data``.
+``nemsim.inference.checkpoint``. What the model trains on is decided in one function, ``_load_data``.
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def _init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> Non
     their initialization. Refuses another model or rules library, and parameters the model lacks or whose
     shapes differ. Another scene is accepted (a warm start, not a trained model of this scene) and logged:
     the trained model records the data file's scene."""
-    from nemsim.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
+    from nemsim.inference.checkpoint import CheckpointMismatch, check_compatible, read_checkpoint
     from nemsim.scenes import Scene
 
     try:
@@ -341,7 +341,7 @@ def _rules(args: argparse.Namespace, tf: Any) -> tuple[Any, dict[str, Any] | Non
 
 def _test_best(args: argparse.Namespace, out: Path, manifest: dict, scene: Any, steps: int | None) -> None:
     """Evaluate best.pt on the test split: into best.pt's metrics and OUT/test_metrics.json."""
-    from nemsim.checkpoint import load_checkpoint, update_metrics
+    from nemsim.inference.checkpoint import load_checkpoint, update_metrics
     from nemsim.data.dataset import TrajectoryDataset
     from nemsim.evaluation.evaluate import evaluate, write_json
 

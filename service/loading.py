@@ -3,10 +3,10 @@
 `torch.load(weights_only=True)` unpickles only tensors, plain containers and the globals on
 `ALLOWED_GLOBALS` (numpy scalars and their dtypes, which training summaries may carry); anything else
 in the pickle (a class, a function, `os.system`) is refused before it runs. NEMSim checkpoints are
-plain dicts of tensors, numbers, strings and lists (`nemsim.checkpoint`), so every checkpoint
+plain dicts of tensors, numbers, strings and lists (`nemsim.inference.checkpoint`), so every checkpoint
 written by `save_checkpoint` loads, the shipped one included.
 
-`load_checkpoint_safely` is `nemsim.checkpoint.load_checkpoint` with the safe read: the model
+`load_checkpoint_safely` is `nemsim.inference.checkpoint.load_checkpoint` with the safe read: the model
 is rebuilt with the same library functions (`check`, `rules_from_checkpoint`, `build_model`). Every
 failure becomes `CheckpointError`, whose message names the file by its base name only and says what is
 wrong in words a client may see; the full exception goes to the server log.
@@ -64,7 +64,7 @@ def read_checkpoint_safely(path: str | Path) -> dict[str, Any]:
         ) from None
     if not isinstance(ckpt, dict) or "format_version" not in ckpt:
         raise CheckpointError(f"checkpoint {name!r} is not a NEMSim checkpoint (no format_version)")
-    from nemsim.checkpoint import CHECKPOINT_FORMAT
+    from nemsim.inference.checkpoint import CHECKPOINT_FORMAT
 
     if not isinstance(ckpt["format_version"], int) or ckpt["format_version"] > CHECKPOINT_FORMAT:
         raise CheckpointError(
@@ -75,8 +75,8 @@ def read_checkpoint_safely(path: str | Path) -> dict[str, Any]:
 
 
 def load_checkpoint_safely(path: str | Path) -> Any:
-    """A `nemsim.checkpoint.LoadedModel` from a safely read checkpoint (CheckpointError)."""
-    from nemsim.checkpoint import LoadedModel, rules_from_checkpoint
+    """A `nemsim.inference.checkpoint.LoadedModel` from a safely read checkpoint (CheckpointError)."""
+    from nemsim.inference.checkpoint import LoadedModel, rules_from_checkpoint
     from nemsim.registry import build_model
     from nemsim.scenes import Scene
 

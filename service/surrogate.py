@@ -216,7 +216,7 @@ class Surrogate:
         runtime_precision: str = "bf16",
         runtime_threads: int = 1,
     ) -> None:
-        from nemsim.evaluation.runtime import compile_model
+        from nemsim.inference.runtime import compile_model
 
         self.loaded = loaded
         # rollouts run through the fast CPU runtime (PyTorch eager when openvino is missing, logged)

@@ -35,7 +35,7 @@ def tiny_checkpoint(tmp_path_factory, tiny_scene, rules):
 
     import torch
 
-    from nemsim.checkpoint import save_checkpoint
+    from nemsim.inference.checkpoint import save_checkpoint
     from nemsim.registry import build_model, model_config
 
     torch.manual_seed(0)

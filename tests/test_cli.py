@@ -96,7 +96,7 @@ def test_design_log_angles_writes_the_log_m_design(tmp_path, capsys):
 
 def test_design_corners_leave_out_the_physics_benchmarks_held_out_corners(tmp_path, capsys):
     from nemsim.controls import read_controls_csv
-    from nemsim.evaluation.physics import PhysicsConfig, box_corners
+    from bench.physics import PhysicsConfig, box_corners
 
     out = tmp_path / "corners.csv"
     assert main(["design", "--kind", "corners", "--n", "50", "--seed", "1", "--out", str(out)]) == 0

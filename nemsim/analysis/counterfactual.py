@@ -117,7 +117,7 @@ def mechanism_response(
     """Counterfactual mechanism response for one control vector (the service calls this).
 
     Args:
-        loaded: a ``LoadedModel`` (``nemsim.checkpoint.load_checkpoint``) or anything with
+        loaded: a ``LoadedModel`` (``nemsim.inference.checkpoint.load_checkpoint``) or anything with
             ``.model`` (NEMSim, supports return_aux) and ``.scene``.
         controls_raw: (14,) raw physical controls, CONTROL_NAMES order.
         factors: the (s_+, s_n) flux multipliers of Cl+ and neutral Cl; default the paper's eight.

@@ -254,7 +254,7 @@ def simulator_config(loaded: Any) -> Any:
 def load_design_context(checkpoint: str | Path) -> DesignContext:
     """Load a checkpoint, its initial state (its simulator configuration) and its calibration file."""
     from nemsim.analysis.intervals import calibration_for, file_digest
-    from nemsim.checkpoint import load_checkpoint
+    from nemsim.inference.checkpoint import load_checkpoint
     from nemsim.sim import initial_state
 
     path = Path(checkpoint)

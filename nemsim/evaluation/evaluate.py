@@ -54,7 +54,7 @@ class EvalResult:
     steps: int
     case_ids: list[int]
     cd_per_case: list[float] = field(default_factory=list)
-    runtime: str = "torch-f32"  # <backend>-<precision> that ran the rollouts (``nemsim.evaluation.runtime``)
+    runtime: str = "torch-f32"  # <backend>-<precision> that ran the rollouts (``nemsim.inference.runtime``)
     example: dict[str, Any] | None = field(default=None, repr=False)  # arrays for the figure
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -186,7 +186,7 @@ def evaluate(
         batch_size: trajectories rolled out together (1 = the paper's per-trajectory timing).
         chamfer: compute the final-step Chamfer distance (the slowest metric).
         rollout_path: if given, stream predictions to this HDF5 file (``pred``, ``case_ids``).
-        predictor: a runtime of ``model`` (``nemsim.evaluation.runtime.compile_model``, e.g. the served
+        predictor: a runtime of ``model`` (``nemsim.inference.runtime.compile_model``, e.g. the served
             OpenVINO bf16 graph) that runs the rollouts instead of the model itself; CPU only. Its graph is
             compiled for the first batch's shape before the timing starts (a smaller last batch compiles
             its own shape inside it).

@@ -81,7 +81,7 @@ def rollout(
 
     How (speed, same values): the states are written in place into one preallocated trajectory buffer (or,
     with keep=False, into two alternating buffers of one call's states): a predictor with ``predict_into``
-    (``nemsim.evaluation.runtime``) writes its output there directly, others are copied once; the monotone
+    (``nemsim.inference.runtime``) writes its output there directly, others are copied once; the monotone
     projection runs in place on the buffer; the next call reads its input state from the buffer.
     """
     if x0.ndim != 5:

@@ -115,7 +115,7 @@ class Conv3d(nn.Conv3d):
 
 def apply_group_norm(gn: nn.GroupNorm, x: torch.Tensor) -> torch.Tensor:
     """``gn`` applied to x (B, C, ...): ``F.group_norm``. A module global so that an exporter can swap in
-    an equal form that its runtime runs faster (``nemsim.evaluation.runtime``)."""
+    an equal form that its runtime runs faster (``nemsim.inference.runtime``)."""
     return F.group_norm(x, gn.num_groups, gn.weight, gn.bias, gn.eps)
 
 

@@ -9,7 +9,7 @@ Modules: ``config`` (SimConfig, calibration), ``domain`` (voxel state, initial g
 (compiled rules -> kernel tables), ``kernels`` (numba particle transport and surface events), ``sdf``
 (Psi: voxels -> signed distances), ``process`` (time stepping, one trajectory), ``generate`` (data sets:
 case scheduling, resumable HDF5 writing, process pool or Ray), ``speed`` (``nemsim bench sim``), ``yields``
-and ``bowing`` (physics checks of the simulator). The noise floor is ``nemsim.evaluation.noise``.
+and ``bowing`` (physics checks of the simulator). The noise floor is ``bench.noise``.
 
 Calibration and the measured speed / noise figures: ``config`` module docstring and the README.
 """

@@ -58,7 +58,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, Sampler
 from torch.utils.data.distributed import DistributedSampler
 
-from nemsim.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
+from nemsim.inference.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
 from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
 from nemsim.evaluation.rollout import steps_per_call
 from nemsim.scenes import Scene
@@ -94,7 +94,7 @@ class TrainData:
 
 @dataclass
 class ModelMeta:
-    """What a checkpoint needs to rebuild the model (see nemsim.checkpoint)."""
+    """What a checkpoint needs to rebuild the model (see nemsim.inference.checkpoint)."""
 
     name: str
     config: dict[str, Any]

@@ -15,7 +15,7 @@ from nemsim.analysis.counterfactual import (
     response_batch,
     write_outputs,
 )
-from nemsim.checkpoint import LoadedModel
+from nemsim.inference.checkpoint import LoadedModel
 
 
 @pytest.fixture(scope="module")

@@ -220,7 +220,7 @@ class _FakeTruth:
 
 
 def test_bench_run_judges_the_refined_design_with_an_independent_seed(toy):
-    from nemsim.analysis.inverse_bench import LOOP_SEED, VERIFY_SEED, _design_run, _summary
+    from bench.inverse import LOOP_SEED, VERIFY_SEED, _design_run, _summary
 
     truth = _FakeTruth(FakeSimulator(toy, {"etch_depth": 5.0}))
     plain = _design_run(toy, _spec(16.0), "adam", True, truth, STEP)

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from nemsim.evaluation.rollout import rollout
-from nemsim.evaluation.runtime import compile_model, openvino_available
-from nemsim.evaluation.stress import initial_state
+from nemsim.inference.runtime import compile_model, openvino_available
+from bench.stress import initial_state
 from nemsim.model import NEMSim, NEMSimConfig
 from nemsim.model.monotone import MonotoneProjection, axis_eps_of
 from nemsim.scenes import TINY

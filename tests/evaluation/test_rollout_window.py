@@ -88,7 +88,7 @@ def test_windowed_rollout_holds_the_voxels_below_and_reports_the_fraction(rules)
 
 
 def test_windowed_rollout_agrees_with_the_full_one_on_the_shipped_model():
-    from nemsim.checkpoint import load_checkpoint
+    from nemsim.inference.checkpoint import load_checkpoint
     from nemsim.sim import initial_state
 
     torch.set_num_threads(1)

@@ -107,7 +107,7 @@ def test_widen_refuses_another_layout(rules):
 def test_init_from_widens_a_checkpoint_without_the_columns(tmp_path, rules, tiny_scene):
     """``nemsim train --init-from`` of a checkpoint without the columns into a model with them: the stored
     weights in place, the columns at zero, the same predictions."""
-    from nemsim.checkpoint import save_checkpoint
+    from nemsim.inference.checkpoint import save_checkpoint
     from nemsim.train import _init_from
 
     torch.manual_seed(2)

@@ -9,8 +9,8 @@ import torch
 
 from nemsim.controls import FLUX_INDICES, HIGH, LOW, to_normalized
 from nemsim.evaluation.rollout import rollout
-from nemsim.evaluation.runtime import compile_model, openvino_available
-from nemsim.evaluation.stress import initial_state
+from nemsim.inference.runtime import compile_model, openvino_available
+from bench.stress import initial_state
 from nemsim.geometry.profile import profile_metrics_batch
 from nemsim.model import NEMSim, NEMSimConfig
 from nemsim.model.monotone import (

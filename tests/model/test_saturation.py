@@ -31,7 +31,7 @@ def _pair(rules, **cfg) -> tuple[NEMSim, NEMSim]:
 
 
 def _x0(batch: int = 1) -> torch.Tensor:
-    from nemsim.evaluation.stress import initial_state
+    from bench.stress import initial_state
 
     return torch.as_tensor(initial_state(TINY))[None].repeat(batch, 1, 1, 1, 1).float()
 
@@ -126,7 +126,7 @@ def test_the_gate_reads_the_true_controls(rules):
 
 def test_runtime_and_inverse_design_paths_saturate(rules):
     from nemsim.analysis.inverse import rollout_to
-    from nemsim.evaluation.runtime import compile_model
+    from nemsim.inference.runtime import compile_model
 
     off, on = _pair(rules, steps_per_call=3)
     x0 = _x0()

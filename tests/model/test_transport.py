@@ -119,7 +119,7 @@ def test_exact_on_a_top_slab():
 
 
 def test_warm_start_is_exact_and_input_trains(tiny_scene):
-    from nemsim.evaluation.stress import initial_state
+    from bench.stress import initial_state
     from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
@@ -141,7 +141,7 @@ def test_warm_start_is_exact_and_input_trains(tiny_scene):
 
 def test_config_from_a_stored_dict(tiny_scene):
     """A checkpoint's config (lists where the dataclass has tuples) builds a model whose rays are cached."""
-    from nemsim.evaluation.stress import initial_state
+    from bench.stress import initial_state
     from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules

@@ -31,7 +31,7 @@ def _model(tiny_scene, k: int):
 
 @pytest.mark.parametrize("k", [1, 4])
 def test_predict_into_matches_predict(tiny_scene, k):
-    from nemsim.evaluation.stress import initial_state
+    from bench.stress import initial_state
 
     model = _model(tiny_scene, k)
     x = torch.as_tensor(initial_state(tiny_scene))[None].repeat(3, 1, 1, 1, 1)  # (3, 2, D, H, W)
@@ -55,7 +55,7 @@ def test_predict_into_matches_predict(tiny_scene, k):
 
 def test_rollout_fused_matches_the_copy_path(tiny_scene, monkeypatch):
     """``rollout`` takes the fused path; the same rollout through ``predict`` and a copy agrees."""
-    from nemsim.evaluation.stress import initial_state
+    from bench.stress import initial_state
     from nemsim.model.surrogate import NEMSim
 
     model = _model(tiny_scene, 3)

@@ -1,4 +1,4 @@
-"""The service's rollouts go through ``nemsim.evaluation.runtime`` (settings runtime_backend / _precision /
+"""The service's rollouts go through ``nemsim.inference.runtime`` (settings runtime_backend / _precision /
 _threads): OpenVINO when installed, PyTorch otherwise, the same trajectory within float rounding."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from nemsim.controls import CONTROL_SPECS
-from nemsim.evaluation.runtime import openvino_available
+from nemsim.inference.runtime import openvino_available
 
 
 def _controls(steps: int) -> np.ndarray:

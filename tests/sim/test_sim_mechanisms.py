@@ -15,7 +15,7 @@ from nemsim.rules.vocab import PROJECTILES
 from nemsim.sim import SimConfig
 from nemsim.sim import kernels as K
 from nemsim.sim.events import build_event_tables
-from nemsim.sim.yields import LITERATURE, fire
+from bench.yields import LITERATURE, fire
 
 AR = PROJECTILES.index("Ar+")
 
@@ -191,7 +191,7 @@ def test_options_are_validated_recorded_and_absent_from_default_records():
 
 def test_bulge_of_an_equivalent_diameter_profile():
     from nemsim.scenes import TINY
-    from nemsim.sim.bowing import bulge, equivalent_diameters
+    from bench.bowing import bulge, equivalent_diameters
 
     # straight 4-voxel-wide square hole: no bulge; widen rows 3 and 4 below the top Si row by a voxel a side
     si = np.ones((TINY.nx, TINY.ny, TINY.nz), dtype=np.float32)

@@ -12,7 +12,7 @@ from nemsim.rules.vocab import PROJECTILES
 from nemsim.sim import SimConfig
 from nemsim.sim import kernels as K
 from nemsim.sim.events import build_event_tables
-from nemsim.sim.yields import fire
+from bench.yields import fire
 
 
 def _fly(tables, mat, fill, species, energy, pos, direction, counters, config=None):

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 import torch
 
-from nemsim.checkpoint import CheckpointMismatch, load_checkpoint, read_checkpoint, save_checkpoint
+from nemsim.inference.checkpoint import CheckpointMismatch, load_checkpoint, read_checkpoint, save_checkpoint
 from nemsim.registry import build_model, model_config
 from nemsim.scenes import SMALL
 

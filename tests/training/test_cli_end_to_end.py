@@ -51,7 +51,7 @@ def test_train_then_evaluate(tmp_path, tiny_data, tiny_scene, capsys):
         assert f["pred"].shape == (2, STEPS + 1, *tiny_scene.state_shape)
         assert list(f["case_ids"][:]) == [4, 5]
     # mismatched scene: a checkpoint is refused by name
-    from nemsim.checkpoint import read_checkpoint, write_checkpoint_dict
+    from nemsim.inference.checkpoint import read_checkpoint, write_checkpoint_dict
     from nemsim.scenes import SMALL
 
     ck = read_checkpoint(out / "best.pt")

@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from nemsim.checkpoint import load_checkpoint, read_checkpoint
+from nemsim.inference.checkpoint import load_checkpoint, read_checkpoint
 from nemsim.registry import build_model, model_config
 from nemsim.training.config import TrainConfig
 from nemsim.training.loop import Clock, ModelMeta, TrainData, seed_everything, train

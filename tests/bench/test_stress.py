@@ -1,4 +1,4 @@
-"""Hard-case stability suite (nemsim.evaluation.stress) on an untrained `tiny` NEMSim checkpoint, plus the
+"""Hard-case stability suite (bench.stress) on an untrained `tiny` NEMSim checkpoint, plus the
 fast rollout path (precompute/step) against the per-step forward."""
 
 from __future__ import annotations
@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 import torch
 
-from nemsim.evaluation.stress import CORNER_AXES, StressConfig, corner_bits, format_table, run_stress
+from bench.stress import CORNER_AXES, StressConfig, corner_bits, format_table, run_stress
 
 torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="module")
 def loaded(tiny_checkpoint):
-    from nemsim.checkpoint import load_checkpoint
+    from nemsim.inference.checkpoint import load_checkpoint
 
     return load_checkpoint(tiny_checkpoint)
 
@@ -125,13 +125,13 @@ def test_fast_path_matches_forward(loaded, x0):
         for k in ("lambda", "alpha", "T", "w"):
             assert torch.allclose(a1[k], a2[k], atol=1e-6), k
     finally:
-        from nemsim.checkpoint import load_checkpoint
+        from nemsim.inference.checkpoint import load_checkpoint
 
         model.load_state_dict(load_checkpoint(loaded.path).model.state_dict())
 
 
 def test_cli_stress(tiny_checkpoint, tmp_path, monkeypatch, x0):
-    import nemsim.evaluation.stress as stress
+    import bench.stress as stress
     from nemsim.cli import main
 
     monkeypatch.setattr(stress, "initial_state", lambda scene: x0)
@@ -144,7 +144,7 @@ def test_cli_stress(tiny_checkpoint, tmp_path, monkeypatch, x0):
 
 
 def test_cli_bench_rollout(tiny_checkpoint, tmp_path, monkeypatch, x0, capsys):
-    import nemsim.evaluation.stress as stress
+    import bench.stress as stress
     from nemsim.cli import main
 
     monkeypatch.setattr(stress, "initial_state", lambda scene: x0)
@@ -163,7 +163,7 @@ def test_cli_bench_rollout(tiny_checkpoint, tmp_path, monkeypatch, x0, capsys):
 
 def test_cli_bench_rollout_window(tiny_checkpoint, tmp_path, monkeypatch, x0):
     """The depth-windowed variant reports its share of voxels computed and stays near the full rollout."""
-    import nemsim.evaluation.stress as stress
+    import bench.stress as stress
     from nemsim.cli import main
 
     monkeypatch.setattr(stress, "initial_state", lambda scene: x0)

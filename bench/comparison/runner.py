@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from nemsim.comparison.plan import (
+from bench.comparison.plan import (
     Plan,
     PlanError,
     RunStatus,

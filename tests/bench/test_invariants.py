@@ -1,4 +1,4 @@
-"""Physical invariants against the simulator (nemsim.evaluation.invariants) on `tiny`, with stub surrogates
+"""Physical invariants against the simulator (bench.invariants) on `tiny`, with stub surrogates
 whose behaviour is known: a plausible one passes, each deliberately broken one is flagged by its check."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, to_normalized
-from nemsim.evaluation.invariants import (
+from bench.invariants import (
     InvariantConfig,
     format_invariants,
     ions_off_recipes,
@@ -106,7 +106,7 @@ def test_noise_file_round_trip(truth, x0, tmp_path, tiny_scene, stubs):
 def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stubs):
     """The suite's exit code: 0 for a plausible model, 1 for one that etches without flux; bad flags 2."""
     import nemsim.cli as cli
-    from nemsim.checkpoint import LoadedModel
+    from nemsim.inference.checkpoint import LoadedModel
 
     def fake_loader(model):
         from nemsim.rules import compile_rules, load_rules
@@ -117,7 +117,7 @@ def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stu
     args = ["stress", "--checkpoint", "stub.pt", "--steps", "6", "--max-corners", "2", "--noise-cases", "0",
             "--sim-steps", str(STEPS), "--pair-bases", "0", "--no-progress",
             "--cache-dir", str(tmp_path / "c")]
-    import nemsim.checkpoint as ck
+    import nemsim.inference.checkpoint as ck
 
     monkeypatch.setattr(ck, "load_checkpoint", fake_loader(stubs.Plausible()))
     out = tmp_path / "ok.json"
@@ -131,7 +131,7 @@ def test_cli_stress_invariants_exit_codes(tmp_path, tiny_scene, monkeypatch, stu
 
 
 def test_monotone_pair_is_held_to_the_truth_where_the_simulator_itself_falls():
-    from nemsim.evaluation.invariants import pair_ok
+    from bench.invariants import pair_ok
 
     tol = 2.23  # nm, seed-to-seed depth difference
     assert pair_ok(-2.0, +5.0, tol) and not pair_ok(-2.5, +5.0, tol)  # the law holds in the truth: -tol

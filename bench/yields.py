@@ -51,9 +51,9 @@ import numpy as np
 from nemsim.rules.compile import RuleTensors
 from nemsim.rules.vocab import PROJECTILES, TARGETS
 
-from . import kernels as K
-from .config import SimConfig
-from .events import build_event_tables
+from nemsim.sim import kernels as K
+from nemsim.sim.config import SimConfig
+from nemsim.sim.events import build_event_tables
 
 ENERGIES_EV = (50.0, 100.0, 200.0, 300.0, 500.0)
 AR_ENERGIES_EV = (50.0, 100.0, 200.0, 300.0, 600.0)  # the Laegreid & Wehner energies

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from nemsim.cli import main
-from nemsim.comparison.plan import Choice, PlanError, format_status, plan_status, read_plan, record_run
+from bench.comparison.plan import Choice, PlanError, format_status, plan_status, read_plan, record_run
 from nemsim.training.loop import CSV_FIELDS
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -44,7 +44,7 @@ from nemsim.controls import (
     set_group,
 )
 from nemsim.evaluation.figure import pyplot, save_figure
-from nemsim.evaluation.invariants import centre_raw
+from bench.invariants import centre_raw
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
 SWEEP_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss", "bowing")

@@ -15,7 +15,7 @@ Variants:
   * ``fp32-window``: the depth-windowed rollout (``rollout(window=True)``, ``nemsim.model.window``; NEMSim
     only): each call computes the depth slab that can change; the report adds the fraction of voxels
     computed;
-  * ``openvino-f32`` / ``openvino-bf16``: the step graph under OpenVINO (``nemsim.evaluation.runtime``, one
+  * ``openvino-f32`` / ``openvino-bf16``: the step graph under OpenVINO (``nemsim.inference.runtime``, one
     inference thread; PyTorch if openvino is missing, see the log).
 """
 
@@ -65,7 +65,7 @@ def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[Any, torch.
     if name == "fp32-window":
         return model, x0, contextlib.nullcontext, True
     if name in ("openvino-f32", "openvino-bf16"):
-        from nemsim.evaluation.runtime import Precision, compile_model
+        from nemsim.inference.runtime import Precision, compile_model
 
         precision: Precision = "bf16" if name.endswith("bf16") else "f32"
         return compile_model(model, "openvino", precision), x0, contextlib.nullcontext, False

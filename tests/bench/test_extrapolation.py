@@ -1,4 +1,4 @@
-"""Extrapolation benchmark (nemsim.evaluation.extrapolation) on `tiny`."""
+"""Extrapolation benchmark (bench.extrapolation) on `tiny`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, PHYS_MIN, to_normalized
-from nemsim.evaluation.extrapolation import ExtrapolationConfig, box_distance, recipes, run_extrapolation
+from bench.extrapolation import ExtrapolationConfig, box_distance, recipes, run_extrapolation
 
 torch.set_num_threads(1)
 

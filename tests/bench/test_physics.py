@@ -1,4 +1,4 @@
-"""Physics benchmark (nemsim.evaluation.physics) and the shared simulator-truth helpers on `tiny`."""
+"""Physics benchmark (bench.physics) and the shared simulator-truth helpers on `tiny`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from nemsim.controls import CONTROL_GROUPS, CONTROL_INDEX, HIGH, LOW, to_normalized
-from nemsim.evaluation.physics import (
+from bench.physics import (
     PhysicsConfig,
     box_corners,
     format_markdown,

@@ -1,5 +1,5 @@
 """Simulator speed benchmark (``nemsim bench sim``); the Monte Carlo noise floor is
-``nemsim.evaluation.noise`` (it scores with the evaluation metrics).
+``bench.noise`` (it scores with the evaluation metrics).
 
 Speed: median wall time and CPU time per 101-state trajectory and primary particles per second, on the
 first design cases, one core, after a JIT warm-up (a one-transition run of every scene). Wall time on a
@@ -17,9 +17,9 @@ import numpy as np
 from nemsim.rules.compile import RuleTensors
 from nemsim.scenes import Scene
 
-from .config import SimConfig
-from .events import build_event_tables
-from .process import run_trajectory
+from nemsim.sim.config import SimConfig
+from nemsim.sim.events import build_event_tables
+from nemsim.sim.process import run_trajectory
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The CPU name benchmarks print (nemsim.machine)."""
+"""The CPU name benchmarks print (bench.machine)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import os
 import platform
 from pathlib import Path
 
-from nemsim.machine import cpu_name
+from bench.machine import cpu_name
 
 
 def test_cpu_name_names_the_model_and_the_bf16_features():

@@ -7,7 +7,7 @@ import csv
 import json
 
 from nemsim.cli import main
-from nemsim.evaluation.results import setting_key
+from bench.results import setting_key
 from nemsim.training.loop import CSV_FIELDS
 
 BUDGET = {"max_train_minutes": 45.0, "max_steps": None, "batch_size": 24}

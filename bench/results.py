@@ -52,7 +52,7 @@ def _run_info(run_dir: Path) -> tuple[str, dict[str, Any]]:
     name, summary = run_dir.name, {}
     ckpt = run_dir / "best.pt"
     if ckpt.is_file():
-        from nemsim.checkpoint import read_checkpoint
+        from nemsim.inference.checkpoint import read_checkpoint
 
         c = read_checkpoint(ckpt)
         name, summary = str(c.get("model_name") or run_dir.name), dict(c.get("summary") or {})

@@ -14,7 +14,7 @@ simulator that made the data; a file that records none is refused. Methods:
     the data file's own (a second full-budget seed), so that row **is the noise floor**: two equally good
     simulator runs differ by this much; its time is the reference run's time;
   * every surrogate **variant**: each checkpoint (NEMSim or a baseline) under each runtime
-    ``<backend>-<precision>`` (``nemsim.evaluation.runtime.compile_model``: ``torch-f32`` is PyTorch eager,
+    ``<backend>-<precision>`` (``nemsim.inference.runtime.compile_model``: ``torch-f32`` is PyTorch eager,
     the reference; ``torch-bf16`` CPU autocast; ``openvino-f32`` / ``openvino-bf16`` the exported step
     graph), rolled out from the case's x_0 with the file's controls (``nemsim.evaluation.rollout``).
 
@@ -273,8 +273,8 @@ def _test_rows(tf: Any, manifest: dict, cases: int,
 def _load_models(checkpoints: Sequence[str | Path], scene: Any, runtimes: list[str],
                  threads: int) -> tuple[list[tuple[str, Any, Path]], dict[tuple[str, str], Any]]:
     """([(label, LoadedModel, path)], {(label, runtime): predictor}) of the checkpoints."""
-    from nemsim.checkpoint import load_checkpoint
-    from nemsim.evaluation.runtime import compile_model
+    from nemsim.inference.checkpoint import load_checkpoint
+    from nemsim.inference.runtime import compile_model
 
     models: list[tuple[str, Any, Path]] = []  # (label, LoadedModel, path)
     for path in checkpoints:

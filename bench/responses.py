@@ -38,7 +38,7 @@ import numpy as np
 
 from nemsim.controls import CONTROL_NAMES, N_CONTROLS, to_normalized
 from nemsim.evaluation.figure import pyplot, save_figure
-from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS
+from bench.physics import METRIC_LABELS, SWEEP_METRICS
 from nemsim.evaluation.truth import predict, write_report
 from nemsim.geometry.profile import profile_metrics_batch
 

@@ -43,8 +43,8 @@ from nemsim.controls import (
     to_normalized,
 )
 from nemsim.evaluation.figure import pyplot, save_figure
-from nemsim.evaluation.invariants import ION_FLUXES, centre_raw
-from nemsim.evaluation.physics import METRIC_LABELS, SWEEP_METRICS, box_corners
+from bench.invariants import ION_FLUXES, centre_raw
+from bench.physics import METRIC_LABELS, SWEEP_METRICS, box_corners
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
 ANGLES = tuple(s.name for s in CONTROL_SPECS if s.name.startswith("angle_"))

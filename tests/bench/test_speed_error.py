@@ -14,7 +14,7 @@ import math
 import pytest
 import torch
 
-from nemsim.evaluation.runtime import openvino_available
+from nemsim.inference.runtime import openvino_available
 
 torch.set_num_threads(1)
 
@@ -111,7 +111,7 @@ def test_speed_error_table_and_plot(speed_error_out):
 
 
 def test_equal_accuracy_interpolates_log_log():
-    from nemsim.evaluation.speed_error import equal_accuracy_time
+    from bench.speed_error import equal_accuracy_time
 
     # (Avg RMSE, seconds) of budgets 1, 1/4, 1/16; listed unsorted
     pts = [(0.04, 1.0), (0.01, 4.0), (0.02, 2.0)]
@@ -246,7 +246,7 @@ def test_collect_builds_results_json_and_readme(tmp_path, speed_error_out):
 
 
 def test_step_budget_runs_get_their_own_table():
-    from nemsim.evaluation.results import setting_key
+    from bench.results import setting_key
 
     assert setting_key("control-id", {}) == "control-id"
     assert setting_key("control-id", {"train_config": {"max_steps": None, "batch_size": 24}}) == "control-id"

@@ -24,7 +24,7 @@ Per case the suite reports (streamed per step, the trajectory is never held in m
   * ``mask_loss_min_nm``: the smallest mask loss over the rollout (nm; negative = the mask grew).
 
 Physical invariants judged against the simulator (zero flux, ions off, depth monotone in time, flux and
-energy, mask loss >= -tol, response) are ``nemsim.evaluation.invariants``; ``nemsim stress`` runs them after
+energy, mask loss >= -tol, response) are ``bench.invariants``; ``nemsim stress`` runs them after
 these cases and judges these cases' depth drops and mask losses with the simulator's tolerances.
 
 Choices the issue leaves open: the sub-box corners use the ion-energy means only (the three energy spreads

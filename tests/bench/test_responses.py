@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from nemsim.controls import CONTROL_INDEX, N_CONTROLS
-from nemsim.evaluation.responses import fit_linear, response_rows, summarize
+from bench.responses import fit_linear, response_rows, summarize
 
 CL = CONTROL_INDEX["flux_cl"]
 

@@ -11,7 +11,7 @@ import pytest
 from nemsim.cli import main
 from nemsim.controls import lhs_design, set_group
 from nemsim.data.hdf5 import TrajectoryWriter
-from nemsim.evaluation.noise import bench_pair_noise, pair_group
+from bench.noise import bench_pair_noise, pair_group
 
 
 def _pair_file(path, scene, levels: tuple[float, float], seed: int, raw: np.ndarray) -> None:

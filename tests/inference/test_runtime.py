@@ -1,4 +1,4 @@
-"""``nemsim.evaluation.runtime``: the OpenVINO step graph against PyTorch eager on trained `tiny` weights,
+"""``nemsim.inference.runtime``: the OpenVINO step graph against PyTorch eager on trained `tiny` weights,
 and the fallback to PyTorch.
 
 "Trained" here: the untrained model after a few Adam steps on a synthetic target, so every zero-initialized
@@ -17,9 +17,9 @@ import pytest
 import torch
 from torch import nn
 
-from nemsim.evaluation import runtime
+from nemsim.inference import runtime
 from nemsim.evaluation.rollout import rollout
-from nemsim.evaluation.runtime import compile_model, openvino_available
+from nemsim.inference.runtime import compile_model, openvino_available
 
 torch.set_num_threads(1)
 
@@ -30,7 +30,7 @@ STEPS = 6
 
 def _trained(tiny_scene, config: dict | None = None):
     """(model, x0 (2, 2, D, H, W), u (2, STEPS, 14)): NEMSim after 5 Adam steps; a recipe per case."""
-    from nemsim.evaluation.stress import initial_state
+    from bench.stress import initial_state
     from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
@@ -164,7 +164,7 @@ def test_torch_backend_is_the_reference(trained):
 def test_fallback_when_openvino_is_missing(trained, monkeypatch, caplog):
     model, x0, u = trained
     monkeypatch.setattr(runtime, "openvino_available", lambda: False)
-    with caplog.at_level(logging.WARNING, logger="nemsim.evaluation.runtime"):
+    with caplog.at_level(logging.WARNING, logger="nemsim.inference.runtime"):
         pred = compile_model(model, "openvino", "f32")
     assert pred.backend == "torch" and "not installed" in pred.fallback_reason
     assert "not installed" in caplog.text
@@ -180,7 +180,7 @@ def test_fallback_when_the_export_fails(trained, monkeypatch, caplog):
 
     monkeypatch.setattr(runtime.OpenVINOPredictor, "_compile", broken)
     pred = compile_model(model, "openvino", "f32")
-    with caplog.at_level(logging.WARNING, logger="nemsim.evaluation.runtime"):
+    with caplog.at_level(logging.WARNING, logger="nemsim.inference.runtime"):
         out = rollout(pred, x0, u)
     assert pred.backend == "torch"
     assert pred.fallback_reason == "openvino export failed: RuntimeError: unsupported operation"
@@ -227,7 +227,7 @@ def test_bad_options_name_the_choices(kwargs, match):
 @pytest.mark.slow
 @needs_openvino
 def test_bench_rollout_has_openvino_variants(trained):
-    from nemsim.evaluation.rollout_speed import bench_rollout
+    from bench.rollout_speed import bench_rollout
 
     model, x0, _ = trained
     rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-f32"])

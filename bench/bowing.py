@@ -36,9 +36,9 @@ from nemsim.geometry.profile import profile_metrics
 from nemsim.rules.compile import RuleTensors
 from nemsim.scenes import Scene
 
-from .config import SimConfig
-from .process import run_trajectory
-from .sdf import psi
+from nemsim.sim.config import SimConfig
+from nemsim.sim.process import run_trajectory
+from nemsim.sim.sdf import psi
 
 ION_FLUX = ("flux_ar_plus", "flux_cl_plus", "flux_cl2_plus")
 ION_ANGLE = ("angle_ar_plus", "angle_cl_plus", "angle_cl2_plus")

@@ -309,7 +309,7 @@ def finished(d: Path, entry: Entry) -> dict[str, Any] | None:
 def _last_wall_s(d: Path) -> float | None:
     """The run's wall seconds stored in last.pt (over resumes); None when unreadable."""
     try:
-        from nemsim.checkpoint import read_checkpoint
+        from nemsim.inference.checkpoint import read_checkpoint
 
         return float(read_checkpoint(d / "last.pt").get("train_state", {}).get("wall_s"))
     except (OSError, ValueError, TypeError, RuntimeError, EOFError):

@@ -13,8 +13,8 @@ import pytest
 import yaml
 
 from nemsim.cli import main
-from nemsim.comparison.plan import PlanError, plan_status, read_plan
-from nemsim.comparison.runner import RunnerConfig, run_plan
+from bench.comparison.plan import PlanError, plan_status, read_plan
+from bench.comparison.runner import RunnerConfig, run_plan
 
 TWO_RUNS = (
     "  - {name: probe-fno-small, probe: true, model: fno, size: small, lr: 2.0e-3, minutes: 0.02}\n"
@@ -168,7 +168,7 @@ def test_sigterm_stops_the_runs_and_a_rerun_resumes_them(write_plan, tmp_path):
 def test_one_runner_at_a_time_per_runs_dir(write_plan, tmp_path):
     import fcntl
 
-    from nemsim.comparison.runner import LOCK
+    from bench.comparison.runner import LOCK
 
     runs = tmp_path / "runs"
     runs.mkdir()
@@ -185,7 +185,7 @@ def test_a_training_key_added_since_a_run_started_keeps_its_default():
     matches the plan when the plan gives the field's default, and not when it gives another value."""
     from dataclasses import asdict
 
-    from nemsim.comparison.runner import config_changes
+    from bench.comparison.runner import config_changes
     from nemsim.training.config import TrainConfig
 
     now = {**asdict(TrainConfig(lr=2e-3)), "model": {"width": 10}}

@@ -131,7 +131,7 @@ def run_bench(
         n_sim = truth.n_simulated
         sim_s = truth.sim_wall_s
     summary = {label: _summary(cases, label) for label, _, _ in variants}
-    from nemsim.machine import cpu_name
+    from bench.machine import cpu_name
 
     return {
         "checkpoint": Path(checkpoint).name,
