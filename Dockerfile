@@ -1,10 +1,11 @@
 # NEMSim inference service, CPU-only image.
 #   docker build -t nemsim .
 #   docker run -p 8000:8000 -e NEMSIM_API_KEYS=<a key of >= 16 characters> nemsim
-#       serves checkpoints/*.pt; docs at http://localhost:8000/docs; clients send the header X-API-Key.
+#       serves checkpoints/nemsim-small.pt; docs at http://localhost:8000/docs; clients send the header X-API-Key.
 #       Without keys the server answers only clients inside the container (it warns at start-up).
 #   docker run -p 8000:8000 -e NEMSIM_API_KEYS=... -v $PWD/ckpt:/ckpt -e NEMSIM_CHECKPOINT=/ckpt/model.pt nemsim
-# A checkpoint that cannot load stops the container (exit 3); the HEALTHCHECK polls /ready.
+# A checkpoint that cannot load stops the container (exit 3); the HEALTHCHECK polls /ready. The image holds the
+# library and the service (not the benchmark harness: `nemsim bench` is absent there).
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -25,7 +26,7 @@ COPY service ./service
 COPY rules ./rules
 RUN pip install ".[service]"
 
-# the shipped checkpoint; the service picks the first *.pt under ./checkpoints (cwd = /app)
+# the shipped checkpoint: the service serves ./checkpoints/nemsim-small.pt (cwd = /app); resume state excluded
 COPY checkpoints ./checkpoints
 
 RUN useradd --create-home --uid 10001 nemsim && chown -R nemsim /app

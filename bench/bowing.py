@@ -9,9 +9,8 @@ so the flux ratio Gamma(Cl) / sum Gamma(ions) is reported per point. Metrics at 
   * ``bowing``: the profile metric on the simulator's state (Psi with the configured smoothing);
   * ``bowing_unsmoothed``: the same metric on Psi of the final voxel fractions without the Gaussian
     smoothing (sigma = 0). Reason: Psi smooths each channel separately and the Si channel sees the resist
-    above the top Si row as vacuum, so the smoothed top row reads ~2-3 nm wider than the voxels are; the
-    bowing metric takes that row as its reference and so hides a bulge of that size (measured: see the
-    committed table under benchmarks/small/).
+    above the top Si row as vacuum, so the smoothed top row reads wider than the voxels are, which would
+    hide a bulge of that size just below it (benchmarks/small/bowing.md).
   * ``bowing_area``: the same "widest row minus the narrowest row above it" on the equivalent diameter
     d(z) = 2 sqrt(A(z) / pi) of every Si row, A(z) the open (non-Si) area of the row from the final voxel
     fractions, from the top Si row down. It averages over the whole perimeter instead of the four points
@@ -35,7 +34,6 @@ from nemsim.controls import CONTROL_INDEX, from_unit
 from nemsim.geometry.profile import profile_metrics
 from nemsim.rules.compile import RuleTensors
 from nemsim.scenes import Scene
-
 from nemsim.sim.config import SimConfig
 from nemsim.sim.process import run_trajectory
 from nemsim.sim.sdf import psi

@@ -1,4 +1,4 @@
-"""Extrapolation benchmark: surrogate error outside the training box against the simulator (issue 19, item 2).
+"""Extrapolation benchmark: surrogate error outside the training box against the simulator.
 
 ``nemsim bench extrapolation`` simulates (two seeds) and predicts recipes of these kinds:
 
@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from bench.invariants import ION_FLUXES, centre_raw
+from bench.physics import METRIC_LABELS, SWEEP_METRICS, box_corners
 from nemsim.controls import (
     CONTROL_INDEX,
     CONTROL_NAMES,
@@ -43,8 +45,6 @@ from nemsim.controls import (
     to_normalized,
 )
 from nemsim.evaluation.figure import pyplot, save_figure
-from bench.invariants import ION_FLUXES, centre_raw
-from bench.physics import METRIC_LABELS, SWEEP_METRICS, box_corners
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
 ANGLES = tuple(s.name for s in CONTROL_SPECS if s.name.startswith("angle_"))

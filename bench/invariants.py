@@ -1,39 +1,29 @@
-"""Physical invariants judged against the simulator (issue 19, "Invariants as pass/fail criteria").
+"""Physical invariants judged against the simulator (``nemsim stress``).
 
-A finite, bounded rollout can still break laws that hold for every recipe. ``nemsim stress`` checks them
-on the surrogate, each with a tolerance taken from the simulator's own seed-to-seed noise, and fails on
-any violation:
+A finite, bounded rollout can still break laws that hold for every recipe. Each check runs on the
+surrogate with a tolerance taken from the simulator's own seed-to-seed noise, and any violation fails:
 
-  * ``zero flux``: all four fluxes 0 (other controls at the design centre, at the all-min and the all-max
-    corner) -> the state does not change. Per recipe, the largest per-step RMSE to x_0, etch-depth change
-    and mask-loss change over the whole rollout (``steps``, past the horizon) must stay within the
-    simulator's own change on the recipe (0: no particle, no change) plus the noise tolerance.
-  * ``ions off``: the three ion fluxes 0, neutral Cl at the centre and at the top of its range -> the
-    trajectory matches the simulator's neutral-only trajectory: per-step RMSE, |depth difference| and
-    |mask-loss difference| within the tolerances at every step of the simulated horizon.
-  * ``depth never decreases``: on every rollout of the suite (the stability cases included) the etch depth
-    never falls from one step to the next by more than the simulator's largest step-to-step decrease on
+  * ``zero flux``: all four fluxes 0 (other controls at the design centre and the two extreme corners) ->
+    the state does not change: per-step RMSE to x_0, depth and mask-loss change over the whole rollout
+    (past the horizon) within the simulator's own change (none) plus the noise tolerance.
+  * ``ions off``: the three ion fluxes 0 -> the trajectory matches the simulator's neutral-only one at every
+    step (RMSE, depth and mask-loss differences within the tolerances).
+  * ``depth never decreases``: from one step to the next by more than the simulator's largest decrease on
     the suite's simulations (Ψ smoothing and redeposition make it slightly non-zero).
-  * ``mask loss >= -tol``: on every noise-free rollout the mask never grows above its initial top by
-    more than the seed-to-seed mask-loss difference.
-  * ``depth non-decreasing in X`` (X = each ion flux, and the three ion-energy means together): on a grid of
-    ``levels`` values from the design minimum to maximum of X around base recipes (the design centre and
-    ``pair_bases`` Latin-hypercube points), the model's depth at the higher level minus the depth at the
-    lower one, at every step, must be >= -tol_depth. The simulator's runs of the same pairs are checked
-    the same way (column "simulator": evidence that the law holds in the truth at this tolerance). Where
-    the simulator's own pair falls by more than that (one seed per level: its noise can exceed the
-    two-seed tolerance, or the law may not hold there), the model is held to the truth instead: it may
-    fall by the simulator's fall plus tol_depth (``pair_ok``), so matching the truth is never a violation.
-  * ``responds where the simulator does``: a model that predicts no change passes every check above; so
-    on every pair where the simulator's final depth rises by more than tol_depth, the model's must rise
-    (> 0). It catches flat and reversed responses; the size of the response is ``nemsim bench physics``'s.
+  * ``mask loss >= -tol``: the mask never grows above its initial top by more than the noise.
+  * ``depth non-decreasing in X`` (each ion flux, and the three ion-energy means together): on ``levels``
+    values of X around base recipes (the design centre and ``pair_bases`` Latin-hypercube points), depth at
+    the higher level minus depth at the lower >= -tol_depth at every step. The simulator's pairs are checked
+    the same way; where the simulator itself falls by more, the model may fall by the simulator's fall plus
+    tol_depth (``pair_ok``): matching the truth is never a violation.
+  * ``responds where the simulator does``: where the simulator's final depth rises by more than tol_depth,
+    the model's must rise, so a model that predicts no change cannot pass (the size of the response is
+    ``nemsim bench physics``'s).
 
-Tolerances (``measure_noise``): every recipe of the grid's bases is simulated with two seeds; tol_rmse =
-the largest per-step RMSE between the two seeds (normalized SDF units), tol_depth and tol_mask = the
-largest |difference| of etch depth and mask loss between the seeds over steps and bases (nm), each times
-``tol_factor`` (default 1); the depth-decrease tolerance = the largest step-to-step decrease of the
-simulator's depth on every simulation of the suite, at least ``depth_decrease_floor_nm``. A noise file
-(``write_noise``/``read_noise``) carries the four numbers, so a rerun can skip the seed pairs.
+Tolerances (``measure_noise``): every base recipe simulated with two seeds; tol_rmse, tol_depth and tol_mask
+are the largest seed-to-seed per-step RMSE, depth and mask-loss differences, times ``tol_factor``; the
+depth-decrease tolerance is the simulator's largest step-to-step decrease, at least
+``depth_decrease_floor_nm``. A noise file (``write_noise`` / ``read_noise``) lets a rerun skip the seed pairs.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ simulator runs the top-1 with another seed (2): success when that run meets ever
 when the target is reported unreachable (unreachable). As a reference for the simulator's own noise, the
 target recipe itself is simulated with seed 2 too ("oracle": the true recipe judged the same way).
 
-``refine`` also (or only) runs the simulator-corrected design (``nemsim.analysis.inverse_refine``, variant
+``refine`` also (or only) runs the simulator-corrected design (``nemsim.analysis.inverse.refine``, variant
 "<method>+refine"): its simulator runs inside the loop use seed 3 (``LOOP_SEED``), so the judging run
 (seed 2) is an independent one and a recipe the loop verified can still miss there (the simulator's seed
 noise). Its design cost includes those simulator runs (in-process, so in the CPU seconds too).
@@ -59,8 +59,7 @@ def run_bench(
     ``refine``: "off" (the search only), "on" (only the simulator-corrected variant of each method) or
     "both"; ``refine_config`` a ``RefineConfig`` (None: its defaults).
     """
-    from nemsim.analysis.inverse import load_design_context, simulator_config, spec_from_dict
-    from nemsim.analysis.inverse_refine import RefineConfig
+    from nemsim.analysis.inverse import RefineConfig, load_inverse_context, simulator_config, spec_from_dict
     from nemsim.evaluation.truth import SimTruth
 
     if n_targets < 1:
@@ -75,7 +74,7 @@ def run_bench(
     rcfg = (refine_config or RefineConfig()).check()
     variants = [(m, m, False) for m in methods if refine != "on"]
     variants += [(f"{m}+refine", m, True) for m in methods if refine != "off"]
-    ctx = load_design_context(checkpoint)
+    ctx = load_inverse_context(checkpoint)
     scene = ctx.scene
     step = scene.n_transitions
     raw_targets = from_unit(lhs_unit(n_targets, seed))  # (n, 14) held-out recipes
@@ -120,7 +119,7 @@ def run_bench(
                     )
                 case["runs"] = {}
                 for label, method, refined in variants:
-                    case["runs"][label] = _design_run(
+                    case["runs"][label] = _inverse_run(
                         ctx, spec, method, case["reachable"], truth, step, rcfg if refined else None
                     )
                     if bar is not None:
@@ -155,15 +154,14 @@ def run_bench(
     }
 
 
-def _design_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any, step: int,
+def _inverse_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any, step: int,
                 refine: Any = None) -> dict[str, Any]:
     """One inverse design of ``spec`` with ``method`` (simulator-corrected with a ``refine`` config), its
     top recipe simulated (verification seed) and judged: a reachable target succeeds when the simulator
     meets every tolerance, an unreachable one when the design says unreachable."""
     from dataclasses import replace
 
-    from nemsim.analysis.inverse import TARGET_METRICS, search
-    from nemsim.analysis.inverse_refine import refine_design
+    from nemsim.analysis.inverse import TARGET_METRICS, refine_with_simulator, search
 
     s = replace(spec, search=replace(spec.search, method=method))  # type: ignore[arg-type]
     if refine is None:
@@ -173,7 +171,7 @@ def _design_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any, s
         def simulate(raw: np.ndarray, at: int) -> dict[str, float]:
             return {k: float(v[at]) for k, v in truth.metrics(raw, LOOP_SEED).items()}
 
-        res = refine_design(ctx, s, simulate, refine=refine, seed=0, sim_seed=LOOP_SEED)
+        res = refine_with_simulator(ctx, s, simulate, refine=refine, seed=0, sim_seed=LOOP_SEED)
     top = res["recipes"][0]
     raw = np.array([top["controls"][n] for n in CONTROL_NAMES])
     achieved = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}

@@ -12,7 +12,7 @@ _FLAGS = ("avx512_bf16", "amx_bf16", "amx_tile")
 
 
 def cpu_name() -> str:
-    """e.g. "AMD EPYC (2 logical CPUs; avx512_bf16)"; the bare architecture where /proc/cpuinfo is absent."""
+    """e.g. "<model name> (2 logical CPUs; avx512_bf16)"; the bare architecture without /proc/cpuinfo."""
     info = Path("/proc/cpuinfo")
     if not info.is_file():
         return platform.processor() or platform.machine()

@@ -1,4 +1,4 @@
-"""Physics benchmark: does the surrogate respond to each control as the simulator does (issue 12, item 1)?
+"""Physics benchmark: does the surrogate respond to each control as the simulator does?
 
 ``nemsim bench physics`` compares a surrogate with the Monte Carlo simulator (two seeds per recipe) on
 what a process engineer reads, the profile metrics of ``nemsim.geometry.profile`` (nm):
@@ -34,32 +34,33 @@ from typing import Any
 
 import numpy as np
 
+from bench.invariants import centre_raw
 from nemsim.controls import (
     CONTROL_GROUPS,
+    HELDOUT_CORNERS,
+    HELDOUT_SEED,
     N_CONTROLS,
-    box_corner,
+    box_corners,
     from_unit,
     lhs_unit,
     round_int_controls,
     set_group,
 )
 from nemsim.evaluation.figure import pyplot, save_figure
-from bench.invariants import centre_raw
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
 SWEEP_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss", "bowing")
 RESOLVED_SE = 2.0  # a simulator slope counts as resolved beyond this many standard errors
-HELDOUT_DESIGN_SEED = 2026  # Latin-hypercube seed of the fresh held-out controls (training design: 42)
 
 
 @dataclass(frozen=True)
 class PhysicsConfig:
     levels: int = 3  # sweep levels per group, design min..max (>= 3)
     heldout: int = 12  # fresh Latin-hypercube held-out cases (ignored with explicit held-out controls)
-    corners: int = 16  # corners of the 14-control box among the held-out cases (`nemsim design --kind
-    # corners` never draws these, so a model trained on corners is still judged on unseen ones)
+    corners: int = HELDOUT_CORNERS  # corners of the 14-control box among the held-out cases (`nemsim design
+    # --kind corners` never draws these, so a model trained on corners is still judged on unseen ones)
     seeds: tuple[int, int] = (1, 2)
-    heldout_seed: int = HELDOUT_DESIGN_SEED
+    heldout_seed: int = HELDOUT_SEED  # Latin-hypercube seed of the fresh held-out controls
     batch_size: int = 4  # rollouts run together
 
     def __post_init__(self) -> None:
@@ -80,17 +81,6 @@ def sweep_recipes(levels: int) -> dict[str, dict[str, Any]]:
         raw = np.stack([set_group(base, names, float(v)) for v in u])  # (L, 14)
         out[g] = {"levels": u, "raw": round_int_controls(raw)}
     return out
-
-
-def box_corners(n: int, seed: int) -> np.ndarray:
-    """(n, 14) raw corners of the design box: all-min, all-max, then random sign patterns."""
-    if n == 0:
-        return np.zeros((0, N_CONTROLS))
-    rng = np.random.default_rng(seed)
-    signs = [np.full(N_CONTROLS, -1.0), np.full(N_CONTROLS, 1.0)]
-    while len(signs) < n:
-        signs.append(rng.choice([-1.0, 1.0], size=N_CONTROLS))
-    return box_corner(np.stack(signs[:n]))
 
 
 def heldout_recipes(cfg: PhysicsConfig) -> tuple[list[str], np.ndarray]:

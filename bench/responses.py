@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
+from bench.physics import METRIC_LABELS, SWEEP_METRICS
 from nemsim.controls import CONTROL_NAMES, N_CONTROLS, to_normalized
 from nemsim.evaluation.figure import pyplot, save_figure
-from bench.physics import METRIC_LABELS, SWEEP_METRICS
 from nemsim.evaluation.truth import predict, write_report
 from nemsim.geometry.profile import profile_metrics_batch
 

@@ -16,7 +16,6 @@ import numpy as np
 
 from nemsim.rules.compile import RuleTensors
 from nemsim.scenes import Scene
-
 from nemsim.sim.config import SimConfig
 from nemsim.sim.events import build_event_tables
 from nemsim.sim.process import run_trajectory

@@ -1,45 +1,29 @@
 """Speed against error (`nemsim bench speed-error`): what a trajectory costs and how far it is from the truth.
 
-On the first N test cases of a split setting that the data file holds complete, every method produces the
-same 100-step trajectory and is scored against one **reference**: an independent full-budget simulator run
-of the case, seeded differently from the data file (``np.random.default_rng([seed, case_id, 0])``; the file's
-cases use ``default_rng(case_seed(base_seed, case_id))``, another stream). Test cases that a file still being
-generated lacks (e.g. a prefix of the ``paper`` design) are passed over and listed in the report
-(``skipped_case_ids``). Every simulator run uses the configuration the data file records
-(``SimConfig.from_record`` of its ``generator`` attribute), never today's defaults, so the reference is the
-simulator that made the data; a file that records none is refused. Methods:
+On the first N test cases of a split that the data file holds complete (missing ones are listed in
+``skipped_case_ids``), every method produces the same 100-step trajectory and is scored against one
+**reference**: an independent full-budget simulator run of the case (``default_rng([seed, case_id, 0])``,
+another stream than the file's), with the configuration the file records (``SimConfig.from_record``; a file
+that records none is refused). Methods:
 
-  * the simulator at particle budgets 1, 1/2, 1/4, 1/8, 1/16 (``SimConfig.particle_budget``; the budget-b
-    reruns use ``default_rng([seed, case_id, k])``, k = 1, 2, ...). At budget 1 the compared trajectory is
-    the data file's own (a second full-budget seed), so that row **is the noise floor**: two equally good
-    simulator runs differ by this much; its time is the reference run's time;
-  * every surrogate **variant**: each checkpoint (NEMSim or a baseline) under each runtime
-    ``<backend>-<precision>`` (``nemsim.inference.runtime.compile_model``: ``torch-f32`` is PyTorch eager,
-    the reference; ``torch-bf16`` CPU autocast; ``openvino-f32`` / ``openvino-bf16`` the exported step
-    graph), rolled out from the case's x_0 with the file's controls (``nemsim.evaluation.rollout``).
+  * the simulator at particle budgets 1, 1/2, ..., 1/16 (``SimConfig.particle_budget``, seeds
+    ``[seed, case_id, k]``). At budget 1 the compared trajectory is the data file's own, so that row **is
+    the noise floor**: two equally good simulator runs differ by this much;
+  * every surrogate **variant**: each checkpoint under each runtime ``<backend>-<precision>``
+    (``nemsim.inference.runtime.compile_model``; ``torch-f32``, PyTorch eager, is the reference), rolled out
+    from the case's x_0 with the file's controls.
 
-Errors go through ``nemsim.evaluation.metrics``: Avg / Final RMSE over t = 1..H (RMSE_t over cases, then
-sqrt), and the final-step Chamfer distance (voxels) averaged over cases. The error against the data file
-(what ``nemsim train`` reports) is kept in the JSON as ``avg_rmse_vs_data``.
-
-Speed, two figures per variant:
+Errors (``nemsim.evaluation.metrics``): Avg / Final RMSE over t = 1..H and the final-step Chamfer distance;
+the error against the data file is kept as ``avg_rmse_vs_data``. Speed, on wall and CPU seconds:
   (a) ``speedup``: the full-budget simulator's time per trajectory over the variant's (batch 1);
-  (b) ``equal_accuracy``: the simulator's time at the variant's Avg RMSE over the variant's time. The
-      simulator's time at error e is interpolated linearly in (log Avg RMSE, log seconds) between the measured
-      budgets, sorted by error (``equal_accuracy_time``). Outside the measured errors it is not extrapolated:
-      an error below every simulator row's gives the most accurate row's time as a **lower** bound on the
-      simulator's cost (speed-up reported as ">="), an error above every row's gives the cheapest row's time
-      as an **upper** bound ("<=").
-Both are reported on wall and on CPU seconds (``time.process_time``: honest on a shared machine).
+  (b) ``equal_accuracy``: the simulator's time at the variant's Avg RMSE, interpolated in (log error,
+      log time) between the budgets (``equal_accuracy_time``), over the variant's time; outside the
+      simulator's errors the nearest row bounds it (reported as ">=" or "<=").
 
-Timing: batch 1 on one thread (torch and OpenVINO threads = ``threads``; the simulator is single-threaded):
-methods run side by side, case by case (reference, budgets, then each variant), after one warm-up of every
-kernel and variant, so load from other jobs hits them alike; reported is the median over cases. Throughput:
-after the cases, each variant rolls out ``throughput_batch`` trajectories in one batch (the cases repeated
-cyclically, keep=False), once, interleaved; per-trajectory time = batch time / batch. The simulator does not
-batch: its per-trajectory time is the batch-1 time at any batch. A variant "keeps the error" when its Avg
-RMSE is within ``keep_error_rel`` (5 %) of the same checkpoint's ``torch-f32``; the fastest such variant is
-marked, and NEMSim's is ``speed.nemsim_*``.
+Timing: batch 1 on ``threads`` threads, methods side by side case by case after one warm-up, so load from
+other jobs hits them alike; the median over cases. Throughput: each variant then rolls out
+``throughput_batch`` trajectories in one batch (the simulator does not batch). A variant "keeps the error"
+within ``keep_error_rel`` of its checkpoint's ``torch-f32``; the fastest such is ``speed.nemsim_*``.
 """
 
 from __future__ import annotations

@@ -1,35 +1,26 @@
-"""Hard-case stability suite for a one-step surrogate (issue 7, "Hard cases").
+"""Hard-case stability suite for a one-step surrogate.
 
-Autoregressive rollouts (``nemsim.evaluation.rollout``, the fast path for NEMSim) from the scene's initial
-state, past the trained horizon (default 300 steps against the trained 100), on:
+Autoregressive rollouts (``nemsim.evaluation.rollout``) from the scene's initial state, past the trained
+horizon (default 300 steps against the trained 100), on:
 
   * ``centre``: every control at the centre of its design range (normalized 0);
-  * ``corner-<bits>``: the corners of the flux and energy sub-box, the four fluxes and the three ion-energy
-    means at their design minimum (bit 0, normalized -1) or maximum (bit 1, +1), bits in ``CORNER_AXES``
-    order, every other control at its centre; 2^7 = 128 corners, or an evenly spaced subset of
-    ``max_corners`` of them (always including the all-min and all-max corners);
+  * ``corner-<bits>``: corners of the flux and ion-energy-mean sub-box (bit 0 = design minimum, 1 =
+    maximum, in ``CORNER_AXES`` order; the other controls at their centre): 2^7 = 128 corners, or
+    ``max_corners`` of them evenly spaced, always with the all-min and all-max corners. The three energy
+    spreads stay at their centre (2^10 corners would not run on a CPU; the spreads have the narrowest ranges);
   * ``angle-min`` / ``angle-max``: the four cosine-power exponents at their design minimum / maximum;
-  * ``noise-<k>``: the centre controls plus Gaussian noise (std ``noise_control_std``) on the normalized
-    controls, and Gaussian noise (std ``noise_state_std``, normalized SDF units) on the initial state.
+  * ``noise-<k>``: the centre controls plus Gaussian noise (``noise_control_std``, normalized units) and the
+    initial state plus Gaussian noise (``noise_state_std``, normalized SDF units).
 
-Per case the suite reports (streamed per step, the trajectory is never held in memory):
-  * ``finite`` and ``first_nonfinite_step`` (NaN/Inf anywhere in the state);
-  * ``max_abs``: max |value| over all steps (finite values); ``bounded``: finite and max_abs <= ``abs_bound``
-    (the data are SDF/d_max clipped to [-1, 1]; a prediction beyond ``abs_bound`` is a blow-up);
-  * ``depth_decreases``: steps where the etch depth (``nemsim.geometry.profile``, nm) falls by more than
-    ``depth_tol_nm``; ``depth_max_drop_nm``; ``depth_final_nm`` (etching only removes Si, so the depth
-    should never decrease);
-  * ``norm_ratio`` = ‖x_T‖ / ‖x_0‖ and ``max_step_growth`` = max_t ‖x_{t+1}‖ / ‖x_t‖ (Frobenius norms);
-  * ``max_step_change`` = max_t max |x_{t+1} - x_t| (the largest single-step increment);
-  * ``mask_loss_min_nm``: the smallest mask loss over the rollout (nm; negative = the mask grew).
+Per case, streamed per step (the trajectory is never held in memory): ``finite`` and
+``first_nonfinite_step``; ``max_abs`` and ``bounded`` (finite, max_abs <= ``abs_bound``: the data are clipped
+to [-1, 1], so beyond it is a blow-up); ``depth_decreases`` (steps where the etch depth falls by more than
+``depth_tol_nm``), ``depth_max_drop_nm``, ``depth_final_nm``; ``norm_ratio`` = ‖x_T‖ / ‖x_0‖ and
+``max_step_growth`` = max_t ‖x_{t+1}‖ / ‖x_t‖; ``max_step_change`` = max_t max |x_{t+1} - x_t|;
+``mask_loss_min_nm`` (negative = the mask grew).
 
-Physical invariants judged against the simulator (zero flux, ions off, depth monotone in time, flux and
-energy, mask loss >= -tol, response) are ``bench.invariants``; ``nemsim stress`` runs them after
-these cases and judges these cases' depth drops and mask losses with the simulator's tolerances.
-
-Choices the issue leaves open: the sub-box corners use the ion-energy means only (the three energy spreads
-stay at their centre: 2^10 corners would not run on a CPU and the spreads have the narrowest ranges);
-``abs_bound`` = 1.5; ``depth_tol_nm`` = 0.05 nm; noise std 0.02 on the state and 0.1 on the controls.
+The physical invariants judged against the simulator are ``bench.invariants``; ``nemsim stress`` runs them
+after these cases and judges these cases' depth drops and mask losses with the simulator's tolerances.
 """
 
 from __future__ import annotations

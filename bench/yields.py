@@ -1,44 +1,31 @@
 """Flat-surface yields of the simulator, next to published values (``nemsim bench yields``).
 
-What is measured: monoenergetic projectiles are fired one at a time (``kernels.fly``, the simulator's own
-transport and surface-event code) at a flat, periodic slab whose top layer is in a chosen surface state;
-the slab is restored before every projectile, so each number is a first-impact yield on a fresh surface
-(reflected projectiles fly on and may hit again, as in the simulator). One Si-class material unit holds
-n V / capacity atoms and one simulated particle stands for 1 / w real ones (``config`` module docstring),
-so the yield per real ion is
+Monoenergetic projectiles are fired one at a time (``kernels.fly``, the simulator's own transport and
+surface-event code) at a flat, periodic slab whose top layer is in a chosen surface state; the slab is
+restored before every projectile, so each number is a first-impact yield on a fresh surface (reflected
+projectiles fly on and may hit again). One simulated particle stands for 1 / w real ones (``config`` module
+docstring), so the yield per real ion is
 
     Y = flux_scale * (units removed per simulated projectile)
 
 independently of the capacity. Cases:
-  * ``cl+_on_clsat``: Cl+ on a Cl-saturated Si surface (top layer SiCl2) vs energy (normal incidence) and
-    incidence angle (300 eV): ion-enhanced etching;
+  * ``cl+_on_clsat``: Cl+ on Cl-saturated Si (top layer SiCl2) vs energy and angle: ion-enhanced etching;
   * ``ar+_on_si``: Ar+ on bare Si vs energy (normal incidence): physical sputtering;
-  * ``cl+_on_resist``: Cl+ on resist vs incidence angle (300 eV): the mask's angular sputter yield
-    (faceting; grazing must exceed normal incidence);
-  * ``cl_neutral``: thermal Cl (``neutral_energy_ev``) on bare Si and on a SiCl3-saturated surface:
-    neutral-only etch probability (Si removed per incident Cl).
+  * ``cl+_on_resist``: Cl+ on resist vs incidence angle: the mask's angular sputter yield (faceting);
+  * ``cl_neutral``: thermal Cl on bare Si and on SiCl3: neutral-only etch probability.
 
-Published values the output is compared with (``LITERATURE``; every row names its source), written as
-(energy or angle, value) pairs; the comparison reports the ratio sim / literature and whether it lies
-within a factor 2:
+Published values (``LITERATURE``; every row names its source) are compared as the ratio sim / literature
+and whether it lies within a factor 2:
   * Laegreid & Wehner, J. Appl. Phys. 32, 365 (1961): Ar+ sputtering yield of Si at normal incidence,
-    0.07 / 0.18 / 0.31 / 0.53 atoms per ion at 100 / 200 / 300 / 600 eV (the same magnitudes as the
-    Yamamura & Tawara, At. Data Nucl. Data Tables 62, 149 (1996) fits; Steinbrüchel, Appl. Phys. Lett.
-    55, 1960 (1989) gives the sqrt(E) form near threshold);
-  * Chang, Arnold, Sawin et al., J. Vac. Sci. Technol. A (1997) and Chang & Sawin, J. Vac. Sci. Technol.
-    (1997-98), Cl+ / Cl2+ beam studies of polysilicon with Cl coverage: the ion-enhanced yield scales as
-    sqrt(E) - sqrt(E_th) and its angular dependence is flat to ~45 degrees and falls beyond (the rules'
-    chemical law), unlike physical sputtering (peaks near 60-70 degrees). Compared as shapes only: we
-    had no verified absolute value at hand, so the table prints "shape only";
-  * Ogryzlo, Ibbotson, Flamm & Mucha, J. Appl. Phys. 67, 3115 (1990): spontaneous etching of undoped Si
-    by thermal Cl atoms is very slow at room temperature (shape only, as above).
-The rule library's yield law (``kinetics.yield_physical``) has no energy dependence above threshold and
-its probability law saturates in the paper's form; the simulator's energy dependence is
-p0 ((E - E_th)/(E_ref - E_th))^n with n = 0.5 (``kernels`` module docstring), i.e. sqrt(E - E_th), which
-is the published shape; the absolute scale is set by p0 and flux_scale, and is what the table checks.
-For Ar+ -> Si the paper's rule (p0 = 0.05, n = 0.5) gives 0.6 x 0.05 x sqrt((E - 25)/75): 3-6x below
-Laegreid & Wehner, whose yields grow almost linearly in E; ``SimConfig(sputter_calibration=
-"laegreid_wehner")`` refits that rule (``calibration`` module) and is what ``--set`` compares.
+    100-600 eV (the magnitudes of the Yamamura & Tawara 1996 fits);
+  * Chang, Arnold, Sawin et al., J. Vac. Sci. Technol. A (1997), Chang & Sawin (1997-98): the ion-enhanced
+    yield of Cl+ / Cl2+ on chlorinated Si scales as sqrt(E) - sqrt(E_th) and is flat in angle to ~45 deg,
+    unlike sputtering; compared as shapes only (no verified absolute value);
+  * Ogryzlo, Ibbotson, Flamm & Mucha, J. Appl. Phys. 67, 3115 (1990): thermal Cl etches undoped Si very
+    slowly at room temperature (shape only).
+The simulator's energy law p0 ((E - E_th)/(E_ref - E_th))^n with n = 0.5 has the published sqrt shape; the
+absolute scale is set by p0 and flux_scale, which is what the table checks. ``--set
+sputter_calibration=laegreid_wehner`` compares the refitted Ar+ -> Si rule (``nemsim.sim.calibration``).
 """
 
 from __future__ import annotations
@@ -50,7 +37,6 @@ import numpy as np
 
 from nemsim.rules.compile import RuleTensors
 from nemsim.rules.vocab import PROJECTILES, TARGETS
-
 from nemsim.sim import kernels as K
 from nemsim.sim.config import SimConfig
 from nemsim.sim.events import build_event_tables

@@ -9,15 +9,16 @@ Package map (paper part -> module):
   model/       encoder, EIC, MAC, MRC, decoder                  [Method, supp_eic, supp_mac, supp_mrc]
   baselines/   ConvLSTM, FNO, U-NO, CNO, DeepONet (+RuleFeat)  [supp_baselines, supp_rulefeat]
   registry.py  every model by name (NEMSim, ablations, baselines)
-  checkpoint.py  checkpoints with provenance (save, read, rebuild the model)
+  inference/   the facade: weights-only checkpoint loader, runtimes, predictor
   training/    one-step training loop                          [supp_training]
   evaluation/  rollout protocol and metrics                    [supp_protocols]
-  analysis/    counterfactual mechanism analysis               [supp_mechanism_alignment]
+  analysis/    counterfactual mechanism analysis, inverse design [supp_mechanism_alignment]
   geometry/    profile metrics and surface meshes
+  cli/         the ``nemsim`` command, one module per command group
 
-Dependencies between these point one way (checked by tests/test_code_health.py, function-level imports
-included): baselines import model, the registry imports both, checkpoint imports the registry, evaluation
-imports checkpoint and sim, training imports evaluation; cli is on top and is the only user of service/.
+Imports point one way, between these packages and between files (tests/test_code_health.py, function-level
+imports included); the library never imports ``service`` (the web API) or ``bench`` (the benchmark harness):
+their commands join the CLI through the ``nemsim.cli`` entry points.
 """
 
 __version__ = "0.1.0"

@@ -16,21 +16,16 @@ Design ([supp_data_generation], eq:supp_lhs_design, eq:supp_control_mapping): Xi
 mapped column-wise to physical units.
 
 Choices where the paper is silent:
-  * Sampler: the classic scrambled LHS of ``scipy.stats.qmc.LatinHypercube(d=14, seed=42).random(500)`` (one
-    uniformly placed point per stratum, independent column permutations, driven by
-    ``numpy.random.default_rng(42)``), re-implemented here in numpy so it does not depend on scipy's seed
-    keyword (scipy >= 1.15 spawns a child generator when given ``rng=42`` and so draws a different design).
-    Of the candidates we tried (scipy seed=/rng=, scramble on/off, pyDOE with np.random.seed(42), a
-    default_rng classic LHS) only this one reproduces the paper's OOD-Joint test composition
-    (14, 15, 13, 11) cases in (L,L), (L,H), (H,L), (H,H); see tests/data/test_splits.py.
-  * Log mapping is the exact inverse of the normalization transform,
-    u = 10^(u~min + xi (u~max - u~min)) - eps_u,
-    so that the OOD coordinate of a design row equals its LHS coordinate (q = xi).
-  * Bounded-integer mapping: u = min(low + floor(xi (high - low + 1)), high), i.e. every integer in
-    [low, high] has equal probability (both end points included).
-  * Physically admissible limits (``phys_min``/``phys_max``; used by the service to reject impossible inputs):
-    fluxes, exponents, energies and energy deviations must be >= 0; there is no physical upper limit (inf).
-    Values inside the admissible range but outside the design range [low, high] are extrapolation.
+  * Sampler: the classic scrambled LHS of ``scipy.stats.qmc.LatinHypercube(d=14, seed=42).random(500)``,
+    re-implemented in numpy (``default_rng(42)``) so it does not depend on scipy's seed keyword; of the
+    samplers tried it is the one that reproduces the paper's OOD-Joint test composition (14, 15, 13, 11)
+    (tests/data/test_splits.py).
+  * Log mapping is the exact inverse of the normalization, u = 10^(u~min + xi (u~max - u~min)) - eps_u, so
+    the OOD coordinate of a design row equals its LHS coordinate (q = xi).
+  * Bounded integers: u = min(low + floor(xi (high - low + 1)), high), every integer equally likely.
+  * Physically admissible limits (``phys_min`` / ``phys_max``, used to reject impossible inputs): every
+    control >= 0, no upper limit. Values admissible but outside the design range [low, high] are
+    extrapolation.
 """
 
 from __future__ import annotations
@@ -317,9 +312,8 @@ def sweep_coordinate(raw: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     """The level of the controls ``names`` of raw (..., 14) in [-1, 1], one column per name: the normalized
     control, except for the ion angular exponents, whose level is linear in log m (-1 and +1 at the design
     bounds). Why: the angular width of a cos^m distribution goes as 1 / sqrt(m), so the profile responds
-    at small m: the simulated top width of the median recipe changes by 4.8 nm from m = 50 to 1,525 and by
-    0.5 nm from 1,525 to 3,000 (benchmarks/small/physics/levers/transport.md). The neutral exponent (0 to
-    20) stays linear: its depth response spreads over the range (32, 48, 53 nm at m = 0, 10, 20)."""
+    mostly at small m (docs/experiments.md). The neutral exponent (0 to 20) stays
+    linear: its depth response spreads over the whole range."""
     cols = [CONTROL_INDEX[n] for n in names]
     x = np.asarray(raw, dtype=np.float64)
     out = np.asarray(to_normalized(x))[..., cols]
@@ -356,7 +350,7 @@ def pair_design(n_pairs: int, seed: int, min_move: float = 0.5) -> tuple[np.ndar
     pair carries the response to the group with less of the Monte Carlo noise of two independent runs
     (common random numbers; ``nemsim bench pair-noise`` measures how much less).
     Why: a Latin hypercube moves every control at once, and the responses to the angular exponents and the
-    neutral flux were missed by every model trained on one (benchmarks/small/physics/levers.md); the pairs
+    neutral flux were missed by every model trained on one (docs/experiments.md); the pairs
     give a training loss on the predicted difference (``TrainConfig.pair_loss_weight``).
     """
     if n_pairs < 1:
@@ -381,6 +375,26 @@ def pair_design(n_pairs: int, seed: int, min_move: float = 0.5) -> tuple[np.ndar
 def box_corner(signs: np.ndarray) -> np.ndarray:
     """(..., 14) signs (> 0: maximum, else minimum) -> raw controls exactly at the design box's bounds."""
     return np.where(np.asarray(signs) > 0, HIGH, LOW)
+
+
+HELDOUT_SEED = 2026  # seed of the physics benchmark's fresh held-out recipes (the training design's: 42)
+HELDOUT_CORNERS = 16  # box corners among them; `corner_design` for training never draws these
+
+
+def box_corners(n: int, seed: int) -> np.ndarray:
+    """(n, 14) raw corners of the design box: all-min, all-max, then random sign patterns."""
+    if n == 0:
+        return np.zeros((0, N_CONTROLS))
+    rng = np.random.default_rng(seed)
+    signs = [np.full(N_CONTROLS, -1.0), np.full(N_CONTROLS, 1.0)]
+    while len(signs) < n:
+        signs.append(rng.choice([-1.0, 1.0], size=N_CONTROLS))
+    return box_corner(np.stack(signs[:n]))
+
+
+def heldout_corners() -> np.ndarray:
+    """(HELDOUT_CORNERS, 14) raw corners the physics benchmark holds out (``corner_design``'s exclusions)."""
+    return box_corners(HELDOUT_CORNERS, HELDOUT_SEED)
 
 
 def corner_design(n: int, seed: int, exclude: np.ndarray | None = None) -> np.ndarray:

@@ -26,20 +26,15 @@ def checkpoint_dirs() -> list[Path]:
     return list(dict.fromkeys(d.resolve() for d in dirs))
 
 
-# the served model (checkpoints/README.md); other .pt files are references
-SHIPPED_CHECKPOINT = "nemsim-small.pt"
+DEFAULT_SCENE = "small"  # the scene of the served model (checkpoints/README.md)
 
 
-def default_checkpoint() -> Path | None:
-    """`nemsim-small.pt` under the checkpoint directories, else the single (or, sorted by name, the first)
-    `*.pt` there, or None."""
-    for directory in checkpoint_dirs():
-        if (directory / SHIPPED_CHECKPOINT).is_file():
-            return directory / SHIPPED_CHECKPOINT
-        found = sorted(directory.glob("*.pt")) if directory.is_dir() else []
-        if found:
-            return found[0]
-    return None
+def default_checkpoint(scene: str = DEFAULT_SCENE) -> Path:
+    """`nemsim-<scene>.pt` in the first checkpoint directory that has it, else in the first one (it is then
+    missing, and loading says so): never another file, so the server never serves another scene's model."""
+    name = f"nemsim-{scene}.pt"
+    dirs = checkpoint_dirs()
+    return next((d / name for d in dirs if (d / name).is_file()), dirs[0] / name)
 
 
 MIN_KEY_CHARS = 16  # shorter API keys are guessable
@@ -51,7 +46,13 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="NEMSIM_", extra="ignore")
 
     checkpoint: Path | None = Field(
-        default=None, description="checkpoint (.pt) to serve; default: the first *.pt under checkpoints/"
+        default=None, description="checkpoint (.pt) to serve; default: checkpoints/nemsim-<scene>.pt"
+    )
+    scene: str | None = Field(
+        default=None,
+        pattern=r"^[A-Za-z0-9_-]{1,64}$",
+        description=f"scene the served model must be of (refused otherwise); default: the checkpoint's, or "
+        f"{DEFAULT_SCENE!r} when no checkpoint is given",
     )
     max_steps: int = Field(default=100, ge=1, le=10_000, description="ceiling on `steps` per rollout")
     max_body_bytes: int = Field(default=1_000_000, ge=1_024, description="request bodies above this get 413")
@@ -170,7 +171,7 @@ class Settings(BaseSettings):
         default=16, ge=1, le=10_000, description="finished jobs kept (oldest forgotten first)"
     )
 
-    @field_validator("checkpoint", mode="before")
+    @field_validator("checkpoint", "scene", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
         return None if isinstance(value, str) and not value.strip() else value
@@ -200,9 +201,21 @@ class Settings(BaseSettings):
             out.add(key)
         return frozenset(out)
 
-    def resolved_checkpoint(self) -> Path | None:
-        """The checkpoint to load: the explicit one, else the default one (None if there is none)."""
-        return self.checkpoint if self.checkpoint is not None else default_checkpoint()
+    def resolved_checkpoint(self) -> Path:
+        """The checkpoint to load: the explicit one, else `nemsim-<scene>.pt` (`default_checkpoint`)."""
+        if self.checkpoint is not None:
+            return self.checkpoint
+        return default_checkpoint(self.scene or DEFAULT_SCENE)
+
+    def expected_scene(self) -> str | None:
+        """The scene the loaded model must be of: the configured one, else the default scene when the
+        checkpoint is the default file (also when named explicitly, as `nemsim serve` passes it on), else
+        None (any: the operator named another file)."""
+        if self.scene is not None:
+            return self.scene
+        if self.checkpoint is None or self.checkpoint.resolve() == default_checkpoint().resolve():
+            return DEFAULT_SCENE
+        return None
 
 
 @lru_cache

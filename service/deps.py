@@ -10,30 +10,30 @@ from fastapi import Depends, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 
 from service.config import Settings, get_settings
-from service.scheduler import ClientGone, FairGate, Gates, run_gated
-from service.surrogate import ServiceBusy, Surrogate
+from service.scheduler import ClientGone, FairGate, Gates, ServiceBusy, run_gated
+from service.served_model import ServedModel
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
-async def get_surrogate(request: Request) -> Surrogate:
-    """The loaded model; 503 until the checkpoint is loaded and warmed up.
+async def get_served_model(request: Request) -> ServedModel:
+    """The served model; 503 until the checkpoint is loaded and warmed up.
 
     The dependencies here are `async def`: FastAPI runs a plain `def` dependency in its thread pool, a
     thread hop per dependency per request that, on a core saturated by rollouts, waits for the scheduler
     each time."""
     state = request.app.state.service
-    if state.surrogate is None or not state.ready:
+    if state.served is None or not state.ready:
         raise HTTPException(
             status_code=503,
             detail=f"model not ready ({state.status}{': ' + state.error if state.error else ''})",
             headers={"Retry-After": "2"},
         )
-    return state.surrogate
+    return state.served
 
 
-SurrogateDep = Annotated[Surrogate, Depends(get_surrogate)]
+ServedModelDep = Annotated[ServedModel, Depends(get_served_model)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 

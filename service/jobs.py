@@ -34,13 +34,13 @@ from typing import Any
 
 import numpy as np
 
+from service.scheduler import ServiceBusy
 from service.schemas import jsonable
-from service.surrogate import ServiceBusy
 
 log = logging.getLogger(__name__)
 
 STATUSES = ("pending", "running", "done", "failed", "cancelled")
-KINDS = ("simulation", "design")  # simulator runs (routes/jobs.py), inverse design (routes/design.py)
+KINDS = ("simulation", "design")  # simulator runs (routes/jobs.py), inverse design (routes/inverse.py)
 KEEP_ARTIFACTS = 4  # finished jobs whose trajectories are kept for GET /jobs/{id}/mesh
 
 
@@ -268,15 +268,15 @@ def run_simulator(
         return np.load(out)
 
 
-def compare(sim: np.ndarray, pred: np.ndarray, scene: Any) -> dict[str, Any]:
-    """Surrogate trajectory `pred` against the simulator's `sim` (both (T+1, 2, D, H, W)); JSON-ready."""
+def compare(sim: np.ndarray, pred: np.ndarray, predictor: Any) -> dict[str, Any]:
+    """Surrogate trajectory `pred` against the simulator's `sim` (both (T+1, 2, D, H, W)), profile metrics
+    by the predictor's `metrics`; JSON-ready."""
     from nemsim.evaluation.truth import step_rmse
-    from nemsim.geometry.profile import profile_metrics_batch
 
     sim32, pred32 = sim.astype(np.float32), pred.astype(np.float32)
     rmse = step_rmse(pred32, sim32)  # (T+1,)
-    m_sim = profile_metrics_batch(sim32, scene)
-    m_pred = profile_metrics_batch(pred32, scene)
+    m_sim = predictor.metrics(sim32)
+    m_pred = predictor.metrics(pred32)
 
     def clean(values: Any) -> list[float | None]:
         return jsonable(np.asarray(values, dtype=np.float64))  # non-finite -> None
@@ -319,23 +319,22 @@ def error_mesh(sim_field: np.ndarray, pred_field: np.ndarray, scene: Any, fmt: s
     return export_mesh(mesh, fmt)
 
 
-def simulate_and_compare(job: Job, surrogate: Any, schedule: np.ndarray, seed: int) -> dict[str, Any]:
-    """The work of a simulator job: simulate, roll the surrogate out on the same schedule, compare."""
-    from service.surrogate import checkpoint_sim_config
-
-    config, _ = checkpoint_sim_config(surrogate.loaded.raw or {})
+def simulate_and_compare(job: Job, served: Any, schedule: Any, seed: int) -> dict[str, Any]:
+    """The work of a simulator job: simulate `schedule` (a `ControlSchedule`), roll the served model out
+    on it, compare."""
+    predictor = served.predictor
     t0 = time.perf_counter()
-    sim = run_simulator(job, surrogate.scene, config, schedule, seed)
+    sim = run_simulator(job, predictor.scene, predictor.sim_config, schedule.raw, seed)
     sim_s = time.perf_counter() - t0
-    result, _ = surrogate.rollout(schedule)
+    result, _ = served.rollout(schedule)
     if job.cancelled:
         raise JobCancelled
     job.progress = 0.95
-    out = compare(sim, result.states, surrogate.scene)
+    out = compare(sim, result.states, predictor)
     job.artifacts.update(sim=sim, pred=result.states)
-    steps = len(schedule)
+    steps = schedule.steps
     out.update(
-        model_id=surrogate.model_id,
+        model_id=served.model_id,
         rollout_id=result.id,
         seed=int(seed),
         steps=steps,

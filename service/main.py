@@ -1,10 +1,11 @@
 """The FastAPI app: `create_app(settings=None)` builds it; `lifespan` loads the checkpoint and warms up.
 
 Loading runs in a background thread so `/health` answers at once while `/ready` stays 503 until the
-weights are loaded and a warm-up rollout ran (what an orchestrator's readiness probe wants). A checkpoint
-that cannot load (missing, empty, truncated, unsafe, incompatible) is permanent: `/ready` reports why
-(without paths) and, with `exit_on_load_failure` (what `nemsim serve` sets), the process then stops with
-a non-zero status so a supervisor restarts or reports it instead of keeping a server that can never serve.
+weights are loaded and verified and a warm-up rollout ran (what an orchestrator's readiness probe wants). A
+checkpoint that cannot load (missing, empty, truncated, unsafe, damaged or non-finite weights, incompatible,
+of another scene) is permanent: `/ready` reports why (without paths) and, with `exit_on_load_failure` (what
+`nemsim serve` sets), the process then stops with a non-zero status so a supervisor restarts or reports it
+instead of keeping a server that can never serve.
 """
 
 from __future__ import annotations
@@ -23,16 +24,16 @@ import torch
 from fastapi import FastAPI
 
 from nemsim import __version__
+from nemsim.inference import CheckpointError, load_checkpoint
 from service import errors, openapi
 from service.access import AccessMiddleware
 from service.config import Settings, get_settings
 from service.jobs import JobQueue
-from service.loading import CheckpointError
 from service.metrics import Metrics
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
-from service.routes import design, health, jobs, mechanisms, operations, page, rollouts
+from service.routes import health, inverse, jobs, mechanisms, operations, page, rollouts
 from service.scheduler import Gates
-from service.surrogate import Surrogate
+from service.served_model import ServedModel
 
 log = logging.getLogger(__name__)
 
@@ -41,7 +42,7 @@ log = logging.getLogger(__name__)
 class ServiceState:
     status: str = "starting"  # starting | loading | warming-up | ready | failed
     error: str | None = None
-    surrogate: Surrogate | None = None
+    served: ServedModel | None = None
 
     @property
     def ready(self) -> bool:
@@ -76,19 +77,26 @@ def limit_allocator_retention() -> None:
         return
 
 
-def load_surrogate(
-    state: ServiceState, settings: Settings, on_failure: Callable[[], None] | None = None
-) -> None:
+def checkpoint_problem(settings: Settings) -> str | None:
+    """Why the configured checkpoint can never be served (missing, unreadable, unsafe, damaged, incompatible
+    or of another scene; the message names the file by its base name), or None: what `nemsim serve` checks
+    once before binding, since every worker would fail the same way."""
+    try:
+        load_checkpoint(settings.resolved_checkpoint(), scene=settings.expected_scene())
+    except CheckpointError as exc:
+        return str(exc)
+    return None
+
+
+def load_model(state: ServiceState, settings: Settings, on_failure: Callable[[], None] | None = None) -> None:
     """Load the checkpoint and run the warm-up rollout, recording progress in `state` (never raises).
 
     On failure `state.error` gets a message safe for clients and `on_failure` (if any) is called."""
     path = settings.resolved_checkpoint()
-    if path is None:
-        state.status, state.error = (
-            "failed",
-            "no checkpoint: put a *.pt under checkpoints/ or set NEMSIM_CHECKPOINT",
-        )
-        log.error(state.error)
+    if not path.is_file():
+        hint = "" if settings.checkpoint is not None else ": set NEMSIM_CHECKPOINT or NEMSIM_SCENE"
+        state.status, state.error = "failed", f"checkpoint {path.name!r} not found{hint}"
+        log.error("no checkpoint at %s%s", path, hint)
         if on_failure is not None:
             on_failure()
         return
@@ -98,22 +106,23 @@ def load_surrogate(
         torch.set_num_threads(settings.torch_threads or min(torch.get_num_threads(), share))
         state.status = "loading"
         log.info("loading checkpoint %s", path)
-        surrogate = Surrogate.from_checkpoint(
-            path, cache_size=settings.cache_size, cache_bytes=settings.cache_max_mb << 20,
-            runtime_backend=settings.runtime_backend, runtime_precision=settings.runtime_precision,
-            runtime_threads=settings.runtime_threads,
+        served = ServedModel.from_checkpoint(
+            path, scene=settings.expected_scene(), cache_size=settings.cache_size,
+            cache_bytes=settings.cache_max_mb << 20, runtime_backend=settings.runtime_backend,
+            runtime_precision=settings.runtime_precision, runtime_threads=settings.runtime_threads,
         )
         state.status = "warming-up"
-        surrogate.warm_up(settings.warmup_steps)
+        served.warm_up(settings.warmup_steps)
         if settings.warmup_steps > 0:
-            surrogate.warm_up_meshes()
-        state.surrogate = surrogate
+            served.warm_up_meshes()
+        state.served = served
         state.status = "ready"
-        log.info("initial state: %s", surrogate.initial_state_source)
-        log.info("model %s ready", surrogate.model_id)
+        log.info("initial state: %s", served.predictor.initial_state_source)
+        log.info("model %s ready", served.model_id)
     except CheckpointError as exc:
         state.status, state.error = "failed", str(exc)
-        log.error("could not load checkpoint %s: %s", path, exc)
+        cause = f" ({type(exc.__cause__).__name__}: {exc.__cause__})" if exc.__cause__ else ""
+        log.error("could not load checkpoint %s: %s%s", path, exc, cause)
     except Exception:  # noqa: BLE001 -- reported on /ready (without internals) and in the log
         state.status, state.error = "failed", "the model could not be loaded (the server log has details)"
         log.exception("could not load checkpoint %s", path)
@@ -125,9 +134,9 @@ def load_surrogate(
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
-    if state.surrogate is None:
+    if state.served is None:
         threading.Thread(
-            target=load_surrogate,
+            target=load_model,
             args=(state, app.state.settings, app.state.on_load_failure),
             name="nemsim-load",
             daemon=True,
@@ -137,8 +146,9 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.gates.close()
 
 
-def create_app(settings: Settings | None = None, surrogate: Surrogate | None = None) -> FastAPI:
-    """Build the app. `settings` replaces `get_settings()` (routes too); a given `surrogate` skips loading."""
+def create_app(settings: Settings | None = None, served: ServedModel | None = None) -> FastAPI:
+    """Build the app. `settings` replaces `get_settings()` (routes too); a given `served` model skips
+    loading."""
     settings = settings or get_settings()
     limit_allocator_retention()
     app = FastAPI(
@@ -159,8 +169,8 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
         settings.sim_workers, settings.sim_queue, settings.jobs_keep_s, settings.jobs_keep_max
     )
     app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
-    if surrogate is not None:
-        app.state.service.surrogate, app.state.service.status = surrogate, "ready"
+    if served is not None:
+        app.state.service.served, app.state.service.status = served, "ready"
 
     async def given_settings() -> Settings:  # async: no thread-pool hop per request (service.deps)
         return settings
@@ -177,6 +187,6 @@ def create_app(settings: Settings | None = None, surrogate: Surrogate | None = N
     app.include_router(mechanisms.router)
     app.include_router(operations.router)
     app.include_router(jobs.router)
-    app.include_router(design.router)
+    app.include_router(inverse.router)
     page.install(app)
     return app

@@ -43,10 +43,12 @@ from typing import Any, TypeVar
 import anyio.to_thread
 from starlette.requests import Request
 
-from service.surrogate import ServiceBusy
-
 T = TypeVar("T")
 log = logging.getLogger(__name__)
+
+
+class ServiceBusy(RuntimeError):
+    """Too many requests are computing or waiting; retry later."""
 
 
 class ClientGone(Exception):

@@ -24,6 +24,7 @@ from pydantic import (
 from starlette.responses import Response
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
+from nemsim.inference import ControlSchedule
 
 DEFAULT_STEPS = 100  # the paper horizon: 100 transitions of 0.1 s
 MAX_STEPS_HARD = 10_000  # no configuration may allow more (Settings.max_steps has the same bound)
@@ -321,18 +322,25 @@ class ControlSource(BaseModel):
         return self
 
     def _rows_raw(self) -> np.ndarray:
-        """(K, 14) the distinct control rows given (K = recipe length, else 1), physical units."""
+        """(K, 14) the distinct control rows given in physical units (K = recipe length, else 1)."""
         if self.recipe is not None:
             return np.stack([controls_to_array(c) for c in self.recipe])
-        if self.controls is not None:
-            return controls_to_array(self.controls)[None]
-        return np.asarray(from_normalized(np.asarray(self.controls_normalized, dtype=np.float64)))[None]
+        assert self.controls is not None  # one source is given (validator); normalized input has no rows
+        return controls_to_array(self.controls)[None]
 
-    def schedule_raw(self) -> np.ndarray:
-        """(T, 14) physical controls per transition (constant controls repeated)."""
+    def schedule(self) -> ControlSchedule:
+        """The controls per transition in both forms, normalized once (normalized input is kept as given)."""
         assert self.steps is not None  # set by the validator
-        rows = self._rows_raw()
-        return rows if self.recipe is not None else np.repeat(rows, self.steps, axis=0)
+        if self.controls_normalized is not None:
+            return ControlSchedule.from_normalized(self.controls_normalized, self.steps)
+        rows = self._rows_raw()  # (K, 14)
+        per_transition = rows if self.recipe is not None else np.repeat(rows, self.steps, axis=0)  # (T, 14)
+        return ControlSchedule.physical(per_transition)
+
+    @property
+    def source(self) -> str:
+        """Which of controls, controls_normalized, recipe was given."""
+        return next(n for n in ("controls", "controls_normalized", "recipe") if getattr(self, n) is not None)
 
 
 class RolloutRequest(ControlSource):

@@ -1,4 +1,4 @@
-"""The console script's allocator settings (nemsim.allocator): when it re-executes, and that it does."""
+"""The console script's allocator settings (nemsim.cli.allocator): when it re-executes, and that it does."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from nemsim.allocator import OPT_OUT, TUNED, tuned_environ
+from nemsim.cli.allocator import OPT_OUT, TUNED, tuned_environ
 
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc settings apply on Linux")
 
@@ -29,7 +29,7 @@ def test_tuned_environ_nothing_to_do():
 
 
 def _probe(env: dict[str, str]) -> subprocess.CompletedProcess:
-    code = "from nemsim.allocator import reexec_tuned; reexec_tuned(['--help']); print('not re-executed')"
+    code = "from nemsim.cli.allocator import reexec_tuned; reexec_tuned(['--help']); print('not re-executed')"
     return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
 
 
@@ -45,7 +45,7 @@ def test_reexec_runs_the_cli_with_the_settings():
 @linux_only
 def test_serve_keeps_the_default_allocator():
     base = {k: v for k, v in os.environ.items() if k not in TUNED and k != OPT_OUT}
-    code = ("from nemsim.allocator import reexec_tuned; reexec_tuned(['--debug', 'serve', '--help']); "
+    code = ("from nemsim.cli.allocator import reexec_tuned; reexec_tuned(['--debug', 'serve', '--help']); "
             "print('not re-executed')")
     out = subprocess.run([sys.executable, "-c", code], env=base, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "not re-executed"

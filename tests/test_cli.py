@@ -95,8 +95,8 @@ def test_design_log_angles_writes_the_log_m_design(tmp_path, capsys):
 
 
 def test_design_corners_leave_out_the_physics_benchmarks_held_out_corners(tmp_path, capsys):
-    from nemsim.controls import read_controls_csv
     from bench.physics import PhysicsConfig, box_corners
+    from nemsim.controls import read_controls_csv
 
     out = tmp_path / "corners.csv"
     assert main(["design", "--kind", "corners", "--n", "50", "--seed", "1", "--out", str(out)]) == 0
@@ -256,7 +256,9 @@ def _buggy(args):
 
 
 def test_unexpected_error_is_one_line_with_exit_1_and_debug_shows_it(monkeypatch, capsys):
-    monkeypatch.setattr(cli, "_cmd_design", _buggy)
+    from nemsim.cli import data
+
+    monkeypatch.setattr(data, "_cmd_design", _buggy)
     line = _fails_cleanly(capsys, ["design", "--out", "unused.csv"], code=1)
     assert "TypeError: unsupported operand" in line and "--debug" in line
     with pytest.raises(TypeError):
@@ -346,3 +348,57 @@ def test_design_pairs_write_a_seed_id_column_and_need_an_even_n(tmp_path, capsys
     assert "7 sweep pairs" in capsys.readouterr().out
     assert main(["design", "--kind", "pairs", "--n", "7", "--out", str(out)]) == 2
     assert "even --n" in capsys.readouterr().err
+
+
+# ---- the CLI package: its version, the commands plugged in from service/ and bench/ ----------------------
+
+
+def test_version_prints_the_package_version(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.strip() == f"nemsim {version('nemsim')}"
+
+
+def test_help_lists_the_commands_of_the_library_and_of_the_plugins():
+    text = cli.build_parser().format_help()
+    for name, words in {"train": "train a model", "serve": "serve a checkpoint", "bench": "benchmarks",
+                        "stress": "hard-case stability"}.items():
+        assert f"    {name:<14}{words}" in text, name
+
+
+def test_a_plugin_that_fails_to_import_leaves_the_rest_working(monkeypatch, tmp_path, capsys):
+    from importlib import metadata
+
+    real = metadata.entry_points
+    broken = metadata.EntryPoint("serve", "no_such_package_here.cli:register", "nemsim.cli")
+    monkeypatch.setattr(metadata, "entry_points",
+                        lambda group: [broken, *(e for e in real(group=group) if e.name != "serve")])
+    line = _fails_cleanly(capsys, ["serve", "--checkpoint", "x.pt"])
+    assert "`nemsim serve` is not available" in line and "pip install 'nemsim[service]'" in line
+    assert main(["design", "--n", "3", "--out", str(tmp_path / "d.csv")]) == 0
+    assert cli.build_parser().parse_args(["bench", "collect", "--runs", "r"]).bench == "collect"
+    _fails_cleanly(capsys, ["design", "--out", "x.csv", "--no-such-flag"])
+
+
+def test_evaluate_runtimes_are_the_inference_runtimes():
+    from nemsim.cli.evaluate import RUNTIMES
+    from nemsim.inference.runtime import BACKENDS, PRECISIONS
+
+    assert set(RUNTIMES) <= {f"{b}-{p}" for b in BACKENDS for p in PRECISIONS}
+    assert {r.split("-")[0] for r in RUNTIMES} == {"torch", "openvino"}  # the CPU runtimes
+
+
+def test_the_library_imports_neither_the_service_nor_the_bench():
+    import ast
+
+    root = Path(cli.__file__).parents[1]
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module and not node.level else [])
+            found += [f"{path.relative_to(root.parent)}: {n}" for n in names
+                      if n.split(".")[0] in ("service", "bench")]
+    assert not found, found

@@ -1,12 +1,16 @@
-"""Code health: package dependencies point one way, functions stay short, ruff and mypy pass.
+"""Code health: imports point one way, files and functions stay short, ruff and mypy pass.
 
-Static checks of the source tree (nothing is imported or run but the linters), so a change that adds a
-package cycle, a 200-line function or a lint finding fails the test suite, and so CI, like a failing test.
+Static checks of the source tree (nothing is imported or run but the linters), so a change that adds an
+import cycle, a 200-line function or a lint finding fails the test suite, and so CI, like a failing test.
 
-Units of the dependency graph: each subpackage of ``nemsim`` (``nemsim.sim``, ``nemsim.evaluation``, ...),
-each top-level module (``nemsim.cli``, ``nemsim.registry``, ...) and the ``service`` package. Every import
-counts: module level, inside functions, under ``TYPE_CHECKING``, and ``importlib.import_module`` with a
-literal name; an import whose target is computed at run time fails the test, since it could hide any edge.
+Layers: ``nemsim`` (the library) never imports ``service`` or ``bench``; ``service`` never imports
+``bench``; ``bench`` may import both. Units of the package graph: each subpackage or top-level module of
+``nemsim`` (``nemsim.sim``, ``nemsim.cli``, ``nemsim.registry``, ...), ``service`` and ``bench``; no cycle
+between units, and none between files either. Every import counts: module level, inside functions, under
+``TYPE_CHECKING``, and ``importlib.import_module`` with a literal name; an import whose target is computed at
+run time fails the test, since it could hide any edge. Importing ``a.b.c`` is an edge to the file of
+``a.b.c`` only (the parent packages' ``__init__`` files run first, but re-exporting a package's own modules
+from its ``__init__`` is not a cycle).
 """
 
 from __future__ import annotations
@@ -21,8 +25,17 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGE = ROOT / "nemsim"
+TOP = ("nemsim", "service", "bench")  # the project's packages
+LAYERS = {"nemsim": set(), "service": {"nemsim"}, "bench": {"nemsim", "service"}}  # may import
 MAX_FUNCTION_LINES = 120
+MAX_CLI_FILE_LINES = 400
+CLI_FILES = ("nemsim/cli.py", "nemsim/cli/**/*.py", "bench/cli/**/*.py", "service/cli.py")
+
+Graph = dict[str, dict[str, list[str]]]  # {node: {imported node: ["file:line", ...]}}
+
+
+def _sources() -> list[Path]:
+    return sorted(p for top in TOP for p in (ROOT / top).rglob("*.py"))
 
 
 def _module_name(path: Path) -> str:
@@ -33,9 +46,9 @@ def _module_name(path: Path) -> str:
 
 
 def _unit(module: str) -> str:
-    """The graph unit of a module: its ``nemsim`` subpackage or top-level module, else its package."""
+    """The package-graph unit of a module: ``nemsim.<subpackage or module>``, else its top package."""
     parts = module.split(".")
-    return parts[1] if parts[0] == "nemsim" and len(parts) > 1 else parts[0]
+    return ".".join(parts[:2]) if parts[0] == "nemsim" and len(parts) > 1 else parts[0]
 
 
 def _resolve(name: str) -> str:
@@ -75,23 +88,32 @@ def _imports(path: Path) -> Iterator[tuple[str, int]]:
                 yield _resolve(arg.value), node.lineno
 
 
-def package_graph() -> dict[str, dict[str, list[str]]]:
-    """{unit: {imported unit: ["file:line", ...]}} over every module under nemsim/ and service/."""
-    graph: dict[str, dict[str, list[str]]] = {}
-    for path in sorted([*PACKAGE.rglob("*.py"), *(ROOT / "service").rglob("*.py")]):
-        src = _unit(_module_name(path))
+def module_graph() -> Graph:
+    """File-level import graph: {module: {imported project module: ["file:line", ...]}}."""
+    graph: Graph = {}
+    for path in _sources():
+        src = _module_name(path)
         edges = graph.setdefault(src, {})
         for target, line in _imports(path):
-            if target.split(".")[0] not in ("nemsim", "service"):
-                continue
-            dst = _unit(target)
-            if dst != src:
-                edges.setdefault(dst, []).append(f"{path.relative_to(ROOT)}:{line}")
+            where = f"{path.relative_to(ROOT)}:{line}"
+            if target.split(".")[0] in TOP and target != src and where not in edges.get(target, []):
+                edges.setdefault(target, []).append(where)
     return graph
 
 
-def _cycles(graph: dict[str, dict[str, list[str]]]) -> list[list[str]]:
-    """Strongly connected components with more than one unit (Tarjan)."""
+def package_graph() -> Graph:
+    """The module graph collapsed onto units (``_unit``); edges inside a unit dropped."""
+    graph: Graph = {}
+    for src, edges in module_graph().items():
+        out = graph.setdefault(_unit(src), {})
+        for dst, where in edges.items():
+            if _unit(dst) != _unit(src):
+                out.setdefault(_unit(dst), []).extend(where)
+    return graph
+
+
+def _cycles(graph: Graph) -> list[list[str]]:
+    """Strongly connected components with more than one node (Tarjan)."""
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
@@ -125,34 +147,70 @@ def _cycles(graph: dict[str, dict[str, list[str]]]) -> list[list[str]]:
     return out
 
 
-def test_no_cycle_between_packages():
-    graph = package_graph()
+def _cycle_report(graph: Graph) -> list[str]:
     problems = []
     for scc in _cycles(graph):
         lines = [f"  {a} -> {b}: {', '.join(graph[a][b])}" for a in scc for b in scc if b in graph.get(a, {})]
         problems.append(f"cycle between {', '.join(scc)}:\n" + "\n".join(lines))
+    return problems
+
+
+def layer_violations(graph: Graph) -> list[str]:
+    """Edges from one top package to another that ``LAYERS`` does not allow."""
+    bad = []
+    for src, edges in sorted(graph.items()):
+        for dst, where in sorted(edges.items()):
+            a, b = src.split(".")[0], dst.split(".")[0]
+            if a != b and b not in LAYERS[a]:
+                bad.append(f"{src} -> {dst}: {', '.join(where)}")
+    return bad
+
+
+def test_no_cycle_between_packages():
+    problems = _cycle_report(package_graph())
     assert not problems, "package dependencies must point one way\n" + "\n".join(problems)
 
 
-def test_only_the_cli_imports_the_service():
-    users = {src for src, dsts in package_graph().items() if "service" in dsts}
-    assert users <= {"cli"}, f"the library must not depend on the service: {sorted(users)}"
+def test_no_cycle_between_files():
+    problems = _cycle_report(module_graph())
+    assert not problems, "file imports must point one way\n" + "\n".join(problems)
 
 
-def test_the_cycle_check_sees_function_level_and_importlib_imports(tmp_path, monkeypatch):
-    """The checker itself: a cycle hidden in a function body and behind import_module is found."""
-    pkg = tmp_path / "nemsim"
-    for sub, body in {
-        "a": "def f():\n    from nemsim.b.x import g\n    return g\n",
-        "b": "import importlib\n\ndef g():\n    return importlib.import_module('nemsim.a.x')\n",
-    }.items():
-        (pkg / sub).mkdir(parents=True)
-        (pkg / sub / "__init__.py").write_text("")
-        (pkg / sub / "x.py").write_text(body)
-    (pkg / "__init__.py").write_text("")
+def test_the_library_imports_neither_the_service_nor_the_bench():
+    bad = layer_violations(module_graph())
+    assert not bad, (
+        "nemsim must not import service or bench, service must not import bench "
+        "(register commands through the nemsim.cli entry points):\n" + "\n".join(bad)
+    )
+
+
+def _tree(tmp_path: Path, files: dict[str, str]) -> None:
+    for rel, body in files.items():
+        path = tmp_path / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(body)
+        for parent in path.relative_to(tmp_path).parents:
+            if parent != Path(".") and not (tmp_path / parent / "__init__.py").exists():
+                (tmp_path / parent / "__init__.py").write_text("")
+
+
+def test_the_checks_see_function_level_and_importlib_imports(tmp_path, monkeypatch):
+    """The checker itself: cycles hidden in a function body and behind import_module are found, between
+    units and between files, and so are imports across the layers."""
+    _tree(tmp_path, {
+        "nemsim/a/x.py": "def f():\n    from nemsim.b.x import g\n    return g\n",
+        "nemsim/b/x.py": "import importlib\n\ndef g():\n    return importlib.import_module('nemsim.a.x')\n",
+        "nemsim/c/p.py": "from . import q\n",
+        "nemsim/c/q.py": "if TYPE_CHECKING:\n    from nemsim.c.p import P\n",
+        "nemsim/c/__init__.py": "from nemsim.c.p import q\n",  # a package re-exporting its modules: no cycle
+        "nemsim/d.py": "def f():\n    import bench.tool\n",
+        "service/app.py": "from nemsim.c import q\n",
+        "bench/tool.py": "from service.app import q\n",
+    })
     monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
-    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", pkg)
-    assert _cycles(package_graph()) == [["a", "b"]]
+    assert _cycles(package_graph()) == [["nemsim.a", "nemsim.b"]]
+    assert sorted(_cycles(module_graph())) == [["nemsim.a.x", "nemsim.b.x"], ["nemsim.c.p", "nemsim.c.q"]]
+    assert [v.split(":")[0] for v in layer_violations(module_graph())] == ["nemsim.d -> bench.tool"]
 
 
 def _is_numba_kernel(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
@@ -167,7 +225,7 @@ def _is_numba_kernel(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
 def long_functions(limit: int = MAX_FUNCTION_LINES) -> list[str]:
     """Functions (methods and nested functions included) longer than ``limit`` lines, numba kernels aside."""
     found = []
-    for path in sorted([*PACKAGE.rglob("*.py"), *(ROOT / "service").rglob("*.py")]):
+    for path in _sources():
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and not _is_numba_kernel(node):
                 n = (node.end_lineno or node.lineno) - node.lineno + 1
@@ -179,6 +237,14 @@ def long_functions(limit: int = MAX_FUNCTION_LINES) -> list[str]:
 def test_no_function_over_120_lines():
     found = long_functions()
     assert not found, f"functions over {MAX_FUNCTION_LINES} lines (split them):\n" + "\n".join(found)
+
+
+def test_no_cli_file_over_400_lines():
+    """One module per command group, each short (nemsim/cli/, bench/cli/, service/cli.py)."""
+    paths = sorted({p for pattern in CLI_FILES for p in ROOT.glob(pattern) if p.is_file()})
+    sizes = {p: len(p.read_text().splitlines()) for p in paths}
+    long = [f"{p.relative_to(ROOT)} ({n} lines)" for p, n in sizes.items() if n > MAX_CLI_FILE_LINES]
+    assert not long, f"CLI files over {MAX_CLI_FILE_LINES} lines (split the group):\n" + "\n".join(long)
 
 
 def _tool(name: str) -> str:
@@ -198,7 +264,7 @@ def test_ruff_clean():
 
 @pytest.mark.slow
 def test_mypy_clean():
-    res = subprocess.run([_tool("mypy"), "nemsim", "service"], cwd=ROOT, capture_output=True, text=True)
+    res = subprocess.run([_tool("mypy"), *TOP], cwd=ROOT, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
 
 
@@ -208,11 +274,11 @@ def _is_module(dotted: str) -> bool:
 
 
 def test_project_imports_name_existing_modules():
-    """Every ``import nemsim.x`` / ``from nemsim.x import y`` (function-level ones included) names a module
-    that exists: a moved module cannot hide behind a lazy import that only runs on a rare path."""
+    """Every ``import nemsim.x`` / ``from nemsim.x import y`` (function-level ones included, and the same
+    for ``service`` and ``bench``) names a module that exists: a moved module cannot hide behind a lazy
+    import that only runs on a rare path."""
     missing = []
-    files = [*PACKAGE.rglob("*.py"), *(ROOT / "service").rglob("*.py"), *(ROOT / "tests").rglob("*.py")]
-    for path in sorted(files):
+    for path in [*_sources(), *sorted((ROOT / "tests").rglob("*.py"))]:
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.ImportFrom) and not node.level and node.module:
                 names = [node.module]
@@ -221,6 +287,6 @@ def test_project_imports_name_existing_modules():
             else:
                 continue
             for name in names:
-                if name.split(".")[0] in ("nemsim", "service") and not _is_module(name):
+                if name.split(".")[0] in TOP and not _is_module(name):
                     missing.append(f"{path.relative_to(ROOT)}:{node.lineno} {name}")
     assert not missing, "imports of modules that do not exist:\n" + "\n".join(missing)

@@ -15,12 +15,11 @@ The plan file (e.g. ``benchmarks/small/compare-45min.plan.yaml``)::
       - {name: ood-joint-baseline, models_from: best_baselines(2), setting: ood-joint, minutes: 45}
 
 An entry trains ``model`` at ``size`` with learning rate ``lr`` (default: the recipe's) on ``setting``
-(default control-id) for ``minutes`` of wall time. A ``probe`` skips the test (its validation score is what
-it is for). ``from_probes: true`` takes size and lr from the finished probe of the same model with the lowest
-validation Avg RMSE, so the entry waits until all of them are done ("blocked-on-probes"). ``models_from:
-best_baselines(N)`` stands for N entries, NAME-1 .. NAME-N: the N baselines whose control-id full runs (one
-per baseline, required) reached the lowest validation Avg RMSE, at their size and lr; they wait until all of
-those runs are done ("blocked-on-runs"). Choices are made on validation scores only, never on the test.
+(default control-id) for ``minutes`` of wall time; a ``probe`` skips the test. ``from_probes: true`` takes
+size and lr from the same model's finished probe with the lowest validation Avg RMSE ("blocked-on-probes"
+until all are done). ``models_from: best_baselines(N)`` stands for N entries NAME-1 .. NAME-N: the N
+baselines whose control-id full runs reached the lowest validation Avg RMSE ("blocked-on-runs" until those
+are done). Choices are made on validation scores only, never on the test.
 
 Run directories (under the runs dir, and the same layout in the record)::
 
@@ -43,7 +42,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from nemsim.train import SETTINGS
+from nemsim.data.splits import SETTINGS
 
 RANK_SETTING = "control-id"  # best_baselines(N) ranks the baselines' full runs of this setting
 RECORD_FILES = ("config.yaml", "metrics.csv", "test_metrics.json", "summary.json")  # summary.json last: it

@@ -17,9 +17,9 @@ like one. The children stay in the runner's process group, so Ctrl-C or a kill o
 SIGINT or SIGTERM to the runner alone stops them (SIGINT, SIGKILL after a grace period). Each keeps the
 last.pt it wrote every ``checkpoint_every`` steps and the same command resumes it. One runner at a time per
 runs dir (a lock file), so two never train the same run. A finished run's small files go
-into the plan's record (``plan.record_run``) for the session to commit. ``hours`` bounds a session: a run is
-started only if its remaining budget and a margin for start-up and test fit in the time left, because a run
-cut off at the end of a session on a machine that does not survive is lost.
+into the plan's record (``plan.record_run``), to be committed. ``hours`` bounds the runner's own time: a run
+is started only if its remaining budget and a margin for start-up and test fit in the time left, because a
+run cut off on a machine that does not survive is lost.
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ def train_command(plan: Plan, status: RunStatus, cfg: RunnerConfig, core: int | 
 
 
 def _environment() -> dict[str, str]:
-    from nemsim.allocator import tuned_environ
+    from nemsim.cli.allocator import tuned_environ
 
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     return tuned_environ(env) or env

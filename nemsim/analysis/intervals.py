@@ -15,10 +15,8 @@ over the n cases gives, for a nominal level 1 - a, the two one-sided split-confo
     lo = r_(floor((n + 1) a / 2)),   hi = r_(ceil((n + 1) (1 - a / 2)))   (order statistics of the residuals)
 
 and the interval [pred - hi, pred - lo] covers the simulated value with probability >= 1 - a for a new
-exchangeable case. Signed (two tails) rather than |r| because the surrogate is biased on some metrics (the
-interval then shifts instead of widening on both sides). A rank beyond n (too few cases for the level)
-gives an infinite bound, reported as null. The half-widths are stored per metric, level and step, so an
-interval costs a table look-up.
+exchangeable case. Signed rather than |r|: where the surrogate is biased the interval shifts instead of
+widening. A rank beyond n (too few cases for the level) gives an infinite bound, reported as null.
 
 Distance to the training data: the nearest training case's control vector (normalized, eq:supp_control_
 normalization, the coordinates the model sees), compared with the training cases' own nearest-neighbour

@@ -4,53 +4,31 @@ check.
 Layout (one file per dataset, N cases, T = scene.n_states states, state (2, D, H, W)):
   datasets
     states                 (N, T, 2, D, H, W) float32 (or float16, ``state_dtype``), one state per chunk
-                           (1, 1, 2, D, H, W), compressed
     controls_raw           (N, 14) float64, physical units, columns = CONTROL_NAMES
     controls_transformed   (N, 14) float64, eq:supp_control_transformation
     times                  (T,) float64, seconds (0, 0.1, ..., 10.0)
-    case_ids               (N,) int64, control-configuration identifiers
-    seeds                  (N,) int64, per-case simulator seed (-1 until written)
-    complete               (N,) uint8, per-case completion flag, set only after the case's states are flushed
-    case_meta              (N,) JSON strings, per-case metadata given to ``write`` (timings, particle
-                           counts, ...)
+    case_ids, seeds        (N,) int64: control-configuration ids, per-case simulator seed (-1 until written)
+    complete               (N,) uint8, set only after the case's states are flushed
+    case_meta              (N,) JSON strings, per-case metadata given to ``write``
     controls_raw_schedule  (N, T-1, 14) float64, optional: recipe controls, one vector per transition
   root attributes
     format_version, scene (JSON), control_names, channel_names ["mask", "si"], d_max (nm), d_max_vox,
     rules_sha256, generator (JSON: simulator version, constants, seeds)
 
-The integrity checks of ``check_dataset`` are those of [supp_dataset_statistics] "Trajectory Integrity
-Checks": complete cases with T frames of both channels on one time axis, finite values, SDFs within the
-sanity bound, nondecreasing (here: strictly increasing, evenly spaced) timestamps, constant spatial shape,
-all 14 controls present and inside their configured global ranges, unique case ids and control vectors.
+``check_dataset`` runs the "Trajectory Integrity Checks" of [supp_dataset_statistics]: complete cases with
+T frames of both channels on one evenly spaced time axis, finite values, |SDF| <= 1 + 1e-5 (states are
+SDF / d_max clipped to [-1, 1]), one spatial shape, all 14 controls inside their global ranges, unique case
+ids and control vectors. ``close(validate=True)`` runs the metadata-level ones only (no state reads).
 
 Choices where the paper is silent:
-  * Compression: gzip level 4, no shuffle filter (``DEFAULT_COMPRESSION``). Measured on ``small`` state
-    chunks (2, 65, 28, 28) of clipped hole SDFs, chunk cache off, best of 5 on the shared 2-core box:
-    gzip-4 1.1-1.6 ms/chunk read, 46 KiB/chunk; lzf 0.9-1.5 ms, 57 KiB; either + shuffle about 2x slower to
-    read (40/47 KiB); uncompressed 398 KiB. lzf reads ~10-20 % faster but is h5py-only; gzip is readable by
-    every HDF5 tool and 20 % smaller, and the read cost is small next to a model step.
-  * Sanity bound: |SDF| <= 1 + 1e-5 (the states are SDF / d_max clipped to [-1, 1]).
-  * Crash safety: states are written and flushed before the completion flag; a case whose flag is unset is
-    redone on resume. ``write`` validates a case (shape, finite, bound) before anything is written, so the
-    file only ever holds valid complete cases ("validated before inclusion").
-  * State storage (``state_dtype``): float32 by default; float16 cuts what a large data set (the
-    ``paper`` scene) needs on disk by ~2.4x. The states are clipped SDFs in [-1, 1], so float16 rounds each
-    value by at most 2^-12 (2.4e-4) near |SDF| = 1 and proportionally less nearer the surface. Readers get
-    float32 either way (``TrajectoryFile.states`` converts on read; ``data.dataset`` converts every item).
-    Measured by writing the same simulated states both ways (gzip 4):
-      - ``small``, design cases 0-2 (seed 0): max |error| 2.44e-4, Avg RMSE [eq:supp_avg_rmse] 5.0e-5,
-        against a seed-to-seed Avg RMSE of 4.6e-3 on the same cases (seeds 0 and 1): ~1 % of the noise
-        floor; file 20.6 MB -> 8.8 MB (0.43x).
-      - ``paper``, design case 0: max |error| 2.44e-4, Avg RMSE 5.9e-5; 47.8 MB -> 19.7 MB per case
-        (0.41x), so the 500-case design needs ~10 GB instead of ~24 GB.
-    float16 is the recommended storage for ``paper``; float32 stays the default (existing files, tests).
-  * Growing a file: per-case datasets are created resizable along the case axis, so rerunning with more
-    cases whose list starts with the file's (``nemsim generate --n 16`` after ``--n 12``) appends the new
-    rows and keeps the finished ones. Files written before this are fixed-size; the error says so.
-  * A file another process has open for writing (a running ``nemsim generate``) is refused with one line
-    naming it, as is a file HDF5 cannot open (damaged or not HDF5).
-  * ``close(validate=True)`` runs the metadata-level checks (no state reads; a ``paper`` file is ~70 GB);
-    ``check_dataset`` streams through every state, one case at a time.
+  * gzip level 4, no shuffle (``DEFAULT_COMPRESSION``): readable by every HDF5 tool, smaller than lzf, and
+    its read cost is small next to a model step.
+  * Crash safety: a case's states are validated, written and flushed before its completion flag; a case
+    whose flag is unset is redone on resume, so the file only holds valid complete cases.
+  * ``state_dtype`` float16 rounds a clipped SDF by at most 2^-12 (far below the seed-to-seed noise) and
+    roughly halves the file; readers get float32 either way. Recommended for ``paper``; float32 is default.
+  * Per-case datasets are resizable along the case axis, so ``nemsim generate --n 16`` after ``--n 12``
+    appends; a file open for writing elsewhere, or one HDF5 cannot open, is refused with one line.
 """
 
 from __future__ import annotations

@@ -216,7 +216,7 @@ def sample_surface_points(
 def _tree(points: np.ndarray):
     from scipy.spatial import cKDTree
 
-    # unbalanced, non-compact trees build ~2x faster and query about as fast for surface samples
+    # unbalanced, non-compact trees build faster and query about as fast for surface samples
     return cKDTree(points, leafsize=32, balanced_tree=False, compact_nodes=False)
 
 

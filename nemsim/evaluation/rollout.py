@@ -57,20 +57,15 @@ def rollout(
         u: (B, T, 14) normalized controls per transition, or (B, 14) for a constant control
             (then ``steps`` is required).
         steps: number of transitions to run (default T); must be <= T when u is (B, T, 14).
-        keep: return the whole trajectory; with keep=False only the last state is returned
-            (memory stays at two calls' states -- use ``on_step`` to stream the others).
-        on_step: called as on_step(t, x̂_t) for t = 1..steps with the freshly predicted state. x̂_t is a
-            view of the rollout's buffer: with keep=False it stays valid until on_step(t + 1) has returned
-            (copy it to keep it longer).
-        window: compute each call on the depth slab that can change (``nemsim.model.window.DepthWindow``;
-            NEMSim only); it agrees with the full rollout within a tolerance, not exactly, and measured no
-            faster on ``small`` (see there): off by default.
+        keep: return the whole trajectory; False: only the last state (memory of two calls' states).
+        on_step: called as on_step(t, x̂_t) for t = 1..steps; x̂_t is a view of the rollout's buffer, valid
+            (with keep=False) until on_step(t + 1) has returned.
+        window: compute each call on the depth slab that can change (``nemsim.model.window``; NEMSim only;
+            within a tolerance of the full rollout, off by default: see there).
         stats: if given, filled with {"calls", "full_calls", "fraction_computed", "start"} of the window
             (``fraction_computed`` = mean share of the voxels computed per call), or {"calls"} without one.
-        monotone: project every predicted state onto x >= (running maximum) - eps
-            (``nemsim.model.monotone.MonotoneProjection``). None (default) follows the model's
-            ``config.monotone_eps`` (NEMSim: on; baselines: off); False: off; True: on (``MONOTONE_EPS``
-            for a model without its own eps).
+        monotone: project every predicted state onto x >= (running maximum) - eps (``nemsim.model.monotone``).
+            None (default): the model's ``config.monotone_eps`` (NEMSim: on; baselines: off); True / False.
         out: optional (B, >= steps + 1, 2, D, H, W) buffer (x0's dtype and device) the trajectory is written
             into and returned from (its first steps + 1 states), so a caller running many rollouts reuses
             one allocation; only with keep=True.

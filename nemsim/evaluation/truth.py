@@ -183,7 +183,7 @@ class SimTruth:
 def particle_work(runs: Sequence[Run]) -> float:
     """Simulated particles of ``runs`` in units of one run of the design centre: the sum over runs of the
     total flux (four species) over the centre's. The simulator's primaries scale with the total flux; a
-    run also pays a fixed Ψ cost per saved state (on ``small`` about 1.5 s of a median run's 3.5 s)."""
+    run also pays a fixed Ψ cost per saved state (a large share of a median ``small`` run)."""
     from nemsim.controls import FLUX_INDICES, from_normalized
 
     centre = float(from_normalized(np.zeros(14))[list(FLUX_INDICES)].sum())

@@ -4,47 +4,30 @@ The paper names the morphology quantities (etch depth, top-opening width, neck w
 [supp_protocols] "Selection of OOD Control Axes") but does not define them; DESIGN.md adds mask thickness
 loss. Our definitions follow.
 
-Coordinates. A state is (2, D, H, W) = (channel, z, y, x) padded by one voxel, so index = native + 1.
-Native voxel centres sit at integer coordinates; a voxel spans ±0.5 around its centre, so the initial Si
-top surface (Si fills 0 <= z < si_top) is at native z = si_top - 0.5 and the resist top at
-resist_top - 0.5. SDFs are negative inside material (channel 0 = mask, 1 = Si); only the sign and the
-zero crossing matter, so the clipping at ±1 (d_max) is harmless. The hole axis is the opening centre
-``scene.opening_centre``; when it falls between voxel centres (even nx or ny) the field is linearly
-interpolated onto it. Zero crossings are located sub-voxel by linear interpolation between the two
-samples that bracket them; a sample equal to 0 counts as material.
+Coordinates: a state is (2, D, H, W) = (channel, z, y, x) padded by one voxel (index = native + 1); a native
+voxel spans ±0.5 around its integer centre, so the initial Si top is at native z = si_top - 0.5 and the
+resist top at resist_top - 0.5. SDFs are negative inside material (channel 0 mask, 1 Si). The hole axis is
+``scene.opening_centre`` (the field is interpolated onto it between voxel centres); zero crossings are
+located sub-voxel by linear interpolation, and a sample equal to 0 counts as material.
 
-Definitions (all lengths in nm = voxels * scene.voxel_nm):
-  * ``etch_depth``: initial Si top (z = si_top - 0.5) minus the hole floor, where the floor is the first
-    vacuum->Si crossing of the Si channel met when scanning the hole axis downward from the top of the box.
-    0 for an unetched surface, negative if material grew above the initial surface, the full Si
-    thickness if the axis holds no Si at all.
-  * width w(z) at a height z: on the Si channel, along the x line and the y line through the axis, the
-    distance between the first vacuum->Si crossings met walking outward from the axis on either side
-    (the domain edge if none); mean of the x and y widths. 0 where the axis itself is Si.
-  * ``top_width``: w at the top Si row (native z = si_top - 1, half a voxel below the initial surface).
+Definitions (nm = voxels * scene.voxel_nm):
+  * ``etch_depth``: initial Si top minus the hole floor, the first vacuum->Si crossing on the hole axis
+    scanning down from the top of the box (0 unetched, the full Si thickness if the axis holds no Si).
+  * width w(z): on the Si channel, along the x and y lines through the axis, the distance between the
+    first vacuum->Si crossings walking outward on either side (the domain edge if none); mean of the two.
+  * ``top_width``: w at the top Si row (native z = si_top - 1).
   * ``bowing``: the largest excess of a row's width over the narrowest row above it (bow CD minus neck
-    CD), over the Si rows above the floor that lie at least ``BOW_SKIP_ROWS`` = 2 rows below the top Si
-    row; >= 0 (0 for a tapered or straight hole and an unetched surface). Why the top rows are skipped:
-    Psi smooths each channel (sigma = 0.7 voxel) and the Si channel sees the resist above the top Si row
-    as non-Si, so the Si/resist corner is rounded and the top two rows read 1.5-3 nm wider than their
-    voxels (measured on `small`, benchmarks/small/bowing.md). Measured against the top row (this
-    module's first definition, "widest row minus top_width"), that rounding hid every bulge of up to
-    5 nm below the mask.
-  * ``neck_width``: the narrowest row above the bow (the reference of ``bowing``); equals the width of
-    the first reference row when there is no bow, top_width when the hole is shallower than the skipped
-    rows.
-  * ``bottom_width``: w at the height h_b = max(0.1 * etch_depth, 1 voxel) above the floor (field
-    interpolated linearly between rows), capped at the top Si row. 0 when the hole is less than one
-    voxel deep.
-  * ``mask_loss``: initial resist top (z = resist_top - 0.5) minus the mean height of the mask top surface
-    (first vacuum->mask crossing scanning down each column) over the planar field region: columns at
-    least opening_radius + d_max from the axis (lateral erosion of the opening edge does not reach them);
-    if the scene has no such columns, all columns outside opening_radius + 1. A column without mask
-    counts as fully eroded (loss = the mask thickness).
+    CD), over the Si rows above the floor at least ``BOW_SKIP_ROWS`` = 2 below the top Si row; >= 0. The
+    top rows are skipped because Psi's smoothing rounds the Si/resist corner, so they read wider than their
+    voxels and would hide a bulge just below the mask (benchmarks/small/bowing.md).
+  * ``neck_width``: the narrowest row above the bow (the reference of ``bowing``).
+  * ``bottom_width``: w at h_b = max(0.1 * etch_depth, 1 voxel) above the floor (interpolated between rows,
+    capped at the top Si row); 0 when the hole is less than one voxel deep.
+  * ``mask_loss``: initial resist top minus the mean height of the mask top (first vacuum->mask crossing
+    per column) over the planar field, the columns at least opening_radius + d_max from the axis (else all
+    outside opening_radius + 1); a column without mask counts as fully eroded.
 
-Everything is vectorized over a leading step axis: :func:`profile_metrics_batch` takes (T, 2, D, H, W)
-and costs a few array passes per state (measured on ``small``: ~0.2 ms per state in a 101-state
-batch, ~0.6 ms for a single state).
+:func:`profile_metrics_batch` is vectorized over a leading step axis (T, 2, D, H, W).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Checkpoints that carry their provenance (DESIGN.md "Checkpoints"; STYLE rule 4).
+"""Checkpoints that carry their provenance (DESIGN.md "Checkpoints"; STYLE rule 4), and their one loader.
 
 A checkpoint is one ``torch.save`` dict:
 
@@ -6,6 +6,7 @@ A checkpoint is one ``torch.save`` dict:
     model_name       registry name ("nemsim", "fno", ...)
     model_config     asdict of the model's config dataclass (rebuilt from this, never from defaults)
     model_state      state_dict (DDP "module." prefixes stripped)
+    weights_sha256   ``weights_digest(model_state)``, checked at load (absent in older checkpoints)
     scene            Scene.to_json()
     rules_sha256     sha256 of the compiled rules library the model was built with
     rules_source     that library's source YAML text (the model is rebuilt from this text)
@@ -18,19 +19,25 @@ A checkpoint is one ``torch.save`` dict:
                      this field); read it with ``checkpoint_sim_config``
     train_state      (last.pt only) optimizer state, lr-schedule step, epoch, RNG states, history
 
-``load_checkpoint`` rebuilds the model from the stored config and rules text and refuses a checkpoint
-whose rules library or scene differs from the caller's, naming which. The model config carries every model
-option, e.g. NEMSim's ``steps_per_call`` (absent in older checkpoints: the default, 1).
+``read_checkpoint`` unpickles weights-only (``torch.load(weights_only=True)``: tensors, plain containers and
+the numpy types on ``SAFE_GLOBALS``; a class, a function or ``os.system`` in the pickle is refused before it
+runs) and verifies the weights: all finite, and equal to their recorded digest. ``load_checkpoint`` rebuilds
+the model from the stored config and rules text and refuses a checkpoint whose rules library or scene differs
+from the caller's, naming which. Every failure is a ``CheckpointError`` whose message names the file by its
+base name only (safe to show a client) and says what is wrong.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -40,8 +47,29 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = 1
 
+# what a checkpoint may hold besides tensors and plain containers: numpy scalars (training summaries) and
+# numpy arrays (the numpy RNG state in last.pt's train_state)
+SAFE_GLOBALS: list[Any] = [
+    np._core.multiarray.scalar,  # type: ignore[attr-defined]
+    np._core.multiarray._reconstruct,  # type: ignore[attr-defined]
+    np.ndarray,
+    np.dtype,
+    *(getattr(np.dtypes, f"{kind}DType") for kind in (
+        "Bool", "Int8", "Int16", "Int32", "Int64", "UInt8", "UInt16", "UInt32", "UInt64",
+        "Float16", "Float32", "Float64", "Str",
+    )),
+]  # fmt: skip
 
-class CheckpointMismatch(ValueError):
+
+class CheckpointError(ValueError):
+    """The file is not a usable NEMSim checkpoint; the message names it by its base name only."""
+
+
+class CheckpointNotFound(CheckpointError, FileNotFoundError):
+    """The checkpoint file does not exist."""
+
+
+class CheckpointMismatch(CheckpointError):
     """The checkpoint's rules library or scene differs from the one the caller supplied."""
 
 
@@ -75,6 +103,20 @@ def unwrap(model: nn.Module) -> nn.Module:
     return getattr(model, "_orig_mod", model)
 
 
+def weights_digest(state: dict[str, Any]) -> str:
+    """SHA-256 over a state_dict's names, dtypes, shapes and bytes (sorted by name): what the file's weights
+    must still be at load."""
+    h = hashlib.sha256()
+    for name in sorted(state):
+        t = state[name]
+        if not isinstance(t, torch.Tensor):
+            continue
+        t = t.detach().to("cpu").contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
 def checkpoint_dict(
     model: nn.Module,
     *,
@@ -94,6 +136,7 @@ def checkpoint_dict(
         "model_name": model_name,
         "model_config": dict(model_config),
         "model_state": state,
+        "weights_sha256": weights_digest(state),
         "scene": scene.to_json(),
         "rules_sha256": str(rules.sha256),
         "rules_source": str(rules.source_text),
@@ -121,19 +164,63 @@ def write_checkpoint_dict(path: str | Path, ckpt: dict[str, Any]) -> Path:
     return path
 
 
-def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """The raw checkpoint dict; raises ValueError for a file that is not a NEMSim checkpoint."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
-    # weights_only=False: the dict holds plain Python containers and optimizer state written by us.
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict) or "format_version" not in ckpt:
-        raise ValueError(f"{path} is not a NEMSim checkpoint (no format_version)")
-    if ckpt["format_version"] > CHECKPOINT_FORMAT:
-        raise ValueError(
-            f"{path} has checkpoint format {ckpt['format_version']}; this NEMSim reads <= {CHECKPOINT_FORMAT}"
+def _unpickle(path: Path, name: str) -> Any:
+    """``torch.load`` weights-only; CheckpointError for refused, damaged or foreign files."""
+    try:
+        with torch.serialization.safe_globals(SAFE_GLOBALS):
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        log.debug("refused checkpoint %s: %s", path, exc)
+        unsafe = "Unsupported global" in str(exc) or "Weights only load failed" in str(exc)
+        raise CheckpointError(
+            f"checkpoint {name!r} holds Python objects other than tensors and plain data; refused "
+            "(only weights-only checkpoints are read)"
+            if unsafe
+            else f"checkpoint {name!r} is damaged or not a PyTorch checkpoint"
+        ) from exc
+    except Exception as exc:  # noqa: BLE001 -- random bytes raise anything (IndexError, EOFError, ...)
+        log.debug("unreadable checkpoint %s: %s: %s", path, type(exc).__name__, exc)
+        raise CheckpointError(f"checkpoint {name!r} is empty, truncated or not a PyTorch checkpoint") from exc
+
+
+def verify_weights(ckpt: dict[str, Any], name: str = "checkpoint") -> None:
+    """CheckpointError unless every weight of ``ckpt["model_state"]`` is a finite tensor and, where the
+    checkpoint records ``weights_sha256``, the weights still have that digest (a damaged file)."""
+    state = ckpt.get("model_state")
+    if not isinstance(state, dict) or not all(isinstance(t, torch.Tensor) for t in state.values()):
+        raise CheckpointError(f"checkpoint {name!r} has no readable model weights (model_state)")
+    for key, t in state.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise CheckpointError(
+                f"checkpoint {name!r} is damaged: weight {key!r} holds NaN or Inf values; refused"
+            )
+    recorded = ckpt.get("weights_sha256")
+    if recorded is not None and recorded != weights_digest(state):
+        raise CheckpointError(
+            f"checkpoint {name!r} is damaged: its weights differ from the digest recorded when it was "
+            "written (weights_sha256); refused"
         )
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint dict, read weights-only, its format checked and its weights verified (module docstring).
+
+    Raises:
+        CheckpointNotFound: no such file. CheckpointError: refused, damaged or not a NEMSim checkpoint.
+    """
+    path = Path(path)
+    name = path.name or "(empty name)"
+    if not path.is_file():
+        raise CheckpointNotFound(f"checkpoint {name!r} not found")
+    ckpt = _unpickle(path, name)
+    if not isinstance(ckpt, dict) or "format_version" not in ckpt:
+        raise CheckpointError(f"checkpoint {name!r} is not a NEMSim checkpoint (no format_version)")
+    version = ckpt["format_version"]
+    if not isinstance(version, int) or version > CHECKPOINT_FORMAT:
+        raise CheckpointError(
+            f"checkpoint {name!r} has format {version!r}; this NEMSim reads <= {CHECKPOINT_FORMAT}"
+        )
+    verify_weights(ckpt, name)
     return ckpt
 
 
@@ -158,14 +245,21 @@ def rules_from_checkpoint(ckpt: dict[str, Any]) -> Any:
     return rules
 
 
-def check_compatible(ckpt: dict[str, Any], *, rules: Any = None, scene: Scene | None = None) -> None:
-    """Raise CheckpointMismatch naming "rules" or "scene" if the caller's differ from the checkpoint's."""
+def check_compatible(ckpt: dict[str, Any], *, rules: Any = None, scene: Scene | str | None = None) -> None:
+    """Raise CheckpointMismatch naming "rules" or "scene" if the caller's differ from the checkpoint's
+    (``scene``: a Scene, compared whole, or a scene name)."""
     if rules is not None and str(rules.sha256) != ckpt["rules_sha256"]:
         raise CheckpointMismatch(
             f"rules library mismatch: checkpoint was trained with rules sha256 "
             f"{ckpt['rules_sha256'][:12]}..., the supplied rules have sha256 {str(rules.sha256)[:12]}..."
         )
-    if scene is not None:
+    if isinstance(scene, str):
+        stored_name = Scene.from_json(ckpt["scene"]).name
+        if stored_name != scene:
+            raise CheckpointMismatch(
+                f"scene mismatch: checkpoint was trained on scene {stored_name!r}, expected scene {scene!r}"
+            )
+    elif scene is not None:
         stored = Scene.from_json(ckpt["scene"])
         if stored != scene:
             raise CheckpointMismatch(
@@ -179,26 +273,39 @@ def load_checkpoint(
     path: str | Path,
     *,
     rules: Any = None,
-    scene: Scene | None = None,
+    scene: Scene | str | None = None,
     device: str | torch.device = "cpu",
 ) -> LoadedModel:
     """Rebuild a model from a checkpoint: stored config + stored rules text, weights loaded, eval mode.
 
     Args:
-        path: a ``.pt`` file written by ``save_checkpoint``.
+        path: a ``.pt`` file written by ``save_checkpoint`` (read by ``read_checkpoint``).
         rules: optional RuleTensors the caller intends to use; refused (CheckpointMismatch naming
             "rules") unless its sha256 equals the checkpoint's.
-        scene: optional Scene; refused (CheckpointMismatch naming "scene") unless equal to the stored one.
+        scene: optional Scene or scene name; refused (CheckpointMismatch naming "scene") unless equal to the
+            stored one (a name: the stored scene's name).
         device: where to put the model.
+    Raises:
+        CheckpointError (CheckpointNotFound, CheckpointMismatch): the message names the file and the fault.
     """
     from nemsim.registry import build_model
 
+    path = Path(path)
     ckpt = read_checkpoint(path)
-    check_compatible(ckpt, rules=rules, scene=scene)
-    stored_scene = Scene.from_json(ckpt["scene"])
-    stored_rules = rules_from_checkpoint(ckpt)
-    model = build_model(ckpt["model_name"], stored_scene, stored_rules, dict(ckpt["model_config"]))
-    model.load_state_dict(ckpt["model_state"])
+    try:
+        check_compatible(ckpt, rules=rules, scene=scene)
+        stored_scene = Scene.from_json(ckpt["scene"])
+        stored_rules = rules_from_checkpoint(ckpt)
+        model = build_model(ckpt["model_name"], stored_scene, stored_rules, dict(ckpt["model_config"]))
+        model.load_state_dict(ckpt["model_state"])
+    except CheckpointError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- any inconsistency inside the file means the same thing
+        log.debug("cannot rebuild the model of %s: %s: %s", path, type(exc).__name__, exc)
+        raise CheckpointError(
+            f"checkpoint {path.name!r} does not match this NEMSim version: its model, rules or scene could "
+            "not be rebuilt"
+        ) from exc
     model.to(device).eval()
     raw = {k: v for k, v in ckpt.items() if k not in ("model_state", "train_state")}
     return LoadedModel(
@@ -209,7 +316,7 @@ def load_checkpoint(
         rules=stored_rules,
         summary=dict(ckpt.get("summary") or {}),
         metrics=dict(ckpt.get("metrics") or {}),
-        path=Path(path),
+        path=path,
         raw=raw,
     )
 

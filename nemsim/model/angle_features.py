@@ -2,11 +2,10 @@
 
 Why: the paper normalizes the cosine-power exponents m of the four angular species linearly over their design
 ranges (Cl 0..20, the ions 50..3000). The profile follows the angular spread of a species, s(m) below, which
-falls as 1/sqrt(m): on the physics benchmark the simulated top width moves by 4.8 nm between the ion exponents
-m = 50 and 1,525 (s falls by 0.158) and by 0.5 nm between 1,525 and 3,000 (s falls by 0.010). In the paper's
-coordinate half of the fall of s lies in the lowest 4 % of the axis (m = 50..162), which a smooth control
-network fitted on a Latin hypercube hardly resolves; every model trained so far moved the top width by about
-a tenth of the simulator's against the ion exponents (``benchmarks/small/physics/levers.md``).
+falls as 1/sqrt(m), so the simulated top width responds mostly at small m. In the paper's coordinate half of
+the fall of s lies in the lowest 4 % of the axis (m = 50..162), which a smooth control network fitted on a
+Latin hypercube hardly resolves: models trained without these columns under-predict the top width's
+response to the ion exponents (``docs/experiments.md``).
 
 What the learned parts read with the option on: the 14 normalized controls u (unchanged, so the rule kinetics
 and everything else still see the paper's representation) followed by four columns, one per angular species

@@ -8,40 +8,27 @@ no convolution runs at full resolution.
              Δx' = Conv3x3x3(g) with 2·8 output channels
   full grid: Δx = shuffle(Δx') (each 1/2-grid voxel emits its 2x2x2 block of both channels)
 
-Optional refinement (``refine`` = n > 0, ``NEMSimConfig.decoder_refine``; default 0): n residual blocks
-(two 16 -> 16 Conv3x3x3 each) on g before the output convolution, g <- g + GN(Conv(SiLU(GN(Conv(g))))). The
-latent lives on 16 nm cells (``small``) and g mixes it with b and x by 1x1x1 convolutions only, so the one
-3x3x3 output convolution is all the spatial processing at 1/2 resolution; the profile's misses are one-voxel
-details (the floor's rounding, the widths). The blocks start as the identity (last GroupNorm scale zero, no
-activation after the sum): a trained model grown by them predicts exactly what it did, and a continuation
-trains them from there (``--init-from`` keeps their initialization).
+``unshuffle`` / ``shuffle`` are the 3-D space-to-depth / depth-to-space rearrangements (2x2x2 blocks), so x
+enters at full detail and Δx has per-voxel values; Conv1x1(unshuffle(x)) runs as the equivalent 2x2x2
+stride-2 convolution of x. Up-sampling is nearest-neighbour, after the 1x1x1 mix (they commute). The last
+convolution starts at ``out_scale`` (0.1) times its initial weights, zero bias: the initial prediction is
+close to persistence while gradients reach every layer.
 
-``unshuffle`` / ``shuffle`` are the 3-D space-to-depth / depth-to-space rearrangements (2x2x2 blocks),
-so x enters at full detail and Δx has per-voxel values. Up-sampling 1/4 -> 1/2 is nearest-neighbour
-(applied after the 1x1x1 mix, with which it commutes). Conv1x1(unshuffle(x)) is computed as the equivalent
-2x2x2 stride-2 convolution of x (same weights, no permuted copy of the full-resolution state).
-The last convolution is initialized with weights scaled by ``out_scale`` (0.1) and zero bias: the initial
-prediction is close to persistence (x̂ ≈ x) while gradients still reach every layer.
+Optional refinement (``refine`` = n > 0, ``NEMSimConfig.decoder_refine``): n residual blocks
+g <- g + GN(Conv(SiLU(GN(Conv(g))))) before the output convolution, since the one 3x3x3 output convolution is
+otherwise all the spatial processing at 1/2 resolution and the profile's misses are one-voxel details. They
+start as the identity, so a trained model grown by them predicts exactly what it did.
 
-Multi-step output (``steps`` = k > 1, ``NEMSimConfig.steps_per_call``; not in the paper): the decoder returns
-the k cumulative residuals r_1..r_k from x_t (x̂_{t+j} = x_t + r_j, each then projected onto [-1, 1] by the
-surrogate). r_1 = Δx is the one-step residual above, unchanged. The extra steps come from one cheap head on
-the same 1/2-grid feature g:
+Multi-step output (``steps`` = k > 1, ``NEMSimConfig.steps_per_call``; not in the paper): the k cumulative
+residuals from x_t (x̂_{t+j} = x_t + r_j), r_1 = Δx as above and
 
   E = shuffle(Conv1x1x1(g)) with 2·8·(k-1) output channels        (B, k-1, 2, D, H, W)
   r_j = j · r_1 + E_{j-1},  j = 2..k
 
-i.e. linear extrapolation of the one-step residual plus a learned per-voxel correction. Why: the etch front
-moves at a roughly steady rate within 10 steps, so j·r_1 is already a good k-step guess (an existing k = 1
-model with a zero head extrapolates linearly); the correction's 1x1x1 head costs 16·16·(k-1) MAC per 1/2-grid
-voxel (k = 10: ~2 % of a step) where a 3x3x3 head would cost 27 times more (k = 10: more than the whole
-step). The spatial detail of E comes through g, which already mixes the latent, the skip feature b and x at
-every 2x2x2 block. E's head is zero-initialized (training starts from linear extrapolation). All k residuals
-come from one 1x1x1 convolution of [g, r_1] whose weight stacks [0, I], [W_E_2, 2I], .., [W_E_k, kI] (same
-values, one GEMM and one voxel shuffle instead of ~6 full-size passes over the k states). Measured on
-``small`` (batch 1, one thread, min CPU ms per call, interleaved, two runs): k = 1 8.6-10.3, k = 10 14.5-15.9
-fused vs 18.0-19.6 with separate head, multiply, add and concatenation. With k = 1
-there is no extra head: the parameters, state dict and outputs are those of the one-step decoder.
+linear extrapolation plus a learned per-voxel correction (zero-initialized): the etch front moves at a
+roughly steady rate within k steps, and a 1x1x1 head costs a small part of a step where a 3x3x3 one would
+cost more than the step. All k residuals come from one 1x1x1 convolution of [g, r_1] (weights [0, I],
+[W_E_2, 2I], ..., [W_E_k, kI]). With k = 1 there is no extra head.
 """
 
 from __future__ import annotations

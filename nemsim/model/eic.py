@@ -19,11 +19,8 @@ eq:supp_final_intensity). All rule kinetics come from ``nemsim.rules.kinetics`` 
 
 At initialization Δℓ = 0, so λ equals ``kinetics.formula_intensities(u, R, kinetics)`` exactly.
 
-``kinetics`` (constructor argument, ``NEMSimConfig.kinetics``): "paper" (default; the paper's normalized
-energy coordinates and effective cosine) or "physical" (the laws on physical eV and the mean incidence cosine
-of the cos^m source, with thresholds smoothed by the ion energy spread, as the simulator evaluates them);
-see ``nemsim.rules.kinetics``. Only λ^{p,b} and Y change; the learned branches and their parameters are the
-same, so a checkpoint's state dict loads under either.
+``kinetics`` (``NEMSimConfig.kinetics``): "paper" (default) or "physical" (``nemsim.rules.kinetics``). Only
+λ^{p,b} and Y change, so a checkpoint's state dict loads under either.
 
 Choices where the paper is silent: h_z, h_s, h_d, h_c are single linear layers, h_g and h_rate two-layer
 SiLU MLPs; fused-context width 24, h_c output width 16; γ = 0.5; δ_max = 1.0 (a factor in [e⁻¹, e]).

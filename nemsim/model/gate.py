@@ -8,27 +8,18 @@ the ion fluxes Gamma (mol m^-2 s^-1) recovered from the normalized log-flux cont
 ranges (``nemsim.controls.denormalize``, ``inverse_transform``). So zero flux is no change (g = 0; from a
 float32 u the recovered flux is 0 or ~1e-18, so g <= ~1e-13), and so is a recipe without ions.
 
-Why ions only: the simulator changes nothing without ions, within its own noise. Measured on ``small`` with
-every other control at the median recipe, 10 s, seeds 0 and 1: all fluxes 0 -> no particle, the SDF unchanged
-bit for bit; neutral Cl only -> the change against the initial state has Avg RMSE 5e-5 at the median Cl flux
-(seed-to-seed Avg RMSE 7e-5) and 1.6e-4 at the box's highest (seed-to-seed 1.3e-4), from the slow
-spontaneous etch of SiCl3 (p = 1e-4 in the rules); the median recipe itself changes the state by 7.1e-2
-with seed-to-seed 6.0e-3. A neutral term in the gate would only scale an untrained extrapolation of the
-network at ion-free controls; zero is closer to the simulator than that.
+Why ions only: without ions the simulator changes the state by no more than its own seed-to-seed noise
+(the slow spontaneous etch of SiCl3 by neutral Cl), so a neutral term would only scale an untrained
+extrapolation of the network at ion-free controls; zero is closer to the simulator.
 
-Properties: smooth; monotone non-decreasing in each ion flux (d g / d Gamma_i = exp(-S/GAMMA_REF)/GAMMA_REF
-> 0, and Gamma_i is increasing in its normalized control); saturating (g < 1, g -> 1); no parameters (old
-checkpoints load unchanged). GAMMA_REF = 1e-5 mol m^-2 s^-1, a tenth of the box's lowest Ar+ / Cl+ flux,
-so inside the training box (total ion flux >= 2.01e-4) g >= 1 - exp(-20.1) > 1 - 2e-9, which is exactly 1.0
-in float32: a gated model's in-box predictions are bit for bit the ungated model's (checked on the shipped
-checkpoint's weights; its 100-step rollouts at zero flux and ion-free then change no value, against up to
-0.34 ungated). Below the box it falls linearly with the ion flux (g ~ S/GAMMA_REF for S << GAMMA_REF), as
-the simulator's change per step does (the number of incident ions is proportional to it).
+Properties: smooth; monotone non-decreasing in each ion flux; saturating (g < 1, g -> 1); no parameters (old
+checkpoints load unchanged). GAMMA_REF = 1e-5 mol m^-2 s^-1, a tenth of the box's lowest Ar+ / Cl+ flux, so
+inside the training box (total ion flux >= 2.01e-4) g >= 1 - exp(-20.1), exactly 1.0 in float32: a gated
+model's in-box predictions are bit for bit the ungated model's. Below the box g falls linearly with the ion
+flux (g ~ S/GAMMA_REF), as the simulator's change per step does (incident ions are proportional to it).
 
-Not done here: monotone or saturating dependence on ion energy. With ``kinetics="physical"`` the rule
-side's intensities follow the laws' energy dependence (monotone, p ~ x^n growing as in the simulator, Y
-gated at threshold), but the learned parts (EIC's bounded log-rate correction, MAC's and MRC's control
-inputs) see the raw normalized energies and are not constrained to be monotone in them.
+Not done here: monotone dependence on ion energy. With ``kinetics="physical"`` the rule side follows the
+laws' energy dependence, but the learned parts see the raw normalized energies unconstrained.
 """
 
 from __future__ import annotations

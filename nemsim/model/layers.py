@@ -5,9 +5,8 @@ for the MRC trunk ([supp_mrc], eq:supp_mrc_shared_trunk) and is silent elsewhere
 
 ``Conv3d`` routes float32 CPU convolutions straight to oneDNN (``aten.mkldnn_convolution``, which has its own
 autograd formula). PyTorch's dispatcher otherwise sends batch-1 3-D convolutions with few channels to the
-im2col ``slow_conv3d`` path, measured 5-9x slower on this CPU (a 12->12 3x3x3 convolution on 34x14x14:
-12-18 ms vs 2 ms). 1x1x1 stride-1 kernels run as one matrix product (measured 2-3x faster than oneDNN at
-our sizes). Other devices, dtypes, autocast and torch.compile use the standard path.
+much slower im2col ``slow_conv3d`` path. 1x1x1 stride-1 kernels run as one matrix product (faster than
+oneDNN at our sizes). Other devices, dtypes, autocast and torch.compile use the standard path.
 
 Depth window (``nemsim.model.window``): while a ``WindowRun`` is attached (``_window``), 3x3x3 convolutions
 and GroupNorm compute on a suffix crop of the depth axis as if on the whole volume (the slice below the crop
@@ -43,7 +42,7 @@ def conv3d(
     padding: int | tuple = 0,
 ) -> torch.Tensor:
     """F.conv3d (zero padding, no dilation or groups) with the oneDNN fast path for fp32 on CPU, and
-    1x1x1 stride-1 kernels as one matrix product (oneDNN is 2-3x slower there at these sizes)."""
+    1x1x1 stride-1 kernels as one matrix product (oneDNN is slower there at these sizes)."""
     if _onednn_ok(x):
         stride = tuple(stride) if isinstance(stride, (tuple, list)) else (stride,) * 3
         padding = tuple(padding) if isinstance(padding, (tuple, list)) else (padding,) * 3
@@ -96,8 +95,8 @@ class Conv3d(nn.Conv3d):
 
     def _prepacked(self, x: torch.Tensor, padding: tuple) -> torch.Tensor:
         """Inference: the weight reordered once into oneDNN's blocked layout for this input shape (a rollout
-        calls every convolution with the same shape each step; ~10 % faster per rollout, measured; not for
-        the 2-channel stem, where it was slower). Its output is channels-last. The packed copy
+        calls every convolution with the same shape each step; not for the 2-channel stem, where it does
+        not pay). Its output is channels-last. The packed copy
         is keyed by input shape and the weight's storage and version, so training updates or
         ``load_state_dict`` invalidate it."""
         w = self.weight

@@ -18,9 +18,8 @@ eq:supp_mac_final_attribution):
 Choices where the paper is silent: h_desc and h_ctx are two-layer SiLU MLPs of width 24, the prototype space
 has 16 dimensions; prototypes start as the first M unit vectors and h_desc's last layer as (0.01 × default
 weights, bias on the prototypes' diagonal), so β ≈ uniform and α^anc ≈ α⁰ at initialization (random
-prototypes measured to override the prior: physical-group events got 0.23 physical anchor); c_m is
-initialized to 1; ε = 1e-6. r̄_e is the
-first 18 entries of φ_e (the normalized event-parameter vector, eq:supp_event_descriptor).
+prototypes would override the prior); c_m is initialized to 1; ε = 1e-6. r̄_e is the first 18 entries of
+φ_e (the normalized event-parameter vector, eq:supp_event_descriptor).
 With ``enabled=False`` (w/o MAC ablation) events are not routed: α = 1/M for every event.
 """
 

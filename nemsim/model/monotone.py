@@ -1,43 +1,31 @@
 """Monotone projection of a rollout: etching only removes material (``NEMSimConfig.monotone_eps``).
 
-Every process of the simulator removes material (ion sputtering, chemical etching, product desorption;
-redeposition is the only addition and it is small), so the exact signed distance of each material
-(negative inside it; channel 0 = mask, channel 1 = Si; normalized by d_max and clipped to [-1, 1]) is
-non-decreasing in time at every voxel. A surrogate rolled out past what it was trained on need not keep
-this: a hole's SDF can relax back toward the surface, a mask can grow. The rollout therefore carries the
-running maximum M_t of its own (projected) states, M_0 = x_0, and replaces each predicted state by
+Every process of the simulator removes material (redeposition, the only addition, is small), so the signed
+distance of each material (negative inside; channel 0 mask, 1 Si; SDF / d_max clipped to [-1, 1]) is
+non-decreasing in time at every voxel. A surrogate rolled out past its training need not keep this (a hole
+can refill, a mask grow), so the rollout carries the running maximum M_t of its own projected states,
+M_0 = x_0, and replaces each predicted state by
 
   x̂_t <- max(x̂_t, M_{t-1} - eps_c),   M_t = max(M_{t-1}, x̂_t)         (per voxel, eps_c per channel)
 
-the Euclidean projection onto {x : x >= M_{t-1} - eps}. So no voxel ever falls more than eps below any value
-it held earlier, whatever the horizon; states that already satisfy it are returned unchanged.
+the Euclidean projection onto {x : x >= M_{t-1} - eps}: no surface moves back by more than about
+eps * d_max nm at any horizon; states that already satisfy it are unchanged.
 
-Why eps > 0: the simulator's own stored states are only nearly monotone (the SDF is reconstructed from a
-voxel occupancy field and smoothed: sub-voxel noise), and a projection with eps = 0 turns a prediction's
-zero-mean noise into an upward ratchet (it cost accuracy on control-id). What eps buys: since every voxel
-stays within eps of its running maximum, no surface can move back by more than about eps * d_max nm, so the
-rollout's etch depth and mask loss can never fall by more than that, at any horizon.
+Why eps > 0: the simulator's own states are only nearly monotone (the SDF is rebuilt from a voxel occupancy
+field and smoothed), and eps = 0 turns a prediction's zero-mean noise into an upward ratchet.
 
-The hole axis (``axis_eps``, ``NEMSimConfig.monotone_axis_eps``): the etch depth is read from one line of
-the Si channel, the hole axis, interpolated between the (up to) 2 x 2 voxel columns around it
-(``nemsim.geometry.profile``). Those columns get their own, smaller slack. With axis_eps = 0 the depth is
-non-decreasing by construction at every step (up to the rounding of the readout's own float64 arithmetic,
-far below a nanometre): each axis column is then pointwise non-decreasing in time, so is their fixed
-convex combination (the interpolated axis line), and the first vacuum->Si crossing scanning that line
-downward can only move down (a vacuum sample stays vacuum; between the same two samples the interpolated
-crossing fraction v0 / (v0 - v1) grows with both v0 > 0 and v1 <= 0). The rest of the state keeps
-``eps``: the widths are read from the sidewalls, and a tight slack there turns their sub-voxel noise into
-a bias (a tight Si eps everywhere cost top-width accuracy, ``benchmarks/small/monotone.md``). The axis is
-the domain's centre line (every scene's opening is centred, ``Scene.opening_centre``), so it is found from
-the state's shape alone.
+The hole axis (``axis_eps``, ``NEMSimConfig.monotone_axis_eps``): the etch depth is read on the hole axis,
+interpolated between the (up to) 2 x 2 voxel columns around it (``nemsim.geometry.profile``); those columns
+get their own slack. With axis_eps = 0 each of them is non-decreasing, so is their convex combination, and
+the first vacuum->Si crossing on that line can only move down: the depth never decreases, by construction.
+Elsewhere a tight slack would turn the sidewalls' sub-voxel noise into a width bias. The axis is the
+domain's centre line (``Scene.opening_centre``), found from the state's shape alone.
 
-How ``MONOTONE_EPS`` (mask, Si) was chosen (figures in ``benchmarks/small/monotone.md``): the Si value is
-the 99.9th percentile of the data's fall below the running maximum over the ``small`` design's control-id
-training cases (``nemsim bench monotone-eps``); the mask value is the smaller of that percentile and the
-simulator's seed-to-seed mask-loss difference / d_max, so mask regrowth stays within the simulator's own
-noise. Each was kept only because control-id Avg RMSE did not get worse with it. The value is a property of
-the simulator and the representation, not of a checkpoint's weights: every checkpoint whose stored config
-lacks the key loads with this default.
+``MONOTONE_EPS`` (mask, Si): the Si value is the 99.9th percentile of the data's fall below its running
+maximum over the ``small`` control-id training cases (``nemsim bench monotone-eps``,
+benchmarks/small/monotone_eps.json); the mask value is the smaller of that and the simulator's seed-to-seed
+mask-loss difference / d_max. A property of the simulator and the representation, not of a checkpoint:
+older checkpoints load it too.
 """
 
 from __future__ import annotations
@@ -48,7 +36,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-# (mask, Si) in normalized SDF units: see the module docstring for how it was measured
+# (mask, Si) in normalized SDF units: how they were chosen, module docstring
 MONOTONE_EPS: tuple[float, float] = (0.005, 0.034)
 # Si slack on the hole-axis columns (the etch depth's readout): 0 makes the depth non-decreasing exactly
 MONOTONE_AXIS_EPS: float = 0.0

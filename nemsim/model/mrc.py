@@ -18,8 +18,8 @@ The M per-family 1x1x1 heads are stored as one Conv3d with M·R·C output channe
 
 Choices where the paper is silent: h_sig and h_gate hidden width 24; A initialized to 0.2 and K to 1.0
 (P is O(1) because f = softplus(u) ∈ (0.3, 1.4) and p ≤ 1; with ``kinetics="physical"`` the
-simulator's unsaturated energy law lets p reach 1.17 at 500 eV and the summed λ is ~1.8x the paper's
-(median over the 500-case design), still O(1)); ε = 1e-6. Modes live on the coarse latent grid.
+simulator's unsaturated energy law lets p exceed 1 at the highest energies, still O(1)); ε = 1e-6. Modes live
+on the coarse latent grid.
 
 With ``enabled=False`` (w/o MRC ablation) the signature, drive, gate and saturating law are removed:
 w = h_direct([z̄, u, vec(T)]) (unbounded), while the mode fields, latent update and decoder are kept.

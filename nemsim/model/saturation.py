@@ -1,35 +1,26 @@
 """Saturated controls for the learned parts of NEMSim (``NEMSimConfig.control_saturation``).
 
 A network fitted inside the training box [-1, 1]^14 (normalized controls) has no reason to be right far
-outside it, and nothing keeps its extrapolation small: a zero Ar+ or Cl+ flux is 8.7 box half-widths below
-the box on the log-flux axis, and an unbounded input that far out moves every learned response by whatever
-the fitted slopes give. With saturation on, the learned parts (EIC's control branches and selection gate,
+outside it, and nothing keeps its extrapolation small: a zero Ar+ or Cl+ flux lies many box half-widths
+below the box on the log-flux axis, and an unbounded input that far out moves every learned response by
+whatever the fitted slopes give. With saturation on, the learned parts (EIC's control branches and gate,
 MAC's context correction, MRC's gate and amplitudes, the rule-side kinetic inputs of EIC) read
 
   s(u_j) = u_j                                                    |u_j| <= 1 + knee
   s(u_j) = sign(u_j) (1 + knee + w tanh((|u_j| - 1 - knee) / w))   beyond,  w = limit - knee
 
-per control: the identity inside the box and up to ``knee`` half-widths past its edge, then a smooth (C^1,
-slope 1 at the knee), strictly increasing approach to ``limit`` half-widths past the edge (w = 0: a hard
-clamp at the knee). So the network never sees a control further out than ``limit``, however far the request
-lies, and what it answers there is its answer near the box, where it was fitted.
+per control: the identity up to ``knee`` half-widths past the box edge, then a smooth (C^1), strictly
+increasing approach to ``limit`` (w = 0: a hard clamp at the knee). So the network answers a far request
+as it answers near the box, where it was fitted. In-box predictions are bit for bit those without
+saturation, so training and every in-box result are unchanged by construction.
 
-What keeps the true controls: the ion-flux gate (``nemsim.model.gate``, with ``flux_gate``), the one part
-that is exact physics (zero total ion flux is exactly no change, and below the box the update falls
-linearly with the ion flux). So a zero Ar+ flux with Cl+ present is answered as the lowest Ar+ flux the
-network knows, gated by the true ion flux; zero ion flux is still exactly no change.
+The ion-flux gate (``nemsim.model.gate``), exact physics, keeps the true controls: a zero Ar+ flux with Cl+
+present is answered as the lowest Ar+ flux the network knows, gated by the true ion flux.
 
-In-box predictions are bit for bit those without saturation (the clamp and ``torch.where`` keep the input
-itself wherever |u_j| <= 1 + knee, and knee >= 0), so training on in-box data and every in-box result
-(control-id) are unchanged by construction.
-
-How ``CONTROL_SATURATION`` was chosen: on the extrapolation benchmark (``nemsim bench extrapolation``,
-figures in the model card), over knees 0..1 and limits knee..knee + 1. A knee below 1 moves the
-predictions at 1.5 and 2 half-widths, and made them worse where the simulator keeps changing past the box
-(high ion flux etches ever more; the network already under-predicts it there); a limit beyond the knee
-gave back part of the gain far out (zero fluxes, needle-like ion angles), where the simulator's answer is
-close to the box edge's. A hard clamp at knee = limit = 1 changes nothing up to 2 half-widths and is the
-best of the settings tried far out.
+``CONTROL_SATURATION`` was chosen on the extrapolation benchmark (``nemsim bench extrapolation``) over
+knees 0..1 and limits knee..knee + 1: a lower knee worsened the predictions where the simulator keeps
+changing past the box (high ion flux), and a limit beyond the knee gave back part of the gain far out
+(zero fluxes, needle-like ion angles), where the simulator's answer is close to the box edge's.
 """
 
 from __future__ import annotations

@@ -8,63 +8,26 @@
   z̃ = z + Δz,  x̂ = x + Dec(z̃, b, x)                 eq:decoder            (decoder.py)
 
 Paper configuration ([supp_training]): stem 12, widths (12, 18, 24), 18 latent channels, M = 3 families,
-R_b = 4 modes, readout width 24. Ablations are switches, not forks: ``use_eic`` (w/o EIC: unstructured
-softplus intensities), ``use_mac`` (w/o MAC: uniform α), ``use_mrc`` (w/o MRC: directly predicted mode
-amplitudes). Perturbed rule libraries (``nemsim.rules.perturb``) are simply passed in as ``rules``.
+R_b = 4 modes, readout width 24. Ablations are switches, not forks: ``use_eic``, ``use_mac``, ``use_mrc``;
+perturbed rule libraries (``nemsim.rules.perturb``) are simply passed in as ``rules``.
 
-Choices where the paper is silent:
-  * spatial sizes: the state is padded on the high side of each axis with edge (replicate) values up to a
-    multiple of 4 and the prediction is cropped back, so every scene's odd size works (tiny 35x15x15,
-    small 65x28x28, paper 127x54x54);
-  * the latent z lives on the 1/4-resolution grid, the encoder's deepest level at 1/8, its support
-    feature b at 1/2; no convolution runs at full resolution (see encoder.py, decoder.py);
-  * rule-side computations (EIC, MAC, the amplitude part of MRC) run in fp32 even under bf16 autocast;
-  * aux also carries ``S`` (signature, E x M x R), ``lambda_p``, ``lambda_d``, ``pool`` and ``delta_l``;
-  * ``clamp_input``: the network reads clamp(x, -1, 1). Every valid state is already in [-1, 1] (SDF/d_max
-    clipped), so training is unaffected; in long or out-of-range rollouts it stops a drifted value from being
-    amplified by the network (``nemsim stress`` found exponential growth without it).
-  * ``clamp_output``: the next state is clamp(x + Dec(...), -1, 1), a projection onto the representation's
-    range (every state is SDF/d_max clipped to [-1, 1] by definition, so the projection can only move a
-    prediction closer to any valid target, voxel by voxel). The paper writes x_{t+1} = x_t + Dec(z_{t+1})
-    without it. With the input clamp alone a voxel saturated at ±1 that receives a residual of the same sign
-    keeps it step after step, because the network sees the same clamped input, and long rollouts grow without
-    bound; with it they stay bounded, at a small cost in rollout error inside the trained horizon (measured
-    in checkpoints/README.md and benchmarks/small/README.md).
-    Default on; checkpoints written before the flag existed load with it on (set false to reproduce them).
-  * ``monotone_eps``: not used by ``forward``; ``nemsim.evaluation.rollout`` reads it and projects every
-    predicted state onto x >= (the rollout's running maximum) - eps, since etching only removes material
-    (``nemsim.model.monotone``). Checkpoints written before the key existed load with the default (on); set
-    it to None (``null``) to turn the projection off. ``monotone_axis_eps``: the Si slack on the hole-axis
-    columns, where the etch depth is read (default 0: the depth never decreases, by construction); None:
-    ``monotone_eps`` there too.
-  * ``control_saturation`` (knee, limit): every learned part reads the controls saturated beyond ``knee``
-    box half-widths past the box edge, towards at most ``limit`` (``nemsim.model.saturation``); the
-    ion-flux gate reads the true controls. The identity on in-box controls, bit for bit, so training and
-    in-box predictions are unchanged. Checkpoints written before the key existed load with it on; None
-    turns it off (the network reads the controls as given).
-  * ``transport_input`` (default off): the line-of-sight direct flux of the four species with an angular
-    control, computed from the state and the angular exponents (``nemsim.model.transport``), added to the
-    encoder's stem output by a 1x1x1 convolution that starts at zero (a warm start is exact). Checkpoints
-    written before the key existed load with it off.
-  * ``angle_features`` (default off): the learned parts read four more control columns, the angular spread
-    of each angular species on a 1/sqrt(m) scale (``nemsim.model.angle_features``); the rule kinetics and
-    the transport input keep the 14 controls. A warm start from a model without them is exact
-    (``widen_control_inputs``). Checkpoints written before the key existed load with it off.
+Where the paper is silent: the state is edge-padded to a multiple of 4 per axis and the prediction cropped
+back (every scene's odd size works); z lives at 1/4 resolution, no convolution runs at full resolution; the
+rule side runs in fp32 under bf16 autocast. ``clamp_input`` / ``clamp_output`` clamp the network's input
+and the next state to [-1, 1], the range of every valid (SDF/d_max clipped) state, so a drifted voxel is
+neither amplified nor accumulated over a long rollout. Further options, each explained in its module:
+``monotone_eps`` (``monotone``), ``control_saturation`` (``saturation``), ``transport_input``
+(``transport``), ``angle_features``, ``flux_gate`` (``gate``); an older checkpoint loads the default.
 
-Inference fast path ("model only what a scene needs"): ``precompute(u)`` evaluates once what depends only on
-the controls and the fixed rules (rule kinetics λ^{p,b} and Y, EIC's control modulation, α^anc, S, A, K,
-the MRC head products) and ``step(x, cache)`` does the rest; ``forward(x, u)`` is
-``step(x, precompute(u, fused=False))``, the same operations. ``nemsim.evaluation.rollout`` uses the pair,
-so a constant-control rollout pays for the rule side once (where a step's time goes:
-``nemsim bench rollout`` and benchmarks/small/README.md).
+Fast path: ``precompute(u)`` evaluates once what depends only on the controls and the fixed rules (rule
+kinetics, EIC's control modulation, α^anc, S, A, K, the MRC head products) and ``step(x, cache)`` does the
+rest; ``forward(x, u)`` is ``step(x, precompute(u, fused=False))``, so a constant-control rollout pays for
+the rule side once.
 
-Multi-step prediction (``steps_per_call`` = k; not in the paper, k = 1 is the paper's model and the default):
-one call predicts the next k states under one control vector, x̂_{t+j} = clamp(x_t + r_j, -1, 1) for
-j = 1..k, where r_j are cumulative residuals from x_t (the decoder's extra-step head, decoder.py). The
-encoder, EIC, MAC, MRC and the decoder trunk run once per k states, so a rollout costs ~1/k of the network
-calls. ``predict(x, cache)`` returns all k states (B, k, 2, D, H, W); ``step(x, cache)`` keeps its meaning
-(the next state; for k > 1 the first of the k); ``forward(x, u, all_steps=True)`` is ``predict`` for
-training. k = 1 models, their parameters and checkpoints are unchanged (no extra head is built).
+Multi-step prediction (``steps_per_call`` = k, not in the paper; k = 1 is the paper's model): one call
+predicts x̂_{t+j} = clamp(x_t + r_j, -1, 1), j = 1..k, with cumulative residuals r_j from the decoder's
+extra-step head, so a rollout makes ~1/k of the network calls. ``predict(x, cache)`` returns the k states
+(B, k, 2, D, H, W); ``step`` the first of them.
 """
 
 from __future__ import annotations
@@ -112,7 +75,7 @@ class NEMSimConfig:
     clamp_output: bool = True  # next state projected onto [-1, 1], the range of any valid state (docstring)
     kinetics: Literal["paper", "physical"] = "paper"  # rule kinetics of EIC (nemsim.rules.kinetics)
     flux_gate: bool = False  # scale the update by the ion-flux gate (nemsim.model.gate): no ions, no change
-    steps_per_call: int = 1  # k states predicted per call (1 = the paper's model; see "Multi-step" below)
+    steps_per_call: int = 1  # k states predicted per call (1 = the paper's model; module docstring)
     # rollouts project each state onto x >= running max - eps, (mask, Si); None: off (nemsim.model.monotone)
     monotone_eps: tuple[float, float] | None = MONOTONE_EPS
     # Si slack on the hole-axis columns (the depth readout); None: monotone_eps there too
@@ -318,7 +281,7 @@ class NEMSim(nn.Module):
             raise ValueError(f"the cache holds controls for batch {u.shape[0]}, x has batch {x.shape[0]}")
         # Stability guard: states are SDF/d_max clipped to [-1, 1], so the clamp is the identity on every
         # valid state; a rollout that drifts outside no longer feeds the excess back through the network
-        # (`nemsim stress`: an untrained small model grew 1.8 %/step to |x| ~ 500 in 300 steps without it).
+        # (without it `nemsim stress` finds rollouts that grow without bound).
         # The output is projected onto the same range (clamp_output, see the module docstring).
         xin = x.clamp(-1.0, 1.0) if self.config.clamp_input else x
         xp = self._pad(xin)  # (B, 2, D', H', W')

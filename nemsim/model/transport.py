@@ -1,42 +1,30 @@
 """Line-of-sight transport input (not in the paper; ``NEMSimConfig.transport_input``, default off).
 
-Why: on the physics benchmark (``nemsim bench physics``) every model trained so far, whatever its data, loss,
-kinetics or capacity, got the same responses wrong: the neutral Cl flux and the neutral angular exponent
-hardly move the predicted bottom width and depth, and the ion angular exponents hardly move the top width
-(``benchmarks/small/physics/levers.md``). These are transport effects: how much of a species' directed flux
-reaches a point of the feature depends on what the point sees of the plasma above the box, through the
-opening, under that species' angular distribution. The network only sees the geometry and the controls, so
-it has to learn that non-local integral over directions. This module computes it from the state and hands it
-to the encoder as input channels.
+Why: how much of a species' directed flux reaches a point of the feature depends on what the point sees of
+the plasma through the opening, under that species' angular distribution. The network sees only the
+geometry and the controls, so it has to learn that non-local integral over directions, and models trained
+without it miss the responses to the neutral flux and the angular exponents (``nemsim bench physics``;
+docs/experiments.md). This module computes it and hands it to the encoder as input channels.
 
-What it computes, per cell of the 1/2-resolution grid (the encoder's first level), for each of the four
-species with an angular control (neutral Cl, Cl+, Cl2+, Ar+, in the order of ``nemsim.controls``):
+Per cell of the 1/2-resolution grid (the encoder's first level), for each species with an angular control
+(neutral Cl, Cl+, Cl2+, Ar+, in the order of ``nemsim.controls``):
 
     Φ_c(cell) = Σ_d w_c,d · max(0, 1 - κ S_d(cell)),   w_c,d ∝ cos^{m_c}(θ_d) · Ω_d,   Σ_d w_c,d = 1
 
-  * directions d: the polar angles ``polar_deg`` (0 = straight down from the source plane) times ``azimuths``
-    evenly spaced azimuths (one direction at θ = 0); Ω_d is the solid angle of the direction's bin (bins end
-    half-way between the polar angles);
-  * m_c: the species' cosine-power exponent in physical units (from the normalized control, clamped at >= 0),
-    the law the simulator samples its source directions from;
-  * S_d(cell): the solid material (mask or Si) a straight ray from the cell towards direction d crosses before
-    it leaves the top of the box, in 1/2-resolution cells; the ray's transmittance is max(0, 1 - κ S_d)
-    (``kappa``; 1: one cell of solid blocks it; a clamp rather than exp(-κ S), one exponential fewer per ray
-    and cell, and direct flux through solid is nil either way). The material fraction of a voxel is read
-    from its normalized distance: clamp(1/2 - ``sdf_scale`` · min(x), 0, 1), ``sdf_scale`` = the SDF
-    clipping distance in voxels (7.5 on ``small``: 30 nm / 4 nm), then averaged over the 2x2x2 voxels of a
-    cell;
-  * rays run on the cell grid: i levels below the top of the box the ray is shifted laterally by
-    -round(i · tan θ) cells, periodic in x and y as the simulator's domain is (a shear of the volume, a
-    cumulative sum down each sheared column and the inverse shear: two gathers and a cumsum, no loop over
-    depth).
+  * directions d: the polar angles ``polar_deg`` (0 = straight down) times ``azimuths`` evenly spaced
+    azimuths (one direction at θ = 0); Ω_d is the solid angle of the direction's bin;
+  * m_c: the species' cosine-power exponent in physical units (clamped >= 0), the simulator's source law;
+  * S_d(cell): the solid material (mask or Si) a straight ray from the cell towards d crosses before it
+    leaves the top of the box, in cells; transmittance max(0, 1 - κ S_d) (``kappa``; a clamp rather than
+    exp(-κ S): direct flux through solid is nil either way). A voxel's material fraction is
+    clamp(1/2 - ``sdf_scale`` · min(x), 0, 1), averaged over the 2x2x2 voxels of a cell;
+  * rays run on the cell grid, i levels down shifted laterally by -round(i · tan θ) cells, periodic in x and
+    y as the simulator's domain: a shear, a cumulative sum down each column and the inverse shear.
 
-Choices and limits: no reflection, re-emission or surface reaction (the simulator has all three): Φ is the
-direct flux, the part of transport that is pure geometry; the network still learns the rest. Only material
-above a cell shadows it, so a depth-windowed call (``nemsim.model.window``: a slab from ``a`` to the top of
-the box) computes it exactly on its slab. The weights depend only on the controls (``precompute``); the
-rays only on the state. What it did for the model, and what it costs per rollout:
-``benchmarks/small/physics/levers.md``.
+Limits: no reflection, re-emission or surface reaction (the simulator has all three): Φ is the direct flux,
+the part of transport that is pure geometry. Only material above a cell shadows it, so a depth-windowed call
+(``nemsim.model.window``) computes it exactly on its slab. The weights depend only on the controls
+(``precompute``), the rays only on the state.
 """
 
 from __future__ import annotations
@@ -60,7 +48,7 @@ class TransportConfig:
     sdf_scale: float = 7.5  # SDF clipping distance in voxels (x = SDF / d_max): material fraction from x
     # NEMSim multiplies Φ by gain before its zero-initialized input convolution: with Adam a weight moves by
     # about the learning rate per step whatever its gradient's scale, so gain is that path's learning-rate
-    # multiplier (at 1, a warm start's gentle rate left the new path nearly unused; levers.md)
+    # multiplier (at 1, a warm start's gentle rate left the new path nearly unused; docs/experiments.md)
     gain: float = 1.0
 
     def __post_init__(self) -> None:

@@ -3,51 +3,28 @@ needs").
 
 The etch changes the fields only near the interfaces: far below the etch front the silicon is solid (both SDF
 channels saturated at ±1) and stays so until the front arrives. A windowed call runs the network on the
-suffix slab ``[a, D)`` of the state (the unsaturated band plus a halo, up to the top of the box, where the
-mask surface and the vacuum above it live) and copies the voxels below ``a`` unchanged.
+suffix slab ``[a, D)`` of the state (the unsaturated band plus a halo, up to the top of the box) and copies
+the voxels below ``a`` unchanged.
 
-What ties a voxel to every other one, and how the window keeps it (the shipped model was trained with these
-layers, so they are kept and fed what they would see on the whole volume):
+What ties a voxel to every other one, and how the window keeps it (the layers are kept and fed what they
+would see on the whole volume):
+  * GroupNorm statistics and the encoder's context pooling z̄ (mean and max over the volume): the window's
+    own per-slice sums and maxima plus those of the slices below it, recorded in the last full call;
+  * 3x3x3 convolutions see one slice below the window: taken from the last full call's input;
+  * MRC (volume-wide normalizations) runs on the full latent grid, the window's latent spliced onto the
+    recorded one below it.
 
-  * GroupNorm (every ConvGNAct / ResBlock3d) normalizes with statistics over the whole volume. A windowed
-    GroupNorm uses the window's own per-slice sums plus the sums of the slices below the window recorded in
-    the last full call.
-  * the encoder's context z̄ pools (mean and max) the 1/8-grid features over the whole volume: the same
-    combination (window sums and maxima plus the recorded ones below the window).
-  * 3x3x3 convolutions see one slice below the window's first slice: it is taken from the last full call's
-    input of that convolution instead of zero padding.
-  * MRC (trunk GroupNorm, the modes' RMS normalization over the volume) runs on the full latent grid, the
-    window's latent spliced onto the recorded one below it (MRC costs ~10 % of a step; exact given z).
+A full call ("record") runs the whole state and records those quantities. The recorded values are exact as
+long as the state below ``a`` is unchanged (it is copied), but the features there feel the window through
+the receptive field and the statistics, so the windowed rollout agrees with the full one only within a
+tolerance (``tests/evaluation/test_rollout_window.py``). A new plan is made when the band comes closer than
+``halo`` slices to ``a``; ``a`` is then put ``halo + margin`` slices below the band, rounded down to a
+multiple of 8 so that every encoder level (1/2, 1/4, 1/8) sees an aligned suffix of its grid.
 
-A full call ("record") runs the network on the whole state, records those quantities and still copies the
-voxels below ``a``. The recorded values below the window are exact as long as the state there is unchanged
-(it is: copied) and the features there do not feel the window (they do, through the receptive field and the
-statistics, which is why the windowed rollout agrees with the full one only within a tolerance, measured on
-the shipped checkpoint in ``tests/evaluation/test_rollout_window.py``). A new plan (full call) is made when
-the band comes closer than ``halo`` slices to ``a``; ``a`` is then put ``halo + margin`` slices below the
-band, rounded down to a multiple of 8 so that every level of the encoder (1/2, 1/4, 1/8) sees the window
-as an aligned suffix of its grid.
-
-The voxels below ``a`` are held exactly, which the full model does not do: it drifts slightly in saturated
-regions (|Δx| ~ 0.03-0.1 over 100 steps on ``small`` with the shipped model), so part of the windowed vs
-full difference is that drift, which the simulator does not have either.
-
-Measured on ``small`` with the shipped checkpoint (x0 = ``nemsim.sim.initial_state``, six control vectors:
-all +1, all -1 and four uniform draws; batch 1, one thread; defaults below):
-  * agreement: the RMS difference per step, averaged over the steps, is 0.0029-0.0097 over 100 steps and
-    0.0010-0.0090 over 40 (max |Δ| 0.13-0.22); the stated tolerance is 0.01. For scale: bf16 autocast
-    differs from fp32 by 0.0008-0.0027 and a 1e-3 perturbation of x0 by 0.0008 (the model does not amplify
-    perturbations). The difference starts where the front enters the slab's lower part and in the held
-    bulk the full model drifts; on the recorded state itself the windowed call is exact (< 1e-5).
-  * fraction of voxels computed: 0.77-0.97 (mean 0.84): the unsaturated band of x0 is already 31 of 65
-    slices (the mask and the vacuum above it), and strong controls etch to the bottom within the horizon.
-  * speed: none. CPU seconds per 100-step rollout, interleaved, 3 control vectors x 2: k = 1 window/full
-    0.83x, k = 10 (untrained extra heads) 0.89x. A plain 33-slice crop costs 0.66x of the full call, but
-    the window's bookkeeping (per-layer sums, concatenations, the spliced MRC) adds more than the saved
-    convolutions at batch 1 on this grid.
-So ``rollout(window=...)`` stays off by default. It can pay where the band is a small part of the depth
-(e.g. ``paper``: 127 slices) or with fewer normalization layers; a model trained without volume-wide
-GroupNorm and pooling would make the window exact and cheaper (not done).
+Why ``rollout(window=...)`` is off by default: on ``small`` the unsaturated band is already about half the
+depth and strong recipes etch to the bottom, so the bookkeeping (per-layer sums, concatenations, the spliced
+MRC) costs more than the saved convolutions. It can pay where the band is a small part of the depth
+(``paper``); a model without volume-wide normalization and pooling would make the window exact.
 """
 
 from __future__ import annotations
@@ -114,7 +91,7 @@ def window_group_norm(gn: nn.GroupNorm, x: torch.Tensor, run: WindowRun) -> torc
     B, C, D = x.shape[:3]
     G = gn.num_groups
     xf = x.float()
-    # per-slice sums (plain sums: ~10x faster than var_mean on these channels-last tensors, measured)
+    # per-slice sums (plain sums: much faster than var_mean on these channels-last tensors)
     s1 = xf.sum(dim=(3, 4)).view(B, G, C // G, D).sum(2)  # (B, G, Dc) Σx
     s2 = xf.square().sum(dim=(3, 4)).view(B, G, C // G, D).sum(2)  # (B, G, Dc) Σx²
     per_slice = x.shape[3] * x.shape[4] * (C // G)

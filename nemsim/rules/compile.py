@@ -1,33 +1,25 @@
 """Compile a validated ``RulesSpec`` into the fixed tensors of NEMSim ([eq:supp_event_library_compilation]).
 
 ``compile_rules(spec) -> RuleTensors`` is pure (no I/O). E = number of events (37), S = 8 species
-(``vocab.PROJECTILES``), M = 3 families (physical, chemical, coupled).
+(``vocab.PROJECTILES``), M = 3 families (physical, chemical, coupled); ``RuleTensors`` lists every field.
 
 Event-parameter matrix R (E, 22) [eq:supp_event_matrix_blocks], blocks 4 + 4 + 6 + 6 + 2:
   identity  0 family id g_e - 1 (0 physical, 1 chemical, 2 coupled), 1 projectile idx, 2 target idx,
             3 dep_model id (0 none, 1 from_products_pool)
   controls  4..7 control indices (flux, angle, E_mean, E_std) into CONTROL_NAMES; -1 = none
-  prob      8 prob_model id (-1 none, 0 const, 1 probModel), 9..13 prob_params (see below)
+  prob      8 prob_model id (-1 none, 0 const, 1 probModel), 9..13 prob_params
   yield     14 yield_model id (-1 none, 0 const, 1 yamamura), 15 Y_const, 16..19 (E_th, theta_max [deg],
             Y_max, Y0) of the Yamamura model (a const-yield event has 16..19 = 0, a Yamamura event 15 = 0)
   dep       20 required pool species idx (-1 none), 21 p_stick
 Energies in R are physical eV (the kinetic code maps them to normalized coordinates itself).
-
-Structured kinetic fields (what the simulator and ``kinetics`` read):
-  prob_params (E, 5): const -> (p_const, 0, 0, 0, 0); probModel -> (E_th, E_ref, p0, n, angle_kind).
-  yield_params (E, 4): const -> (Y_const, 0, 0, 0); yamamura -> (E_th, theta_max_deg, Y_max, Y0).
-  prob_params_norm / yield_params_norm: the same with E_th, E_ref mapped by [eq:supp_energy_normalization]
-  using the bounds of the event's own E_mean control channel (from ``nemsim.controls.CONTROL_SPECS``).
-  Deposition events have prob_model = yield_model = -1 and zero parameters.
 
 Event descriptor phi (E, 35) = [r_bar (18) | m (17)] [eq:supp_event_descriptor]. The paper names the
 contents but not the normalizations or the order; our choice:
   r_bar: 0 (g_e - 1)/2, 1 projectile/7, 2 target/4, 3 d_e (product-mediated), 4 mu_p/2 (0 none, 1 const,
          2 probModel), 5 p_const, 6 N(E_th), 7 N(E_ref), 8 p0, 9 n, 10 angle_kind/2, 11 mu_Y/2 (0 none,
          1 const, 2 yamamura), 12 Y_const, 13 N(E_Y_th), 14 cos(theta_max), 15 log(Y_max/Y0),
-         16 (dep species idx + 1)/8 (0 = none), 17 p_stick.
-         N(.) = energy normalization of the event's energy channel (values < -1 below 160 eV); entries of a
-         model the event does not use are 0.
+         16 (dep species idx + 1)/8 (0 = none), 17 p_stick; N(.) = energy normalization of the event's
+         energy channel; entries of a model the event does not use are 0.
   m (META_FLAGS order): dep, ion, neutral, angle_P, angle_C, energy (probModel), yamamura, react, etch,
          sputter, deposit, src, sink, target_resist, target_chlor, group_physical, group_both.
 Rate descriptor psi (E, 7) [eq:supp_eic_rate_descriptor] = [g_e/3 with g_e in {1,2,3}, projectile/7,
@@ -37,11 +29,6 @@ Role signals r_mech (E, 3) [eq:supp_physical_role_signal .. eq:supp_coupled_role
   phys = max(m_P, m_yamamura, m_sputter, m_ion * m_group_physical)
   chem = max(m_C, m_react, m_neutral, m_dep)
   coup = max(m_group_both, m_src, m_sink, m_ion * m_target_chlor)
-Product graph: w_src (E, S) = fixed coefficient, or 1.0 where the coefficient is ``yield`` (then
-  src_is_yield is True and the kinetic code multiplies by Y_e); w_sink (E, S) one-hot of the deposition
-  species; s_dep (E,) = p_stick (0 for primary events).
-Identity: sha256 = SHA-256 of ``source_text`` = ``schema.canonical_text(spec)`` (UTF-8).
-``event_mask`` (E,) (1 = active) and ``perturbation`` are additions for [supp_rule_robustness] (event drop).
 """
 
 from __future__ import annotations
@@ -102,7 +89,18 @@ assert len(R_COLUMNS) == 22 and len(PARAM_NAMES) == 18 and len(META_FLAGS) == 17
 
 @dataclass(frozen=True, eq=False)
 class RuleTensors:
-    """Compiled Event Rules Library (fixed buffers). E events, S = 8 species, M = 3 families."""
+    """Compiled Event Rules Library (fixed buffers). E events, S = 8 species, M = 3 families.
+
+    Structured kinetic fields (what the simulator and ``kinetics`` read): prob_params (E, 5): const ->
+    (p_const, 0, 0, 0, 0), probModel -> (E_th, E_ref, p0, n, angle_kind); yield_params (E, 4): const ->
+    (Y_const, 0, 0, 0), yamamura -> (E_th, theta_max_deg, Y_max, Y0); the ``_norm`` versions map E_th and
+    E_ref by [eq:supp_energy_normalization] with the bounds of the event's own E_mean control. Deposition
+    events have prob_model = yield_model = -1 and zero parameters. Product graph: w_src (E, S) the fixed
+    coefficient, or 1.0 where it is ``yield`` (``src_is_yield``: the kinetic code multiplies by Y_e);
+    w_sink (E, S) one-hot of the deposition species; s_dep (E,) = p_stick (0 for primary events).
+    sha256 = SHA-256 of ``source_text`` = ``schema.canonical_text(spec)`` (UTF-8). ``event_mask`` (1 =
+    active) and ``perturbation`` serve [supp_rule_robustness] (event drop).
+    """
 
     names: np.ndarray  # (E,) str
     R: np.ndarray  # (E, 22) event-parameter matrix

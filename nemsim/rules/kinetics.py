@@ -1,11 +1,10 @@
 """Kinetic laws of the Event Rules Library, model side: differentiable torch forms ([supp_kinetic_models],
-[supp_eic]) of the laws whose simulator (numpy/numba, torch-free) forms live in ``nemsim.rules.laws``; the
-constants (TAU_E, TAU_C, EPS, C_P, R_P, THETA_C, C_C, Q_P, S_P) are defined there once and re-exported here,
-as are ``prob_physical`` and ``yield_physical``.
+[supp_eic]) of the laws whose simulator (numpy/numba) forms live in ``nemsim.rules.laws``, which defines
+the constants (TAU_E, TAU_C, EPS, C_P, R_P, THETA_C, C_C, Q_P, S_P) once.
 
-Two kinetics, chosen by ``kinetics=`` ("paper" is the default and the paper's; KINETICS lists the choices):
+Two kinetics, chosen by ``kinetics=`` (``KINETICS``):
 
-* "paper": normalized energy coordinates [eq:supp_energy_normalization], smooth gates of fixed temperature.
+* "paper" (default): normalized energy coordinates [eq:supp_energy_normalization], smooth gates.
   f = softplus(u[iota_f]), E = softplus(u[iota_E]), k = softplus(u[iota_theta]), c = (k+1)/(k+2+eps)
       [eq:supp_kinetic_inputs, eq:supp_effective_cosine]
   const:     p = clip(p_const, 0, 1)
@@ -15,47 +14,19 @@ Two kinetics, chosen by ``kinetics=`` ("paper" is the default and the paper's; K
       w = sigmoid((theta_C - arccos c)/tau_C) (angles in radians); F^None = 1
   const Y = max(Y_const, 0); yamamura Y = c_eps^-q exp(-s(1/c_eps - 1)) G_tauE(E; E_th^Y) G_tauc(c; eps),
       q = -log(Y_max/max(Y0,eps)) / (log c_max + 1 - c_max + eps), s = q c_max
-  E_th, E_ref and E_th^Y are taken from ``RuleTensors.prob_params_norm`` / ``yield_params_norm`` (mapped with
-  the fixed bounds of each event's energy control). With the design's energies (160-500 eV) every energy
-  gate is saturated (E = softplus(u) >= 0.31 while every normalized threshold and E_ref is < -1) and the
-  effective cosine spans only 0.57-0.70, so these laws carry no energy information and an angle response at
-  unphysical cosines.
-
-* "physical": the laws on physical units, as the simulator evaluates them ([supp_simulator]; ``laws`` and
-  ``nemsim.sim.kernels``): E = mu (eV) and sigma (eV) from the event's energy-mean and energy-spread controls,
-  recovered from the normalized controls with the fixed control ranges (``nemsim.controls.denormalize``);
-  c = (m+1)/(m+2), the mean incidence cosine of the cos^m source distribution
-  [eq:supp_particle_angular_distribution] on a flat surface (m from the event's angle control, clamped >= 0);
-  the thresholds are smoothed by the ion energy spread itself, i.e. they are the expectations of the
-  simulator's hard laws over the sampled energy E' ~ N(mu, sigma^2) [eq:supp_particle_energy_sampling]:
-      [E' > E_th]            -> Phi(z),                           z = (mu - E_th)/sigma_g
-      max(E' - E_th, 0)      -> sigma_g (z Phi(z) + phi(z))        (the expected excess energy)
-  with sigma_g = sqrt(sigma^2 + SIGMA_FLOOR_EV^2) (a 1 eV floor keeps sigma = 0 differentiable). Then
-  probModel: xbar = expected excess / (E_ref - E_th + eps) (not clipped),
-             p = clip(p0 min(xbar, 1)^n F^a(c), 0, 1) max(xbar, 1)^n [p0 > 0]
-  -- the simulator's ``prob_physical`` times its ``unsaturated_factor`` (above E_ref the simulator keeps
-  the law's x^n growth; a clipped x would again saturate every design energy); yamamura Y: the same
-  shape at c times Phi(z_Y); F^a as above (smooth C-law switch of width tau_C radians). The flux supply f
-  stays softplus(u[iota_f]) in both kinetics (the surrogate's flux trends are already right, and the raw
-  fluxes span four decades that the downstream saturating response is not scaled for). Far from
-  thresholds (every point of the design box: z >= 8) the "physical" p and Y equal the simulator's laws at
-  (mu, c) to 1e-5 relative (the C law's smoothed switch; tests/rules/test_kinetics_physical.py).
-  What it carries: across the box's 160-500 eV the ion events' rates grow by ((500 - E_th)/(160 - E_th))^n
-  (x1.8-1.9); across m = 50-3000 (mean incidence 11 deg to 1.5 deg) the sputter (P-law, Yamamura) events
-  fall by ~10 % and the chemical (C-law) ones do not move: the simulator's width response to the ion
-  angle comes from where the ions land (geometry), which no per-event rate carries.
+  with E_th, E_ref, E_th^Y from ``RuleTensors.prob_params_norm`` / ``yield_params_norm``.
+* "physical": the simulator's laws on physical units (eV, the mean incidence cosine of the cos^m source),
+  their energy thresholds smoothed by the sampled energy spread (``probability_physical``). Why: with the
+  design's energies every normalized energy gate of "paper" is saturated, so it carries no energy response.
 
 Shared: lambda^b = f p Y [eq:supp_kinetic_base_intensity]; pool_q = sum_e lambda^p_e xi_eq (eta_q = 1)
-[eq:supp_product_pool]; lambda^{d,b}_e = d_e p_stick_e pool_q(e) [eq:supp_dependency_base].
-Events without an energy control get E = 0; events without an angle control get c = 1 (neither is used by
-their laws).
+[eq:supp_product_pool]; lambda^{d,b}_e = d_e p_stick_e pool_q(e) [eq:supp_dependency_base]. Events without
+an energy control get E = 0, without an angle control c = 1 (their laws use neither).
 
-Choices where the paper is silent:
-  * EPS = 1e-6.
-  * x^n is evaluated as 0 where x = 0 (no infinite gradient at the clip boundary).
-  * The physical (numba) side uses the hard limits of every smooth gate (``laws`` module docstring), so the
-    paper's torch probability equals the physical one times sigmoid(p0/tau_E) away from thresholds.
-  * Dropped events (``event_mask`` = 0, [supp_rule_robustness]) are zeroed before the Product Pool.
+Choices where the paper is silent: EPS = 1e-6; x^n = 0 where x = 0 (no infinite gradient at the clip);
+the simulator uses the hard limits of every smooth gate (``laws``), so the paper's torch probability is the
+physical one times sigmoid(p0/tau_E) away from thresholds; dropped events (``event_mask`` = 0,
+[supp_rule_robustness]) are zeroed before the Product Pool.
 """
 
 from __future__ import annotations
@@ -231,7 +202,18 @@ def probability_physical(
     energy_ev: torch.Tensor, sigma_ev: torch.Tensor, c: torch.Tensor, prob_model: torch.Tensor,
     prob_params: torch.Tensor, angle_kind: torch.Tensor,
 ) -> torch.Tensor:  # fmt: skip
-    """Interaction probability p (B, E) of the "physical" kinetics (module docstring).
+    """Interaction probability p (B, E) of the "physical" kinetics: the simulator's laws ([supp_simulator],
+    ``laws``) at E = mu (the event's energy-mean control, eV) and c = (m+1)/(m+2) (``mean_cosine``), their
+    thresholds replaced by expectations over the sampled energy E' ~ N(mu, sigma^2)
+    [eq:supp_particle_energy_sampling]:
+
+        [E' > E_th] -> Phi(z),   max(E' - E_th, 0) -> sigma_g (z Phi(z) + phi(z)),   z = (mu - E_th)/sigma_g
+
+    with sigma_g = sqrt(sigma^2 + SIGMA_FLOOR_EV^2) (the floor keeps sigma = 0 differentiable). probModel:
+    xbar = expected excess / (E_ref - E_th + eps), p = clip(p0 min(xbar, 1)^n F^a(c), 0, 1) max(xbar, 1)^n,
+    the simulator's ``prob_physical`` times its ``unsaturated_factor`` (above E_ref the law keeps growing as
+    x^n). Yamamura Y: the same shape times Phi(z_Y). The supply f stays softplus(u[iota_f]) as in "paper".
+    Far from thresholds (the whole design box) p and Y equal the simulator's laws at (mu, c) to 1e-5.
 
     Args:
       energy_ev, sigma_ev: (B, E) mean and spread (> 0) of the event's projectile energy, eV.
@@ -289,7 +271,7 @@ def physical_inputs(
     u_norm: torch.Tensor, rules: Any
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """"physical": supply f (as "paper"), energy mean mu [eV], gate width sigma_g [eV] and mean incidence
-    cosine c, each (B, E), from normalized controls (B, 14) (module docstring)."""
+    cosine c, each (B, E), from normalized controls (B, 14) (``probability_physical``)."""
     b = _buffers(rules, u_norm)
     ctrl = b["ctrl_idx"]
     # (B, 14) transformed controls: physical units for the angle and energy channels (their transform is

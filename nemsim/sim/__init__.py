@@ -8,10 +8,9 @@ Pipeline (ViennaPS-like nouns, snake_case)::
 Modules: ``config`` (SimConfig, calibration), ``domain`` (voxel state, initial geometry), ``events``
 (compiled rules -> kernel tables), ``kernels`` (numba particle transport and surface events), ``sdf``
 (Psi: voxels -> signed distances), ``process`` (time stepping, one trajectory), ``generate`` (data sets:
-case scheduling, resumable HDF5 writing, process pool or Ray), ``speed`` (``nemsim bench sim``), ``yields``
-and ``bowing`` (physics checks of the simulator). The noise floor is ``bench.noise``.
-
-Calibration and the measured speed / noise figures: ``config`` module docstring and the README.
+case scheduling, resumable HDF5 writing, process pool or Ray), ``calibration`` (optional re-fits of the
+rules' laws). Its benchmarks (speed, yields, bowing, noise floor) live in ``bench``; its calibration is the
+``config`` module docstring.
 """
 
 from .config import SimConfig

@@ -28,14 +28,23 @@ tensors, the rule text and its SHA-256 are untouched):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
 if TYPE_CHECKING:
     from nemsim.rules.compile import RuleTensors
 
-    from .config import SimConfig
+
+class SputterOptions(Protocol):
+    """The ``SimConfig`` fields this module reads (``SimConfig`` imports this module, not the reverse)."""
+
+    @property
+    def sputter_calibration(self) -> str: ...
+    @property
+    def flux_scale(self) -> float: ...
+    @property
+    def resist_sputter_scale(self) -> float: ...
 
 
 class SputterFit(NamedTuple):
@@ -57,7 +66,7 @@ SPUTTER_CALIBRATIONS: dict[str, tuple[SputterFit, ...]] = {
 _P_E_TH, _P_E_REF, _P_P0, _P_N = 0, 1, 2, 3  # probModel columns of prob_params (E_th, E_ref, p0, n, angle)
 
 
-def calibrated_prob_params(rules: RuleTensors, config: SimConfig) -> np.ndarray:
+def calibrated_prob_params(rules: RuleTensors, config: SputterOptions) -> np.ndarray:
     """(E, 5) float64 probability parameters the simulator uses: the rules' with ``config``'s options applied.
 
     Raises ValueError if a calibration names an event the library does not have or that is not probModel.

@@ -8,69 +8,26 @@ Gamma_s [mol m^-2 s^-1] becomes a simulated particle rate
 
     R_s = Gamma_s * N_A * A_top * w,     w = flux_scale * capacity_si / (si_atoms_per_nm3 * V_voxel)
 
-with A_top the top-plane area (nm^2 -> m^2) and V_voxel the voxel volume (nm^3): one simulated particle
-stands for as many real particles as one Si material unit holds Si atoms (divided by ``flux_scale``).
-The physical etch rate per unit flux is therefore independent of the voxel capacity and of the scene's
-resolution; the capacity only trades Monte Carlo noise against run time. ``flux_scale`` (kappa) is the one
-dimensionless calibration factor (kappa = 1: a simulated removal event removes as many Si atoms as there
-were real incident particles behind the simulated one).
+with A_top the top-plane area and V_voxel the voxel volume: one simulated particle stands for as many real
+particles as one Si material unit holds Si atoms (divided by ``flux_scale``, kappa), so the etch rate per
+unit flux does not depend on the voxel capacity or the resolution; the capacity only trades Monte Carlo
+noise against run time. kappa, ``units_per_nm3`` and ``resist_density_ratio`` were set by short sweeps on
+``small`` so that the design's depths and mask losses span a realistic range without removing the mask
+(``nemsim data stats``; benchmarks/small/data_stats.json).
 
-Calibration (``small``; measured on 25 design cases = every 20th row of the 500-case design, seed 0):
-  * capacity 16 Si units per 4 nm voxel (0.25 units/nm^3; ``paper``: 8 per 2 nm voxel via ``min_capacity``,
-    ``tiny``: 16 per 8 nm voxel via ``max_capacity``) - the Monte Carlo noise / run time trade-off;
-  * flux_scale kappa = 0.6: final Si etch depth 12 nm (lowest fluxes) .. 160 nm (the whole 160 nm of Si,
-    1 case in 25), median 59 nm; depth rises with the ion fluxes, the ion energy and the neutral supply;
-  * resist_density_ratio 0.75 (12 resist units per voxel; the same erosion events remove more volume of
-    resist than of Si): planar mask loss 0.3 .. 15 nm of 80 nm (median 3.5 nm) on those cases, 29 nm with
-    60 % of the resist volume gone (faceted opening) in the design's most aggressive case (row 81: 1.25e-2
-    mol m^-2 s^-1 of ions at ~390 eV) - clearly eroded, never removed;
-  * noise floor (``nemsim bench noise``, design rows 0-4, seeds 1 vs 2): see the README; moderate cases
-    are ~0.005 Avg RMSE, fast-etching ones (deep holes, eroding mask) ~0.02.
-Values were chosen by short sweeps (kappa 1.0 -> 0.7 -> 0.6; resist ratio 1.0 / 0.75 / 0.5; capacity 16
-vs 32, which did not lower the noise of the fast-etching cases - their seed-to-seed spread is in the
-etch-front position, not in voxel-scale roughness).
+Mechanisms beyond the paper (``kernels`` module docstring): ``excess_probability_yield`` (on), the ion
+reflection law, diffuse / lobed reflection, a broad-angle ion wing, the sputter re-calibrations
+(``calibration``). All are off except the specular lobe ``ion_reflect_spread_deg`` = 10 deg: a mirror only
+folds an ion's path, while a rough, eroding sidewall spreads it, and without the spread no recipe in the box
+bows the hole by more than a voxel (benchmarks/small/bowing.md compares 5-20 deg; a modelling choice, not a
+fit). ``to_meta`` leaves a mechanism out at the value a record made before it existed describes
+(``_RECORD_DEFAULTS``), so older data files stay resumable and read back as they were made.
 
-Surface mechanisms (``kernels`` module docstring): ``excess_probability_yield`` (on; an unsaturated
-channel probability sum P > 1 multiplies the chosen event's yield by P instead of being normalized away)
-and the ion reflection law ``ion_absorb_below_deg`` / ``ion_reflect_above_deg`` (off: 0, 0). Both are
-written into ``to_meta``, so a data file made before they existed is not resumed with them.
-
-Optional mechanisms: the literature-calibrated Ar+ -> Si sputtering and the
-resist sputter scale (``calibration`` module), diffuse / lobed ion reflection, a fixed retained energy of
-reflected ions and a broad-angle wing of the ion angular distribution (``kernels`` module docstring). All
-are off by default except the specular lobe of reflected ions, ``ion_reflect_spread_deg`` = 10 deg.
-Why the lobe is on: with exactly specular reflection no recipe in the control box bowed the hole by more
-than a voxel; a mirror only folds the ion's path, while a real sidewall (rough, amorphized, eroding) spreads
-the reflected ions, and the grazing ions that hit the eroding mask edge are then sent into the Si sidewall
-30-55 nm below the mask. 10 deg is a modelling choice (benchmarks/small/bowing.md measures 5, 10, 15 and
-20 deg): the smallest spread that bows the hole by more than one `small` voxel (4 nm) at broad ion angles,
-high energy and high ion flux, and none at narrow angles or median flux; it was not fitted to published
-ion-scattering data. ``to_meta`` leaves a mechanism out while it has the value a record made before it
-existed describes (``_RECORD_DEFAULTS``: off, and 0 deg for the lobe), so those files stay resumable and read
-back exactly as they were made; files made with the lobe record ``ion_reflect_spread_deg``.
-
-Particle budget (``particle_budget`` = b, used by ``nemsim bench speed-error``): the simulator traces b
-times the calibrated number of particles, and every simulated particle becomes a *super-particle* of
-weight w = 1/b: it stands for w particles of the full-budget run. The weight is applied to what a surface
-event moves, never to the geometry or the units:
-  * removal / conversion: k = stochastic_round(w Y) units (Y the rule's yield) instead of
-    stochastic_round(Y) - the expected material change per unit of real flux is unchanged;
-  * deposition (product sticking): stochastic_round(w) units (what does not fit in the hit voxel goes to
-    the vacuum voxel in front of it);
-  * emitted SiCl_x products are super-particles of the same weight: coef x removed / w of them for
-    yield-proportional products, coef min(Y, 1) removed / (w Y) for fixed per-event products (a real
-    event emits those iff it removed something, probability min(Y, 1)), so product transport is also
-    cut by b and their deposit carries w units each.
-Why not the alternatives: keeping one unit per event with b times fewer particles would etch b times less
-(wrong physics); coarsening the capacity to b x capacity units per voxel would leave 1 unit per voxel at
-b = 1/16 on ``small`` and break the resist/Si density ratio and Psi's sub-voxel fractions. With weights the
-voxel resolution, capacities and Psi stay as calibrated; only the Monte Carlo variance grows (~1/b in the
-number of events). An event moves at most the target species present in the hit voxel (min(k, available),
-as at budget 1); at b < 1 a capped event does not lose the rest: the unused fraction (k - moved)/k of the
-particle's weight flies on along the same path (the real particles it stands for did not find material
-there), otherwise w Y ~ 16 units at b = 1/16 against 16-unit voxels would slow the etch by about a third.
-Budget 1 runs exactly the calibrated simulator (same random stream, bit-identical states), and the field
-is not written into ``to_meta`` at 1 so data files made before it existed stay resumable.
+Particle budget b (``particle_budget``, ``nemsim bench speed-error``): b times the calibrated particle count,
+each a super-particle of weight w = 1/b that moves stochastic_round(w Y) units per event (deposits
+stochastic_round(w); emitted products carry w too), so the expected change per unit of real flux, the
+voxel capacities and Psi stay as calibrated and only the Monte Carlo variance grows. A capped event's unused
+weight flies on. b = 1 is the calibrated simulator exactly and is not written into ``to_meta``.
 """
 
 from __future__ import annotations
@@ -98,8 +55,9 @@ _TARGET_MASS_AMU = (("Si", 28.09), ("SiCl", 63.54), ("SiCl2", 98.99), ("SiCl3", 
 _RECORD_DEFAULTS: dict[str, Any] = {
     "particle_budget": 1.0, "sputter_calibration": "paper", "resist_sputter_scale": 1.0,
     "ion_reflect_diffuse": 0.0, "ion_reflect_spread_deg": 0.0, "ion_reflect_energy": 0.0,
-    "ion_wing_fraction": 0.0, "ion_wing_m": 5.0,
+    "ion_wing_fraction": 0.0, "ion_wing_m": 5.0, "rng_mode": "stream",
 }  # fmt: skip
+RNG_MODES = ("stream", "counter")  # kernels module docstring, "Random numbers"
 
 
 @dataclass(frozen=True)
@@ -150,6 +108,9 @@ class SimConfig:
     # cos^ion_wing_m instead of the control's cos^m (collisional-sheath tail)
     ion_wing_fraction: float = 0.0
     ion_wing_m: float = 5.0
+    # random numbers (kernels module docstring): "stream" = one generator per kernel call (the data sets);
+    # "counter" = common random numbers keyed by (seed, macro step, particle), for paired recipes
+    rng_mode: str = "stream"
     queue_capacity: int = 1 << 15  # FIFO ring buffer for secondary products (drained after each primary)
     projectile_mass_amu: tuple[tuple[str, float], ...] = _PROJECTILE_MASS_AMU
     target_mass_amu: tuple[tuple[str, float], ...] = _TARGET_MASS_AMU
@@ -193,6 +154,8 @@ class SimConfig:
             raise ValueError(f"ion_reflect_spread_deg must be in [0, 45] degrees, got {spread}")
         if not self.ion_wing_m >= 0:
             raise ValueError(f"ion_wing_m must be >= 0, got {self.ion_wing_m}")
+        if self.rng_mode not in RNG_MODES:
+            raise ValueError(f"rng_mode is one of {RNG_MODES}, got {self.rng_mode!r}")
 
     def resolved(self, scene: Scene) -> SimConfig:
         """This config with ``capacity`` and ``resist_capacity`` filled in for ``scene``."""

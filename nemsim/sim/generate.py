@@ -20,11 +20,11 @@ finished cases; rerunning the same command resumes. Rerunning with more cases (`
 appends them to the file (``TrajectoryWriter``). The simulator needs no torch, so neither should a worker
 (each would carry ~0.5 GB); tests/data/test_generate_robustness.py checks what a worker imports.
 
-Large scenes: the ``paper`` scene has ~7x the voxels of ``small`` and takes 20-30 s of CPU per trajectory,
-so its 500 cases run for hours even with two workers; the command is resumable (rerun it after any stop)
-and ``state_dtype="float16"`` stores ~20 MB instead of ~48 MB per case at ~1 % of the Monte Carlo noise
-(``nemsim.data.hdf5``). Example: ``nemsim generate --scene paper --workers 2 --state-dtype float16
---out data/paper.h5`` (rerun the same command to resume), then ``nemsim data check data/paper.h5``.
+Large scenes: the ``paper`` scene has ~7x the voxels of ``small``, so its 500 cases run for hours; the
+command is resumable (rerun it after any stop) and ``state_dtype="float16"`` stores less than half the bytes
+per case, far below the Monte Carlo noise (``nemsim.data.hdf5``). Example: ``nemsim generate --scene paper
+--workers 2 --state-dtype float16 --out data/paper.h5`` (rerun the same command to resume), then
+``nemsim data check data/paper.h5``.
 """
 
 from __future__ import annotations

@@ -1,9 +1,24 @@
 """Numba kernels of the Monte Carlo feature-profile simulator ([supp_simulator]).
 
 Pure functions over explicit arrays: the voxel state (``mat``, ``fill``), the event tables of
-``events.EventTables`` and a seed (numba's generator is re-seeded at every kernel call, so a call is a
-deterministic function of its inputs). Nothing is allocated per particle; secondary products go through a
-preallocated FIFO ring buffer that is drained after every primary particle.
+``events.EventTables`` and a seed, so a call is a deterministic function of its inputs. Nothing is
+allocated per particle; secondary products go through a preallocated FIFO ring buffer that is drained
+after every primary particle.
+
+Random numbers (``SimConfig.rng_mode``, ``TransportParams.counter_rng``):
+  * "stream" (default): numba's generator, re-seeded at every ``run_particles`` call; the particles of a
+    call consume one shared stream, so a particle that draws one number more shifts every later one.
+  * "counter": common random numbers. Every uniform is a counter-based hash (SplitMix64's finalizer of
+    key + counter x golden gamma, ``mix64``) of a key derived from (trajectory seed, macro step, primary
+    index) (``counter_seed``, ``stream_key``). A primary draws its launch from 8 fixed slots (source, two
+    for the Box-Muller energy, wing, polar angle, azimuth, x, y; drawn whether used or not); its h-th
+    surface hit draws from sub-stream h: the target, channel, absorption and diffuse-reflection choices
+    from fixed slots, then in order the yield rounding, reflection and product directions; its n-th
+    emitted product has its own key. Primary i of macro step t thus draws the same numbers whatever the
+    recipe or the other particles did: two recipes simulated with the same seed share their noise as far
+    as their diverging histories allow (same inverse-CDF uniforms).
+  Helpers take the state ``rs`` (``RS_SIZE`` uint64: mode, particle key, draw key, counter) as an
+  optional last argument; without it (or in mode 0) they draw from numba's generator as before.
 
 Coordinates are voxel units: voxel (i, j, k) covers [i, i+1) x [j, j+1) x [k, k+1); z grows upward.
 
@@ -130,6 +145,7 @@ class TransportParams(NamedTuple):
     refl_energy: float = 0.0  # retained energy fraction of a reflected ion (0: the mass-ratio law)
     wing_fraction: float = 0.0  # fraction of ions launched from cos^wing_m instead of the control's cos^m
     wing_m: float = 5.0
+    counter_rng: bool = False  # counter-based random numbers ("Random numbers" in the module docstring)
 
 
 def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportParams:
@@ -141,7 +157,7 @@ def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportPar
                            float(config.particle_weight), float(cos_full), float(cos_zero),
                            bool(config.excess_probability_yield), float(config.ion_reflect_diffuse),
                            float(lobe_k), float(config.ion_reflect_energy), float(config.ion_wing_fraction),
-                           float(config.ion_wing_m))  # fmt: skip
+                           float(config.ion_wing_m), config.rng_mode == "counter")  # fmt: skip
 
 
 class WorkBuffers(NamedTuple):
@@ -173,10 +189,97 @@ _Q_X, _Q_Y, _Q_Z, _Q_DX, _Q_DY, _Q_DZ, _Q_SPECIES, _Q_ENERGY = 0, 1, 2, 3, 4, 5,
 _FACE_EPS = 1e-9  # how far inside the vacuum voxel a particle restarts after a surface hit
 
 
+# counter-based random numbers (module docstring): SplitMix64 constants and the state layout
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_S11, _S27, _S30, _S31 = np.uint64(11), np.uint64(27), np.uint64(30), np.uint64(31)
+_ONE = np.uint64(1)
+_TO_UNIT = 1.0 / 9007199254740992.0  # 2^-53
+_PRODUCT_STREAMS = np.uint64(1 << 32)  # product n of a particle: sub-stream 2^32 + n (hits: 0, 1, ...)
+N_LAUNCH_DRAWS = 8  # fixed launch slots of a primary in counter mode
+# fixed slots of a surface hit in counter mode (the hit's other draws follow them in order)
+_SLOT_TARGET, _SLOT_CHANNEL, _SLOT_ABSORB, _SLOT_DIFFUSE = 0, 1, 2, 3
+N_HIT_SLOTS = 4
+RS_MODE, RS_PARTICLE, RS_KEY, RS_COUNT = 0, 1, 2, 3  # the rng state ``rs``: uint64 (RS_SIZE,)
+RS_SIZE = 4
+
+
 @numba.njit(cache=True)
 def seed_rng(seed: int) -> None:
-    """Seed numba's internal generator (used by every kernel of this module)."""
+    """Seed numba's internal generator (the "stream" random numbers of this module)."""
     np.random.seed(seed)
+
+
+@numba.njit(cache=True)
+def mix64(z: np.uint64) -> np.uint64:
+    """SplitMix64's output function (Stafford's variant 13): a bijective 64-bit hash."""
+    z = (z ^ (z >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    return z ^ (z >> _S31)
+
+
+@numba.njit(cache=True)
+def stream_key(key: np.uint64, index: np.uint64) -> np.uint64:
+    """Key of sub-stream ``index`` of the stream ``key`` (both uint64)."""
+    return mix64(mix64(key) + (index + _ONE) * _GOLDEN)
+
+
+def counter_seed(trajectory_key: int, macro_step: int) -> int:
+    """The ``run_particles`` seed of a macro step in counter mode: a non-negative int64 from the
+    trajectory's key and the macro step's index (primary i of the call is keyed by (this seed, i))."""
+    return int(stream_key(np.uint64(trajectory_key), np.uint64(macro_step))) >> 1
+
+
+@numba.njit(cache=True)
+def new_rng_state(counter: bool) -> np.ndarray:
+    """A zeroed rng state ``rs``; mode 1 (counter) or 0 (numba's generator)."""
+    rs = np.zeros(RS_SIZE, dtype=np.uint64)
+    if counter:
+        rs[RS_MODE] = _ONE
+    return rs
+
+
+@numba.njit(cache=True)
+def seat_particle(rs: np.ndarray, key: np.uint64) -> None:
+    """Counter mode: start the draws of the particle keyed ``key`` (its launch slots)."""
+    rs[RS_PARTICLE] = key
+    rs[RS_KEY] = key
+    rs[RS_COUNT] = 0
+
+
+@numba.njit(cache=True)
+def _seat_hit(rs: np.ndarray | None, hit: int) -> None:
+    """Counter mode: draw the particle's ``hit``-th surface event from its own sub-stream."""
+    if rs is None:
+        return
+    if rs[RS_MODE] == 0:
+        return
+    rs[RS_KEY] = stream_key(rs[RS_PARTICLE], np.uint64(hit))
+    rs[RS_COUNT] = N_HIT_SLOTS
+
+
+@numba.njit(cache=True)
+def uniform_at(rs: np.ndarray | None, slot: int) -> float:
+    """U[0, 1) from the fixed ``slot`` (< N_HIT_SLOTS) of the current hit in counter mode, so that whether
+    an earlier decision drew does not move it; else the next number of numba's generator."""
+    if rs is None:
+        return np.random.random()
+    if rs[RS_MODE] == 0:
+        return np.random.random()
+    return float(mix64(rs[RS_KEY] + np.uint64(slot + 1) * _GOLDEN) >> _S11) * _TO_UNIT
+
+
+@numba.njit(cache=True)
+def uniform(rs: np.ndarray | None = None) -> float:
+    """U[0, 1): the next counter-based draw of ``rs`` (mode 1), else numba's generator."""
+    if rs is None:
+        return np.random.random()
+    if rs[RS_MODE] == 0:
+        return np.random.random()
+    c = rs[RS_COUNT] + _ONE
+    rs[RS_COUNT] = c
+    return float(mix64(rs[RS_KEY] + c * _GOLDEN) >> _S11) * _TO_UNIT
 
 
 @numba.njit(cache=True)
@@ -192,42 +295,48 @@ def unsaturated_factor(prob_model: int, prob_params: np.ndarray, energy_ev: floa
 
 
 @numba.njit(cache=True)
-def stochastic_round(value: float) -> int:
+def stochastic_round(value: float, rs: np.ndarray | None = None) -> int:
     """floor(value) + Bernoulli(frac(value)): an integer with expectation ``value`` (value >= 0)."""
     if value <= 0.0:
         return 0
     k = int(math.floor(value))
-    if np.random.random() < value - k:
+    if uniform(rs) < value - k:
         k += 1
     return k
 
 
 @numba.njit(cache=True)
-def cos_power_polar(m: float) -> float:
+def cos_power_polar(m: float, rs: np.ndarray | None = None) -> float:
     """cos theta for p(Omega) ~ cos^m theta on the hemisphere [eq:supp_particle_angular_distribution]."""
-    return np.random.random() ** (1.0 / (m + 1.0))
+    return uniform(rs) ** (1.0 / (m + 1.0))
 
 
 @numba.njit(cache=True)
-def cosine_about(nx_: float, ny_: float, nz_: float) -> tuple[float, float, float]:
+def cosine_about(
+    nx_: float, ny_: float, nz_: float, rs: np.ndarray | None = None
+) -> tuple[float, float, float]:
     """Direction drawn from the cosine-weighted hemisphere about the unit vector n."""
-    u1 = np.random.random()
-    return _polar_about(math.sqrt(u1), math.sqrt(max(0.0, 1.0 - u1)), nx_, ny_, nz_)
+    u1 = uniform(rs)
+    return _polar_about(math.sqrt(u1), math.sqrt(max(0.0, 1.0 - u1)), nx_, ny_, nz_, rs)
 
 
 @numba.njit(cache=True)
-def lobe_about(k: float, nx_: float, ny_: float, nz_: float) -> tuple[float, float, float]:
+def lobe_about(
+    k: float, nx_: float, ny_: float, nz_: float, rs: np.ndarray | None = None
+) -> tuple[float, float, float]:
     """Direction drawn from p(Omega) ~ cos^k (angle to the unit vector n): a lobe about n (rms transverse
     deviation 1/sqrt(k) rad for large k)."""
-    ct = cos_power_polar(k)
-    return _polar_about(ct, math.sqrt(max(0.0, 1.0 - ct * ct)), nx_, ny_, nz_)
+    ct = cos_power_polar(k, rs)
+    return _polar_about(ct, math.sqrt(max(0.0, 1.0 - ct * ct)), nx_, ny_, nz_, rs)
 
 
 @numba.njit(cache=True)
-def _polar_about(ct: float, st: float, nx_: float, ny_: float, nz_: float) -> tuple[float, float, float]:
+def _polar_about(
+    ct: float, st: float, nx_: float, ny_: float, nz_: float, rs: np.ndarray | None = None
+) -> tuple[float, float, float]:
     """Unit direction at polar cosine ``ct`` (sine ``st``) from the unit vector n, uniform azimuth (one
     random draw)."""
-    u2 = np.random.random()
+    u2 = uniform(rs)
     ph = 2.0 * math.pi * u2
     a = st * math.cos(ph)
     b = st * math.sin(ph)
@@ -246,17 +355,17 @@ def _polar_about(ct: float, st: float, nx_: float, ny_: float, nz_: float) -> tu
 
 @numba.njit(cache=True)
 def diffuse_direction(
-    nnx: float, nny: float, nnz: float, fnx: float, fny: float, fnz: float
+    nnx: float, nny: float, nnz: float, fnx: float, fny: float, fnz: float, rs: np.ndarray | None = None
 ) -> tuple[float, float, float]:
     """Cosine-distributed direction about the surface normal n that leaves through the entry face f
     (8 redraws, then cosine about f)."""
-    ex, ey, ez = cosine_about(nnx, nny, nnz)
+    ex, ey, ez = cosine_about(nnx, nny, nnz, rs)
     for _try in range(8):
         if ex * fnx + ey * fny + ez * fnz > 0.0:
             break
-        ex, ey, ez = cosine_about(nnx, nny, nnz)
+        ex, ey, ez = cosine_about(nnx, nny, nnz, rs)
     if ex * fnx + ey * fny + ez * fnz <= 0.0:
-        ex, ey, ez = cosine_about(fnx, fny, fnz)
+        ex, ey, ez = cosine_about(fnx, fny, fnz, rs)
     return ex, ey, ez
 
 
@@ -315,7 +424,7 @@ def reflection_probability(cos_inc: float, cos_full: float, cos_zero: float) -> 
 @numba.njit(cache=True)
 def _specular(
     dx: float, dy: float, dz: float, ddotn: float, nnx: float, nny: float, nnz: float, fnx: float, fny: float,
-    fnz: float, lobe_k: float,
+    fnz: float, lobe_k: float, rs: np.ndarray | None = None,
 ) -> tuple[float, float, float]:  # fmt: skip
     """Specular reflection of d about the normal n (about the entry face f if that would not leave through
     it); with ``lobe_k`` > 0 a direction from the cos^k lobe about it that leaves through f (8 draws, else
@@ -334,7 +443,7 @@ def _specular(
     rz /= norm
     if lobe_k > 0.0:
         for _try in range(8):
-            ex, ey, ez = lobe_about(lobe_k, rx, ry, rz)
+            ex, ey, ez = lobe_about(lobe_k, rx, ry, rz, rs)
             if ex * fnx + ey * fny + ez * fnz > 1e-9:
                 return ex, ey, ez
     return rx, ry, rz
@@ -369,14 +478,15 @@ def _push(queue: np.ndarray, tail: int, head: int, x: float, y: float, z: float,
 def fly(
     species: int, energy: float, x: float, y: float, z: float, dx: float, dy: float, dz: float,
     mat: np.ndarray, fill: np.ndarray, tab: KernelTables, prm: TransportParams, buf: WorkBuffers,
-    head: int, tail: int,
+    head: int, tail: int, rs: np.ndarray | None = None,
 ) -> int:  # fmt: skip
     """Transport one particle until it reacts, escapes or runs out of steps; returns the queue tail.
 
     Args: the particle (projectile index, energy eV, position in voxels, unit direction); ``mat`` (nx, ny,
     nz, 5) and ``fill`` (nx, ny, nz), mutated by surface events; ``tab`` the rule tables; ``prm`` the
     transport settings (``TransportParams``); ``buf`` the queue of emitted products and the counters
-    (``WorkBuffers``, mutated); ``head``, ``tail``: the product queue's ring pointers.
+    (``WorkBuffers``, mutated); ``head``, ``tail``: the product queue's ring pointers; ``rs``: the rng
+    state (module docstring, "Random numbers"; omitted: numba's generator).
     """
     cap, rcap, weight = prm.cap, prm.rcap, prm.weight
     max_steps = prm.max_steps
@@ -384,6 +494,7 @@ def fly(
     nx, ny, nz = fill.shape
     n_t = mat.shape[3]
     steps = 0
+    hits = 0  # surface hits so far (counter mode: hit h draws from sub-stream h)
     w_event = weight  # weight still to be spent by this particle (< weight after a capped event)
     inf = 1e300
     while True:
@@ -470,6 +581,8 @@ def fly(
             return tail
         steps += 1  # a surface hit counts as a step (guarantees termination)
         counters[C_HITS] += 1
+        _seat_hit(rs, hits)
+        hits += 1
         # restart point: on the entry face, just inside the vacuum voxel in front of it
         x = x + t * dx
         y = y + t * dy
@@ -501,7 +614,7 @@ def fly(
         total = 0
         for q in range(n_t):
             total += mat[wx, wy, iz, q]
-        r = np.random.random() * total
+        r = uniform_at(rs, _SLOT_TARGET) * total
         tgt = n_t - 1
         acc = 0.0
         for q in range(n_t):
@@ -525,7 +638,7 @@ def fly(
             ptot += p
         chosen = -1
         if ptot > 0.0:
-            u = np.random.random() * max(ptot, 1.0)
+            u = uniform_at(rs, _SLOT_CHANNEL) * max(ptot, 1.0)
             acc = 0.0
             for c in range(cnt):
                 acc += pbuf[c]
@@ -540,7 +653,7 @@ def fly(
             if act == ACT_DEPOSIT:
                 add = tab.conv_to[chosen]
                 # units stuck: 1 at full budget (no random draw there, so budget 1 keeps its stream)
-                n_add = 1 if w_event == 1.0 else stochastic_round(w_event)
+                n_add = 1 if w_event == 1.0 else stochastic_round(w_event, rs)
                 if n_add == 0:
                     return tail
                 if n_add > 1:
@@ -577,7 +690,7 @@ def fly(
                 # excess-probability yield: the channels were normalized by ptot; scaling the yield by
                 # ptot keeps each channel's expected effect at p_c Y_c (module docstring)
                 y_val *= ptot
-            k = stochastic_round(y_val * w_event)  # units this (weighted) event moves
+            k = stochastic_round(y_val * w_event, rs)  # units this (weighted) event moves
             have = mat[wx, wy, iz, tgt]
             nrem = k if k < have else have
             if act == ACT_REACT:
@@ -612,9 +725,9 @@ def fly(
                         amount = coef * min(y_val, 1.0) * nrem / (y_val * weight)
                     else:
                         amount = 0.0
-                    n_emit = stochastic_round(amount)
+                    n_emit = stochastic_round(amount, rs)
                     for _ in range(n_emit):
-                        ex, ey, ez = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz)
+                        ex, ey, ez = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz, rs)
                         new_tail = _push(
                             queue, tail, head, x, y, z, ex, ey, ez, tab.product_species[j], prm.product_energy
                         )
@@ -634,7 +747,7 @@ def fly(
         if tab.is_ion[species]:
             if prm.refl_cos_full < 1.0:
                 r_prob = reflection_probability(cos_inc, prm.refl_cos_full, prm.refl_cos_zero)
-                if r_prob < 1.0 and np.random.random() >= r_prob:
+                if r_prob < 1.0 and uniform_at(rs, _SLOT_ABSORB) >= r_prob:
                     counters[C_STEPS] += steps
                     counters[C_ABSORBED] += 1
                     return tail
@@ -646,16 +759,24 @@ def fly(
                 ratio = (m1 - m2) / (m1 + m2)
                 c2 = cos_inc * cos_inc
                 energy *= (1.0 - c2) + c2 * ratio * ratio
-            if prm.refl_diffuse > 0.0 and np.random.random() < prm.refl_diffuse:
-                dx, dy, dz = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz)
+            if prm.refl_diffuse > 0.0 and uniform_at(rs, _SLOT_DIFFUSE) < prm.refl_diffuse:
+                dx, dy, dz = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz, rs)
             else:
-                dx, dy, dz = _specular(dx, dy, dz, ddotn, nnx, nny, nnz, fnx, fny, fnz, prm.refl_lobe_k)
+                dx, dy, dz = _specular(dx, dy, dz, ddotn, nnx, nny, nnz, fnx, fny, fnz, prm.refl_lobe_k, rs)
         else:
-            dx, dy, dz = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz)
+            dx, dy, dz = diffuse_direction(nnx, nny, nnz, fnx, fny, fnz, rs)
         if steps >= max_steps:
             counters[C_STEPS] += steps
             counters[C_STEP_LIMIT] += 1
             return tail
+
+
+@numba.njit(cache=True)
+def _launch_uniform(launch: np.ndarray, slot: int, counter: bool) -> float:
+    """A launch draw: the primary's fixed slot in counter mode, else the next number of numba's generator."""
+    if counter:
+        return launch[slot]
+    return np.random.random()
 
 
 @numba.njit(cache=True)
@@ -670,15 +791,31 @@ def run_particles(
       src: the incident sources (``Sources``); neutral_energy: energy of incident neutrals [eV].
       tab: the rule tables (``events.KernelTables``); prm: transport settings (``TransportParams``).
       buf: product queue, scratch and counters (``WorkBuffers``; counters accumulated).
-      seed: seeds numba's generator for this call.
+      seed: seeds numba's generator for this call; with ``prm.counter_rng`` the key of this call's
+        particles instead (``counter_seed``; primary i is keyed by (seed, i), module docstring).
     """
-    np.random.seed(seed)
+    counter = prm.counter_rng
+    if counter:
+        np.random.seed(seed & 0xFFFFFFFF)  # unused in counter mode; keeps a call deterministic anyway
+    else:
+        np.random.seed(seed)
+    rs = new_rng_state(counter)
+    launch = np.zeros(N_LAUNCH_DRAWS)
+    call_key = np.uint64(seed)
+    particle_key = np.uint64(0)
     queue, counters = buf.queue, buf.counters
     nx, ny, nz = fill.shape
     n_src = src.species.shape[0]
     done = 0
+    n_launched = 0
     while done < n_target:
-        u = np.random.random()
+        if counter:
+            particle_key = stream_key(call_key, np.uint64(n_launched))
+            seat_particle(rs, particle_key)
+            for q in range(N_LAUNCH_DRAWS):
+                launch[q] = uniform(rs)
+        n_launched += 1
+        u = _launch_uniform(launch, 0, counter)
         ks = n_src - 1
         for q in range(n_src):
             if u < src.cum[q]:
@@ -688,7 +825,11 @@ def run_particles(
         counters[C_PRIMARY] += 1
         if tab.is_ion[s]:
             counters[C_IONS] += 1
-            energy = max(src.e_mean[ks] + src.e_std[ks] * np.random.standard_normal(), 0.0)
+            if counter:  # Box-Muller from two fixed slots
+                gauss = math.sqrt(-2.0 * math.log(1.0 - launch[1])) * math.cos(2.0 * math.pi * launch[2])
+            else:
+                gauss = np.random.standard_normal()
+            energy = max(src.e_mean[ks] + src.e_std[ks] * gauss, 0.0)
             if count_ions:
                 done += 1
         else:
@@ -697,18 +838,20 @@ def run_particles(
         if not count_ions:
             done += 1
         m_launch = src.m[ks]
-        if prm.wing_fraction > 0.0 and tab.is_ion[s] and np.random.random() < prm.wing_fraction:
+        wing = prm.wing_fraction > 0.0 and tab.is_ion[s]
+        if wing and _launch_uniform(launch, 3, counter) < prm.wing_fraction:
             m_launch = prm.wing_m  # broad-angle wing (module docstring, "Optional mechanisms")
-        ct = cos_power_polar(m_launch)
+        ct = _launch_uniform(launch, 4, counter) ** (1.0 / (m_launch + 1.0))  # cos_power_polar
         st = math.sqrt(max(0.0, 1.0 - ct * ct))
-        ph = 2.0 * math.pi * np.random.random()
-        x0 = np.random.random() * nx
-        y0 = np.random.random() * ny
+        ph = 2.0 * math.pi * _launch_uniform(launch, 5, counter)
+        x0 = _launch_uniform(launch, 6, counter) * nx
+        y0 = _launch_uniform(launch, 7, counter) * ny
         z0 = nz - _FACE_EPS
         head = 0
         tail = fly(s, energy, x0, y0, z0, st * math.cos(ph), st * math.sin(ph), -ct, mat, fill, tab, prm, buf,
-                   head, 0)
+                   head, 0, rs)
         # drain the FIFO of secondary products (they may not emit further products, but could)
+        n_products = 0
         while head != tail:
             qx = queue[head, _Q_X]
             qy = queue[head, _Q_Y]
@@ -719,5 +862,7 @@ def run_particles(
             qs = int(queue[head, _Q_SPECIES])
             qe = queue[head, _Q_ENERGY]
             head = (head + 1) % queue.shape[0]
-            tail = fly(qs, qe, qx, qy, qz, qdx, qdy, qdz, mat, fill, tab, prm, buf, head, tail)
-
+            if counter:
+                seat_particle(rs, stream_key(particle_key, _PRODUCT_STREAMS + np.uint64(n_products)))
+            n_products += 1
+            tail = fly(qs, qe, qx, qy, qz, qdx, qdy, qdz, mat, fill, tab, prm, buf, head, tail, rs)

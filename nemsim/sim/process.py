@@ -14,7 +14,10 @@ for the 10 s horizon. With ``config.particle_budget`` = b < 1 the rates (and so 
 times the calibrated ones and each particle carries weight 1/b (``config`` module docstring). Controls
 are one vector (14,) for the whole trajectory or a recipe (T, 14) with one vector per transition. Every
 macro step seeds the kernel from ``rng``, so a trajectory is a deterministic function of (scene, rules,
-controls, config, rng state).
+controls, config, rng state). With ``config.rng_mode`` = "counter" one key is drawn from ``rng`` instead
+and macro step g (counted from 0 over the whole horizon) seeds its kernel call with ``counter_seed(key,
+g)``: its primary i draws the same numbers in every recipe simulated from the same seed (common random
+numbers, ``kernels`` module docstring).
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from nemsim.scenes import Scene
 from .config import SimConfig
 from .domain import Domain, initial_domain
 from .events import EventTables, build_event_tables
-from .kernels import COUNTER_NAMES, Sources, WorkBuffers, run_particles, transport_params
+from .kernels import COUNTER_NAMES, Sources, WorkBuffers, counter_seed, run_particles, transport_params
 from .sdf import psi
 
 log = logging.getLogger(__name__)
@@ -143,12 +146,17 @@ def run_trajectory(
     prm = transport_params(cfg, cfg.capacity, cfg.resist_capacity)
     carry = 0.0
     dt = scene.macro_dt_s
+    counter = cfg.rng_mode == "counter"
+    key = int(rng.integers(0, 2**63)) if counter else 0
     for t in range(n_tr):
         rate, m, e_mean, e_std = _sources(tables, schedule[t], rate_per_flux)
         total = float(rate.sum())
         ion_rate = float(rate[tables.is_ion[tables.src_species]].sum())
-        for _ in range(scene.macro_steps_per_snapshot):
-            seed = int(rng.integers(0, 2**32))
+        for j in range(scene.macro_steps_per_snapshot):
+            if counter:
+                seed = counter_seed(key, t * scene.macro_steps_per_snapshot + j)
+            else:
+                seed = int(rng.integers(0, 2**32))
             if total <= 0.0:
                 continue
             count_ions = ion_rate > 0.0

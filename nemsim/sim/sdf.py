@@ -19,17 +19,11 @@ the per-voxel fill fraction of each channel straight to a sub-voxel-accurate sig
 Choices where the paper is silent: sigma, the one-voxel padding (the distance transform is not periodic;
 the domain edges are flat resist/Si far from the opening), Newton projection (4 steps, step <= 1 voxel).
 
-Speed (Psi runs once per snapshot, 101 times per trajectory): the smoothing and the closest-point transform
-are single numba kernels that write the clipped, transposed float32 state directly; the sweeps run on
-flat indices over work buffers with a sentinel shell (no bounds tests), one cache line per voxel, reused
-across calls (one set per thread). The arithmetic, the visiting order and the tie-breaking are unchanged,
-so the states equal those of the original straightforward loops bit for bit (tests/sim/test_sdf_fast.py
-checks this against a verbatim copy of the original on `tiny`, a synthetic `small` geometry and spheres).
-Recomputing only where the voxels changed since the last snapshot was not adopted: the raster sweeps carry
-closest points along whole rows, so only an event-driven re-sweep of the voxels whose inputs changed would
-stay exact, and on a full-budget `small` trajectory the smoothed indicator changes at ~1/3 of the band
-voxels between snapshots (mask and Si alike), spread over the surface, so most of the swept box is within
-reach of a change.
+Speed (Psi runs 101 times per trajectory): the smoothing and the closest-point transform are single numba
+kernels that write the clipped, transposed float32 state directly, over reused work buffers with a sentinel
+shell; the arithmetic, visiting order and tie-breaking are those of the straightforward loops, bit for bit
+(tests/sim/test_sdf_fast.py). Not recomputing unchanged regions: the sweeps carry closest points along whole
+rows, and between snapshots the indicator changes all over the surface, so little would be saved.
 """
 
 from __future__ import annotations

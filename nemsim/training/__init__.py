@@ -1,5 +1,5 @@
-"""Training: TrainConfig ([supp_training]) and the training loop. Checkpoint I/O is ``nemsim.inference.checkpoint``
-(a level below, so evaluation reads checkpoints without depending on training).
+"""Training: TrainConfig ([supp_training]) and the training loop; checkpoints are written and read by
+``nemsim.inference.checkpoint``.
 
 Import the submodules (``config``, ``loop``); nothing heavy happens here.
 """

@@ -1,8 +1,8 @@
 """An exponential moving average of the trained weights (``TrainConfig.ema_decay``; not in the paper).
 
 Why: a rolled-out surrogate is judged on 100 chained calls, and the weights of a single optimizer step carry
-that step's noise into every call. Validation of the served model's continuations moved by ±5 % from one
-500-step round to the next at a constant learning rate (benchmarks/small/physics/levers.md). The average
+that step's noise into every call, and validation scores move from one round to the next at a constant
+learning rate (docs/experiments.md). The average
 of the recent weights is the usual remedy (Polyak averaging; the "EMA" of diffusion and neural-operator
 training): it smooths that noise without changing the loss or the optimizer.
 

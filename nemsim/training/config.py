@@ -1,78 +1,33 @@
 """Training configuration: every hyper-parameter of [supp_training] and [supp_evaluation] is a field.
 
 Paper values ([supp_training]): AdamW, lr 5e-4, weight decay 1e-5, 10-epoch linear warm-up, cosine
-annealing to 1e-5, gradient-norm clip 1.0, batch 24, at most 350 epochs, seed 0, validation every
-10 epochs with a full 100-step autoregressive rollout ([supp_evaluation]), early stopping after 20
-validation rounds without improvement.
+annealing to 1e-5, gradient-norm clip 1.0, batch 24, at most 350 epochs, seed 0, validation every 10 epochs
+with a full 100-step autoregressive rollout ([supp_evaluation]), early stopping after 20 validation rounds
+without improvement. Where the paper is silent: AdamW's default betas; the learning rate is set every
+optimizer step; the best checkpoint has the lowest validation Avg RMSE (eq:supp_avg_rmse;
+``select_metric="mse"`` for the paper's "mean validation-rollout MSE").
 
-Choices where the paper is silent (each a field, so a config file can change it):
-  * ``betas`` keep the AdamW defaults (0.9, 0.999).
-  * the learning rate is set every optimizer step (not every epoch): linear from lr/warmup_steps to lr
-    over the first ``warmup_epochs`` epochs, then half-cosine down to ``min_lr`` at ``max_epochs``.
-  * best checkpoint = lowest validation-rollout Avg RMSE (eq. supp_avg_rmse); [supp_evaluation] says
-    "mean validation-rollout MSE" -- ``select_metric`` switches to "mse" (mean over steps of MSE_t).
-  * ``max_steps`` is a budget in optimizer steps for runs shorter than one epoch (the baselines' equal-budget
-    comparison on this CPU, where one of their epochs takes hours); ``checkpoint_every`` writes last.pt
-    inside an epoch so such a run resumes where it stopped (the shuffled order is a function of seed and
-    epoch, so the resumed run skips the batches already seen). ``val_cases``/``test_cases`` take the first
-    N trajectories of the split (manifest order) when a full 100-trajectory rollout costs too much.
-  * ``unroll_steps`` (not in the paper, default 1 = the paper's eq. training_loss): with k > 1 each sample is
-    k consecutive transitions; the model steps from its own detached prediction (the "pushforward trick" of
-    Brandstetter, Worrall & Welling 2022) and the loss is the mean of the k one-step MSEs. Trained one-step
-    only, NEMSim drifts past the trained horizon (``nemsim stress``); the pushforward term trains it on the
-    states its own rollout visits, at ~k times the cost of a step.
-  * multi-step models (``model: {steps_per_call: k}``, not in the paper): each network call predicts k states,
-    and the loss is the mean over the k predicted states of their MSE against x_{t+1..t+k} (weighted by
-    ``step_loss_weights`` if given, normalized to sum 1). ``unroll_steps`` counts network calls: with U > 1 a
-    sample is U·k consecutive transitions and call c starts from the detached k-th state of call c-1 (the
-    pushforward term over calls of k). A k = 1 model reads both keys as before.
-  * ``unroll_grad`` (not in the paper; default off = the pushforward's detached chain): with U > 1 calls,
-    backpropagate through the whole chain, so the loss of call c reaches the parameters through calls
-    1..c-1 too (backpropagation through time over U calls; memory and backward cost ~U calls). Why: the
-    final depth error of a k = 10 rollout (4.8 nm over the 500 design cases, most of them its training
-    cases) is eight times that of one call from the simulator's own state (0.6 nm): each call is a little
-    off in the same direction, which a one-call loss hardly sees under the Monte Carlo noise of one call's
-    targets, while over U chained calls the error grows as U and the noise as sqrt(U)
-    (benchmarks/small/physics/levers.md).
-  * ``profile_loss_weight`` (not in the paper; 0 = the paper's loss) adds lambda times the mean squared error,
-    in voxels^2, of the differentiable profile metrics (``nemsim.geometry.soft_profile``: etch depth, top
-    and bottom width, mask loss) of every predicted state against its target. Why: the field MSE weighs a
-    width error of a voxel at the hole's bottom like noise in a few voxels, and a model trained on it alone
-    missed the neutral-Cl responses of the bottom width even on its training cases
-    (benchmarks/small/physics/levers.md).
-    A one-voxel metric error costs lambda; the field MSE of a trained model is ~2e-5.
-  * ``pair_loss_weight`` (not in the paper; needs ``nemsim train --pair-data``): every optimizer step adds
-    ``pairs_per_step`` sweep pairs (``nemsim.data.dataset.PairDataset``: two recipes that differ in one
-    control group, simulated with one seed) to the batch, at the same time step for both members, and adds
-    lambda times the MSE of the predicted difference of each pair (x_b - x_a, every predicted state)
-    against the simulated one. Why: a Latin hypercube moves every control at once, and the field MSE of
-    single cases weighs a control's response no more than the Monte Carlo noise around it; every model
-    trained so far missed the responses to the angular exponents and the neutral flux
-    (benchmarks/small/physics/levers.md). Simulated with common random numbers, a pair's difference holds
-    the response with less of the noise, and the loss asks for it directly. lambda 0 with pair data: the
-    members only join the batch. The pairs are drawn at random (a function of seed and step, so a resumed
-    run draws the same pairs) and count toward the step's cost but not toward the epoch.
-  * ``ema_decay`` (not in the paper; 0 = off) keeps an exponential moving average of the weights, and
-    validation, ``best.pt`` and the final test use the average (``nemsim.training.average``: why, and the
-    warm-up of its decay). 0.999 averages over about the last 1,000 steps.
-  * ``max_train_minutes`` is a budget in wall-clock minutes (the equal-wall-time comparison of models that
-    run at different speeds, e.g. NEMSim against its baselines or multi-step models of different k).
-    It counts everything the training loop spends: optimizer steps, validation rollouts and checkpoint
-    writes (metrics.csv and the summary record the validation share separately), summed over every
-    ``--resume`` (``last.pt`` stores it; a killed run loses only the time since its last checkpoint).
-    Not counted: loading data and building the model before the loop, and the final test. The run stops
-    after the first optimizer step (or validation) at which the budget is reached, then validates once and
-    writes best.pt / last.pt as at any other end (a budget raised on ``--resume`` goes on from the next
-    epoch, as after ``max_steps``). With a wall budget the cosine's horizon is the budget
-    itself: its progress is the fraction of the budget spent, so every model ends its decay at min_lr when
-    its time runs out whatever its speed (a horizon in steps would leave a slow model at a high learning
-    rate and hold a fast one at min_lr). The warm-up stays in steps (set ``warmup_steps``: the default of
-    10 epochs can outlast a budget) and scales the cosine's value. The run then depends on the machine's
-    speed, so a resumed budget run is not bit-identical to an uninterrupted one.
-  * ``rollout_steps=None`` means the scene horizon (100); tests set a few steps to run in seconds.
-  * ``channels_last`` / ``bf16`` are the CPU speed flags measured on the ``small`` scene; the defaults
-    are the measured winners (DEFAULT_* below): bf16 autocast on, channels_last_3d off. bf16 applies to
-    the training forward only; validation and test rollouts run in fp32.
+The loss of a sample of U network calls with k predicted states each (the paper: U = k = 1,
+eq:training_loss; the extra terms are 0 by default):
+
+    L = mean_c sum_j w_j MSE(x̂_cj, x_cj)  +  λ_p MSE(m(x̂), m(x))  +  λ_pair MSE(x̂_b - x̂_a, x_b - x_a)
+
+  * ``unroll_steps`` U: call c starts from call c-1's prediction, detached (the pushforward trick of
+    Brandstetter, Worrall & Welling 2022) unless ``unroll_grad``; it trains the model on the states its own
+    rollout visits, where one-step training drifts. ``step_loss_weights`` w_j (default uniform).
+  * ``profile_loss_weight`` λ_p: m = the differentiable profile metrics (``nemsim.geometry.soft_profile``,
+    voxels). The field MSE weighs a one-voxel width error at the hole's bottom like noise in a few voxels.
+  * ``pair_loss_weight`` λ_pair: ``pairs_per_step`` sweep pairs (``nemsim.data.dataset.PairDataset``: two
+    recipes that differ in one control group, one seed) join every batch. A Latin hypercube moves every
+    control at once, so a single case weighs a control's response no more than the Monte Carlo noise;
+    a pair's difference isolates it. docs/experiments.md compares these terms.
+  * ``ema_decay``: validate and keep a moving average of the weights (``nemsim.training.average``).
+
+Budgets: ``max_epochs``, ``max_steps`` or ``max_train_minutes`` (wall clock of steps, validation and
+checkpoint writes, summed over ``--resume``: the equal-time comparison of models of different speed; the
+cosine then spans the budget, so every model reaches ``min_lr`` when its time runs out, and a resumed run
+is not bit-identical). ``checkpoint_every`` writes last.pt inside an epoch. ``bf16`` (training forward only)
+and ``channels_last``: defaults from benchmarks/small/README.md.
 """
 
 from __future__ import annotations

@@ -1,39 +1,26 @@
 """The training loop ([supp_training], [supp_evaluation], eq. training_loss): one function, top to bottom.
 
 One-step supervision (the paper): minimize the voxel-wise MSE between F_θ(x_t, u_t) and x_{t+1} on normalized
-fields; with ``unroll_steps`` k > 1 the mean of k one-step MSEs along k consecutive transitions, each step fed
-the previous detached prediction (``pushforward_loss``; not in the paper, see ``TrainConfig``). A model with
-``steps_per_call`` k > 1 is trained on k-step targets: the (weighted) mean MSE of its k predicted states,
-over ``unroll_steps`` calls chained by their detached last state (``multistep_loss``).
+fields. The terms beyond the paper (pushforward unrolls, multi-step targets, profile and pair losses) are
+described with their fields in ``TrainConfig``.
 
 Every ``val_every`` epochs the model is rolled out autoregressively from x_0 over the full horizon on the
 validation trajectories (no gradient); the best rollout is kept as ``best.pt`` and training stops after
-``patience`` validation rounds without improvement (with ``ema_decay`` the rolled-out and kept weights are
-the moving average of ``nemsim.training.average``). ``last.pt`` is written after every epoch (and every
-``checkpoint_every`` steps inside one) with the optimizer, schedule step, RNG states, history and the number
-of batches of the unfinished epoch (``RunState``), so a killed run resumes where it was saved and reproduces
-the uninterrupted run (shuffling is a pure function of seed and epoch through
-``DistributedSampler.set_epoch``; the resumed epoch skips the batches already trained). ``max_steps`` ends a
-run inside an epoch, with a validation rollout there.
+``patience`` validation rounds without improvement (with ``ema_decay``: the moving-average weights).
+``last.pt`` is written after every epoch (and every ``checkpoint_every`` steps) with the optimizer, schedule
+step, RNG states, history and the position in the unfinished epoch (``RunState``), so a killed run resumes
+where it was saved and reproduces the uninterrupted run (shuffling is a pure function of seed and epoch).
+Wall and CPU time are summed over resumes in ``last.pt``, so ``max_train_minutes`` spans them; time is read
+through a ``Clock`` (tests pass a deterministic one).
 
-``max_train_minutes`` is a wall-clock budget (``TrainConfig``): the run's wall time (training steps,
-validation rollouts, checkpoint writes) and CPU time are summed over every resume in ``last.pt``, so
-``--resume`` continues the same budget; a killed run loses only the time since its last checkpoint (write
-them often with ``checkpoint_every``). The loop reads time through a ``Clock`` (tests pass a deterministic
-one); under DDP every rank uses rank 0's wall time, so all ranks take the same learning rate and stop at
-the same step.
-
-DDP: if ``torch.distributed`` is initialized (``torchrun``, see ``nemsim.train``) the model is wrapped
-in DistributedDataParallel, each rank sees a disjoint shard of every epoch (per-rank batch =
-batch_size / world size, so the global batch stays 24), validation trajectories are sharded and their
-error sums all-reduced; only rank 0 writes files.
+DDP: if ``torch.distributed`` is initialized (``torchrun``) the model is wrapped in DistributedDataParallel,
+each rank sees a disjoint shard of every epoch (per-rank batch = batch_size / world size), validation
+trajectories are sharded and their error sums all-reduced, every rank uses rank 0's wall time (same
+learning rate, same stop); only rank 0 writes files.
 
 Outputs in ``out_dir``: ``best.pt``, ``last.pt``, ``metrics.csv`` (one row per epoch: step, lr, train loss,
-validation metrics when computed, the epoch's and validation's seconds, and the run's cumulative
-``wall_s`` / ``cpu_s`` / ``val_wall_s`` when the row's weights were reached, i.e. before its validation:
-the x axis of a "validation error against training time" curve) and, at the end, ``summary.json`` (the
-training summary, ``_Run.summary``). The log file and the progress bar are set up by the entry point /
-here on rank 0 only.
+validation metrics when computed, seconds, and the run's cumulative ``wall_s`` / ``cpu_s`` / ``val_wall_s``
+at the row's weights: the x axis of an error-against-training-time curve) and ``summary.json``.
 """
 
 from __future__ import annotations
@@ -58,9 +45,9 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, Sampler
 from torch.utils.data.distributed import DistributedSampler
 
-from nemsim.inference.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
 from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
 from nemsim.evaluation.rollout import steps_per_call
+from nemsim.inference.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
 from nemsim.scenes import Scene
 from nemsim.training.average import WeightAverage
 from nemsim.training.config import TrainConfig

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from nemsim.controls import CONTROL_SPECS
-from service.deps import SettingsDep, SurrogateDep
+from service.deps import ServedModelDep, SettingsDep
 from service.schemas import ControlInfo, Health, ModelInfo, default_controls_raw, jsonable
 
 router = APIRouter(tags=["health"])
@@ -22,7 +22,7 @@ async def get_health(request: Request) -> Health:
     state = request.app.state.service
     return Health(  # type: ignore[call-arg]
         status="ok",
-        model_id=state.surrogate.model_id if state.ready else None,
+        model_id=state.served.model_id if state.ready else None,
         detail=None if state.ready else state.status,
     )
 
@@ -32,7 +32,7 @@ async def get_ready(request: Request) -> Health | JSONResponse:
     """200 once the checkpoint is loaded and a warm-up rollout ran, else 503 with the reason."""
     state = request.app.state.service
     if state.ready:
-        return Health(status="ready", model_id=state.surrogate.model_id)  # type: ignore[call-arg]
+        return Health(status="ready", model_id=state.served.model_id)  # type: ignore[call-arg]
     reason = state.error or "the checkpoint is still loading"
     body = Health(
         status=state.status, detail=state.error, message=f"model not ready ({state.status}): {reason}"
@@ -60,9 +60,10 @@ def public_record(value: Any) -> Any:
 
 
 @router.get("/model", response_model=ModelInfo)
-async def get_model(surrogate: SurrogateDep, settings: SettingsDep) -> ModelInfo:
+async def get_model(served: ServedModelDep, settings: SettingsDep) -> ModelInfo:
     """Checkpoint id, scene, rules SHA-256, training summary, test metrics and the controls' ranges."""
-    loaded = surrogate.loaded
+    predictor = served.predictor
+    loaded = predictor.loaded
     controls = [
         ControlInfo(
             name=s.name,
@@ -70,28 +71,28 @@ async def get_model(surrogate: SurrogateDep, settings: SettingsDep) -> ModelInfo
             kind=s.kind,
             min=s.phys_min if math.isfinite(s.phys_min) else None,
             max=s.phys_max if math.isfinite(s.phys_max) else None,
-            train_min=surrogate.train_range[s.name][0],
-            train_max=surrogate.train_range[s.name][1],
+            train_min=predictor.train_range[s.name][0],
+            train_max=predictor.train_range[s.name][1],
             label=s.label,
             description=s.description,
             default=float(default),
         )
         for s, default in zip(CONTROL_SPECS, default_controls_raw(), strict=True)
     ]
-    scene = jsonable(vars(surrogate.scene))
-    scene["state_shape"] = list(surrogate.scene.state_shape)
+    scene = jsonable(vars(predictor.scene))
+    scene["state_shape"] = list(predictor.scene.state_shape)
     return ModelInfo(
-        model_id=surrogate.model_id,
+        model_id=served.model_id,
         checkpoint=loaded.path.name if loaded.path else "",
         model_name=loaded.name,
-        n_params=surrogate.n_params,
+        n_params=predictor.n_params,
         scene=scene,
         rules_sha256=str(loaded.rules.sha256),
         max_steps=settings.max_steps,
-        horizon_steps=surrogate.horizon_steps,
+        horizon_steps=predictor.horizon_steps,
         summary=public_record(jsonable(loaded.summary)),
         metrics=public_record(jsonable(loaded.metrics)),
         controls=controls,
-        initial_state=surrogate.initial_state_source,
+        initial_state=predictor.initial_state_source,
         extrapolation=settings.extrapolation,
     )

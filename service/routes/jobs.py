@@ -10,13 +10,12 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from nemsim.evaluation.truth import particle_work
-from nemsim.geometry.mesh import MEDIA_TYPES
-from service import extrapolation
-from service.deps import SettingsDep, SurrogateDep, busy, reject, single_valued_query
+from nemsim.inference import MEDIA_TYPES, Refused
+from service.deps import ServedModelDep, SettingsDep, busy, reject, single_valued_query
 from service.jobs import Job, JobQueue, UnknownJob, error_mesh, simulate_and_compare
 from service.openapi import ErrorBody
+from service.scheduler import ServiceBusy
 from service.schemas import Channel, JobCreated, JobStatus, MeshFormat, SimulationRequest
-from service.surrogate import ServiceBusy
 
 router = APIRouter(tags=["jobs"])
 
@@ -46,37 +45,34 @@ def _job(jobs: JobQueue, job_id: str) -> Job:
 )
 async def post_simulation(
     body: SimulationRequest,
-    surrogate: SurrogateDep,
+    served: ServedModelDep,
     settings: SettingsDep,
     jobs: Annotated[JobQueue, Depends(get_jobs)],
 ) -> JSONResponse:
     """Run the simulator on the checkpoint's scene for these controls and compare the surrogate with it."""
     assert body.steps is not None  # resolved by the validator
-    horizon = surrogate.horizon_steps
+    horizon = served.predictor.horizon_steps
     if body.steps > horizon:
         reject(("body", "steps"), f"steps = {body.steps} exceeds the simulator's horizon of {horizon}")
-    source = next(n for n in ("controls", "controls_normalized", "recipe") if getattr(body, n) is not None)
     try:
-        schedule, _, _, _ = extrapolation.apply(
-            body.schedule_raw(), surrogate.train_range, settings.extrapolation
-        )  # (T, 14) physical units
-    except extrapolation.Refused as exc:
-        reject(("body", source), str(exc))
+        schedule, _, _, _ = served.predictor.check_range(body.schedule(), settings.extrapolation)
+    except Refused as exc:
+        reject(("body", body.source), str(exc))
     if body.steps > settings.max_steps:
         reject(
             ("body", "steps"), f"steps = {body.steps} exceeds this server's ceiling of {settings.max_steps}"
         )
     # simulated particles scale with the total flux: bound the work one job may ask for
-    work = particle_work([(row, 0) for row in schedule]) / horizon
+    work = particle_work([(row, 0) for row in schedule.raw]) / horizon
     if work > settings.sim_max_work:
         reject(
-            ("body", source),
+            ("body", body.source),
             f"this simulation is {work:.3g}x the work of a design-centre run; this server simulates at most "
             f"{settings.sim_max_work:g}x (lower the fluxes or the steps)",
         )
     seed = body.seed
     try:
-        job = jobs.submit("simulation", lambda j: simulate_and_compare(j, surrogate, schedule, seed))
+        job = jobs.submit("simulation", lambda j: simulate_and_compare(j, served, schedule, seed))
     except ServiceBusy as exc:
         busy(exc)
     location = f"/jobs/{job.id}"
@@ -111,7 +107,7 @@ async def delete_job(job_id: JobId, jobs: Annotated[JobQueue, Depends(get_jobs)]
 async def get_job_mesh(
     job_id: JobId,
     jobs: Annotated[JobQueue, Depends(get_jobs)],
-    surrogate: SurrogateDep,
+    served: ServedModelDep,
     step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
     channel: Annotated[Channel, Query(description="mask or si")] = "si",
     format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
@@ -135,7 +131,7 @@ async def get_job_mesh(
     ch = 0 if channel == "mask" else 1
     meta = {"job_id": job_id, "step": step, "channel": channel, "colour": "surrogate signed distance, nm"}
     data = await anyio.to_thread.run_sync(
-        error_mesh, sim[step, ch], pred[step, ch], surrogate.scene, format, meta
+        error_mesh, sim[step, ch], pred[step, ch], served.scene, format, meta
     )
     return Response(
         content=data,

@@ -7,8 +7,8 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import Response
 
-from service import extrapolation
-from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
+from nemsim.inference import Refused
+from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
 from service.openapi import ErrorBody
 from service.schemas import (
     MechanismsQuery,
@@ -30,32 +30,33 @@ router = APIRouter(tags=["mechanisms"])
 async def get_mechanisms(
     request: Request,
     query: Annotated[MechanismsQuery, Query()],  # type: ignore[valid-type]
-    surrogate: SurrogateDep,
+    served: ServedModelDep,
     settings: SettingsDep,
     gates: GatesDep,
 ) -> Response:
     """Cl+ / neutral-Cl interventions around one base control: Delta M per family, Delta R, lambda, alpha."""
-    if not surrogate.supports_mechanisms:
+    predictor = served.predictor
+    if not predictor.supports_mechanisms:
         raise HTTPException(
             status_code=501,
-            detail=f"model {surrogate.loaded.name!r} has no event mechanisms (not a NEMSim model)",
+            detail=f"model {predictor.loaded.name!r} has no event mechanisms (not a NEMSim model)",
         )
     try:
-        raw, warnings, found, clipped = extrapolation.apply(
-            controls_to_array(query), surrogate.train_range, settings.extrapolation,
-            surrogate.control_saturation,
-        )  # raw: (14,) physical units
-    except extrapolation.Refused as exc:
+        schedule, warnings, found, clipped = predictor.check_range(
+            predictor.schedule(controls_to_array(query), steps=1), settings.extrapolation
+        )
+    except Refused as exc:
         reject(("query",), str(exc))
-    result = surrogate.cached_mechanisms(raw, query.factors)
+    raw = schedule.raw[0]  # (14,) physical units
+    result = served.cached_mechanisms(raw, query.factors)
     request.app.state.metrics.cache_lookup("mechanisms", result is not None)
     try:
         if result is None:
-            result = await gated(request, gates.mechanisms, surrogate.mechanisms, raw, query.factors)
+            result = await gated(request, gates.mechanisms, served.mechanisms, raw, query.factors)
     except ValueError as exc:  # the library rejects an input it cannot analyse, naming it
         reject(("query",), str(exc))
     return json_response(MechanismsResponse(
-        model_id=surrogate.model_id,
+        model_id=served.model_id,
         controls=array_to_controls(raw),
         result=result,
         warnings=warnings,

@@ -14,7 +14,7 @@ from fastapi import APIRouter, FastAPI, Path
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from service.deps import SurrogateDep
+from service.deps import ServedModelDep
 from service.openapi import ErrorBody
 from service.routes.rollouts import cached_rollout
 from service.schemas import SlicesResponse
@@ -42,17 +42,17 @@ def install(app: FastAPI) -> None:
     responses={404: {"model": ErrorBody, "description": "unknown or expired rollout id"}},
 )
 async def get_slices(
-    rollout_id: Annotated[str, Path(max_length=64)], surrogate: SurrogateDep
+    rollout_id: Annotated[str, Path(max_length=64)], served: ServedModelDep
 ) -> SlicesResponse:
     """Cross-sections through the hole axis (the x-z plane at the opening's y) of every state of a cached
     rollout, for the explorer page: normalized SDF quantized to bytes, round((sdf + 1) * 127.5)."""
-    result = cached_rollout(surrogate, rollout_id)
-    y = int(round(surrogate.scene.opening_centre[1])) + 1  # +1: the field is padded by one voxel
+    result = cached_rollout(served, rollout_id)
+    y = int(round(served.scene.opening_centre[1])) + 1  # +1: the field is padded by one voxel
     planes = np.asarray(result.states[:, :, :, y, :], dtype=np.float32)  # (T+1, 2, D, W)
     q = np.round((np.clip(planes, -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
     return SlicesResponse(
         shape=list(q.shape),
-        voxel_nm=float(surrogate.scene.voxel_nm),
-        d_max_nm=float(surrogate.scene.d_max_nm),
+        voxel_nm=float(served.scene.voxel_nm),
+        d_max_nm=float(served.scene.d_max_nm),
         data=base64.b64encode(q.tobytes()).decode("ascii"),
     )

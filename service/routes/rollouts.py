@@ -9,10 +9,9 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response
 
-from nemsim.geometry.mesh import MEDIA_TYPES
-from service import extrapolation
-from service.deps import GatesDep, SettingsDep, SurrogateDep, gated, reject, single_valued_query
-from service.design import rollout_intervals
+from nemsim.inference import MEDIA_TYPES, Refused
+from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
+from service.inverse import rollout_intervals
 from service.openapi import ErrorBody
 from service.scheduler import Gates
 from service.schemas import (
@@ -26,7 +25,7 @@ from service.schemas import (
     array_to_controls,
     json_response,
 )
-from service.surrogate import RolloutResult, Surrogate, UnknownRollout
+from service.served_model import RolloutResult, ServedModel, UnknownRollout
 
 router = APIRouter(tags=["rollouts"])
 
@@ -37,27 +36,27 @@ def _mesh_url(rollout_id: str, step: int, channel: str, fmt: str) -> str:
 
 async def _mesh_bytes(
     request: Request,
-    surrogate: Surrogate,
+    served: ServedModel,
     gates: Gates,
     result: RolloutResult,
     step: int,
     channel: str,
     fmt: str,
 ) -> bytes:
-    cached = surrogate.cached_mesh(result, step, channel, fmt)
+    cached = served.cached_mesh(result, step, channel, fmt)
     request.app.state.metrics.cache_lookup("mesh", cached is not None)
     if cached is not None:
         return cached
     try:
-        return await gated(request, gates.mesh, surrogate.mesh, result, step, channel, fmt)
+        return await gated(request, gates.mesh, served.mesh, result, step, channel, fmt)
     except ValueError as exc:  # e.g. no zero-level surface in this channel at this step
         reject(("query", "step"), f"no {channel} mesh at step {step}: {exc}")
 
 
-def cached_rollout(surrogate: Surrogate, rollout_id: str) -> RolloutResult:
-    """A rollout of the surrogate's cache by id; 404 when it was never computed here or was evicted."""
+def cached_rollout(served: ServedModel, rollout_id: str) -> RolloutResult:
+    """A rollout of the served model's cache by id; 404 when it was never computed here or was evicted."""
     try:
-        return surrogate.get_rollout(rollout_id)
+        return served.get_rollout(rollout_id)
     except UnknownRollout:
         raise HTTPException(
             status_code=404,
@@ -68,7 +67,7 @@ def cached_rollout(surrogate: Surrogate, rollout_id: str) -> RolloutResult:
 
 @router.post("/rollout", response_model=RolloutResponse)
 async def post_rollout(
-    request: Request, body: RolloutRequest, surrogate: SurrogateDep, settings: SettingsDep, gates: GatesDep
+    request: Request, body: RolloutRequest, served: ServedModelDep, settings: SettingsDep, gates: GatesDep
 ) -> Response:
     """Predict the etch over `steps` transitions of 0.1 s; metrics always, fields and meshes on demand."""
     t_start = time.perf_counter()
@@ -82,28 +81,31 @@ async def post_rollout(
             ("body", "meshes"),
             f"{len(body.meshes)} meshes requested; at most {settings.max_meshes} per rollout",
         )
-    source = next(n for n in ("controls", "controls_normalized", "recipe") if getattr(body, n) is not None)
+    predictor = served.predictor
     try:
-        schedule, warnings, found, clipped = extrapolation.apply(
-            body.schedule_raw(), surrogate.train_range, settings.extrapolation,
-            surrogate.control_saturation,
-        )  # schedule: (T, 14) physical units
-    except extrapolation.Refused as exc:
-        reject(("body", source), str(exc))
-    if body.steps > surrogate.horizon_steps:
+        schedule, warnings, found, clipped = predictor.check_range(body.schedule(), settings.extrapolation)
+    except Refused as exc:
+        reject(("body", body.source), str(exc))
+    if body.steps > predictor.horizon_steps:
         warnings.append(
-            f"steps = {body.steps} goes beyond the {surrogate.horizon_steps}-step horizon the model was "
+            f"steps = {body.steps} goes beyond the {predictor.horizon_steps}-step horizon the model was "
             "trained on"
         )
-    _, hit = surrogate.lookup_rollout(schedule)
+    rid, hit = served.lookup_rollout(schedule)
     metrics = request.app.state.metrics
     metrics.cache_lookup("rollout", hit is not None)
     if hit is not None:
         result, cached = hit, True
     else:
-        result, cached = await gated(request, gates.rollout, surrogate.compute_rollout, schedule)
+        result, cached = await gated(request, gates.rollout, served.compute_rollout, schedule, rid)
         if not cached:
             metrics.rollout_computed(result.rollout_ms / 1e3)
+    if result.non_finite_from is not None:  # NaN/Inf states are no answer (and no 5xx: nothing crashed)
+        reject(
+            ("body", body.source),
+            f"the model's prediction for these controls is not finite (NaN/Inf) from step "
+            f"{result.non_finite_from} on: no rollout can be returned",
+        )
     warnings.extend(result.warnings)
 
     t0 = time.perf_counter()
@@ -114,13 +116,13 @@ async def post_rollout(
         fields = FieldsPayload(  # type: ignore[call-arg]
             shape=list(data.shape),
             steps=steps,
-            d_max_nm=float(surrogate.scene.d_max_nm),
+            d_max_nm=float(served.scene.d_max_nm),
             data=base64.b64encode(data.tobytes()).decode("ascii"),
         )
     t1 = time.perf_counter()
     meshes = []
     for spec in body.meshes:
-        raw = await _mesh_bytes(request, surrogate, gates, result, spec.step, spec.channel, spec.format)
+        raw = await _mesh_bytes(request, served, gates, result, spec.step, spec.channel, spec.format)
         meshes.append(
             MeshPayload(
                 step=spec.step,
@@ -147,7 +149,7 @@ async def post_rollout(
         clipped=clipped,
         fields=fields,
         meshes=meshes,
-        intervals=rollout_intervals(surrogate, result.metrics) if body.intervals else None,
+        intervals=rollout_intervals(served, result.metrics) if body.intervals else None,
         timings=Timings(
             total_ms=1e3 * (time.perf_counter() - t_start),
             rollout_ms=0.0 if cached else result.rollout_ms,
@@ -170,24 +172,24 @@ async def post_rollout(
 async def get_mesh(
     request: Request,
     rollout_id: Annotated[str, Path(max_length=64)],
-    surrogate: SurrogateDep,
+    served: ServedModelDep,
     gates: GatesDep,
     step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
     channel: Annotated[Channel, Query(description="mask or si")] = "si",
     format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
 ) -> Response:
     """The zero-level surface of one channel at one step of a cached rollout, in nm, with provenance."""
-    result = cached_rollout(surrogate, rollout_id)
+    result = cached_rollout(served, rollout_id)
     step = result.steps if step is None else step
     if step > result.steps:
         reject(("query", "step"), f"step = {step} is beyond this rollout's last state ({result.steps})")
-    data = await _mesh_bytes(request, surrogate, gates, result, step, channel, format)
+    data = await _mesh_bytes(request, served, gates, result, step, channel, format)
     filename = f"nemsim_{rollout_id}_step{step}_{channel}.{format}"
     return Response(
         content=data,
         media_type=MEDIA_TYPES[format],
         headers={
             "Content-Disposition": f'attachment; filename="{filename}"',
-            "X-Model-Id": surrogate.model_id,
+            "X-Model-Id": served.model_id,
         },
     )

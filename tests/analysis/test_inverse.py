@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nemsim.analysis.inverse import (
-    load_design_context,
+    load_inverse_context,
     rollout_to,
     search,
     spec_from_dict,
@@ -22,7 +22,7 @@ SMALL_SEARCH = {"screen": 6, "starts": 2, "iterations": 2, "batch": 4, "method":
 
 @pytest.fixture(scope="module")
 def ctx(tiny_checkpoint):
-    return load_design_context(tiny_checkpoint)
+    return load_inverse_context(tiny_checkpoint)
 
 
 @pytest.mark.parametrize(

@@ -73,7 +73,7 @@ def test_inverse_refine_reports_simulated_rounds(tiny_checkpoint, tmp_path, caps
 
 
 def test_verify_refines_by_default_and_no_refine_only_simulates(tiny_checkpoint, tmp_path, capsys):
-    from nemsim.analysis.inverse_refine import REFINE_WITH_VERIFY
+    from nemsim.analysis.inverse import REFINE_WITH_VERIFY
 
     spec = tmp_path / "spec.json"
     spec.write_text(json.dumps(SPEC))

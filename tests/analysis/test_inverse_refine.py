@@ -9,12 +9,14 @@ import pytest
 import torch
 
 from nemsim.analysis.intervals import Support
-from nemsim.analysis.inverse import DesignContext, rollout_to, spec_from_dict
-from nemsim.analysis.inverse_refine import (
+from nemsim.analysis.inverse import (
+    InverseContext,
     RefineConfig,
     SimulationSkipped,
     refine_config_from_dict,
-    refine_design,
+    refine_with_simulator,
+    rollout_to,
+    spec_from_dict,
 )
 from nemsim.controls import CONTROL_NAMES, control_index, from_normalized, to_normalized
 from nemsim.geometry.profile import profile_metrics_batch
@@ -41,7 +43,7 @@ def toy(tiny_scene):
     from nemsim.sim import initial_state
 
     x0 = torch.from_numpy(np.asarray(initial_state(tiny_scene), dtype=np.float32))
-    return DesignContext(
+    return InverseContext(
         model=_Toy(), scene=tiny_scene, x0=x0, calibration=None, support=Support.from_record(None),
         model_id="toy",
     )
@@ -81,7 +83,7 @@ def _spec(depth: float, tol: float = 1.0, k: int = 3):
 
 def test_one_correction_round_removes_a_constant_offset(toy):
     sim = FakeSimulator(toy, {"etch_depth": 5.0})
-    res = refine_design(toy, _spec(16.0), sim, refine=EXACT, sim_seed=3)
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=EXACT, sim_seed=3)
     ref = res["refinement"]
     r0, r1 = ref["rounds"][0], ref["rounds"][1]
     assert ref["surrogate_status"] == "met" and len(ref["rounds"]) == 2 and ref["stopped"] == "met"
@@ -116,7 +118,7 @@ def test_the_trust_region_bounds_each_round(toy):
     takes two rounds, and each round's recipe stays inside the region around its anchor."""
     sim = FakeSimulator(toy, {"etch_depth": 5.0})
     cfg = RefineConfig(verify_top=1, rounds=3, budget_s=1e9, radius=0.3, screen=4, starts=2, iterations=8)
-    res = refine_design(toy, _spec(16.0), sim, refine=cfg)
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=cfg)
     rounds = res["refinement"]["rounds"]
     j = control_index(FREE)
     u = [float(np.asarray(to_normalized(c[None]))[0, j]) for c in sim.calls]
@@ -128,11 +130,11 @@ def test_the_trust_region_bounds_each_round(toy):
 
 def test_met_in_round_0_and_budget_stop(toy):
     sim = FakeSimulator(toy, {})
-    res = refine_design(toy, _spec(16.0), sim, refine=EXACT)
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=EXACT)
     assert res["status"] == "verified" and res["refinement"]["stopped"] == "met"
     assert len(res["refinement"]["rounds"]) == 1 and len(sim.calls) == 1  # the first recipe met: no second
     sim = FakeSimulator(toy, {"etch_depth": 5.0})
-    res = refine_design(toy, _spec(16.0), sim, refine=RefineConfig(verify_top=1, budget_s=0.0))
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=RefineConfig(verify_top=1, budget_s=0.0))
     assert res["refinement"]["stopped"] == "budget" and len(sim.calls) == 1
     assert res["status"] == "unverified" and "closest simulated" in res["message"]
     assert res["recipes"][0]["verified_by"] == "simulator" and not res["recipes"][0]["simulator_met"]
@@ -142,7 +144,7 @@ def test_a_surrogate_unreachable_target_the_simulator_meets_is_verified(toy):
     """The surrogate cannot etch 30 nm in 6 steps (at most 22.5); the simulator etches 12 nm more, so the
     corrected search asks for 18 nm and the simulator meets 30 nm: not unreachable."""
     sim = FakeSimulator(toy, {"etch_depth": 12.0})
-    res = refine_design(toy, _spec(30.0), sim, refine=EXACT)
+    res = refine_with_simulator(toy, _spec(30.0), sim, refine=EXACT)
     assert res["refinement"]["surrogate_status"] == "unreachable"
     assert res["status"] == "verified"
     assert abs(res["recipes"][0]["simulated"]["etch_depth"] - 30.0) <= 1.0
@@ -150,7 +152,7 @@ def test_a_surrogate_unreachable_target_the_simulator_meets_is_verified(toy):
 
 def test_an_unreachable_target_stays_unreachable_with_the_closest_simulated_miss(toy):
     sim = FakeSimulator(toy, {"etch_depth": 2.0})
-    res = refine_design(toy, _spec(200.0), sim, refine=EXACT)
+    res = refine_with_simulator(toy, _spec(200.0), sim, refine=EXACT)
     assert res["status"] == "unreachable" and "closest simulated" in res["message"]
     ref = res["refinement"]
     assert ref["surrogate_status"] == "unreachable" and ref["stopped"] in ("rounds", "converged")
@@ -164,7 +166,7 @@ def test_an_unreachable_target_stays_unreachable_with_the_closest_simulated_miss
 
 def test_declined_simulations_leave_the_surrogate_result(toy):
     sim = FakeSimulator(toy, {"etch_depth": 5.0}, skip=True)
-    res = refine_design(toy, _spec(16.0), sim, refine=EXACT)
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=EXACT)
     assert res["status"] == "met"  # the surrogate's word, since nothing was simulated
     assert res["refinement"]["stopped"] == "no simulated recipe"
     assert len(res["verification"]["skipped"]) == EXACT.verify_top and res["verification"]["recipes"] == []
@@ -186,17 +188,17 @@ def test_refine_config_from_dict_reads_a_subset():
     assert cfg.rounds == 1 and cfg.radius == 0.5 and cfg.verify_top == RefineConfig().verify_top
 
 
-def test_run_design_refines_with_the_real_simulator(tiny_checkpoint):
+def test_run_inverse_refines_with_the_real_simulator(tiny_checkpoint):
     """The in-process path: the checkpoint's simulator, one round-0 run and at most one corrected run."""
-    from nemsim.analysis.inverse import format_result, load_design_context, run_design
+    from nemsim.analysis.inverse import format_result, load_inverse_context, run_inverse
 
-    ctx = load_design_context(tiny_checkpoint)
+    ctx = load_inverse_context(tiny_checkpoint)
     spec = spec_from_dict(
         {"targets": {"etch_depth": {"value": 8.0, "tol": 2.0}}, "step": 2, "k": 2,
          "search": {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}}
     )
     cfg = RefineConfig(verify_top=1, rounds=1, budget_s=1e9, screen=2, starts=1, iterations=1)
-    res = run_design(ctx, spec, refine=cfg, sim_seed=5)
+    res = run_inverse(ctx, spec, refine=cfg, sim_seed=5)
     runs = res["verification"]["recipes"]
     assert 1 <= len(runs) <= 2 and res["cost"]["simulator_runs"] == len(runs)
     assert res["status"] in ("verified", "unverified", "unreachable")
@@ -220,13 +222,13 @@ class _FakeTruth:
 
 
 def test_bench_run_judges_the_refined_design_with_an_independent_seed(toy):
-    from bench.inverse import LOOP_SEED, VERIFY_SEED, _design_run, _summary
+    from bench.inverse import LOOP_SEED, VERIFY_SEED, _inverse_run, _summary
 
     truth = _FakeTruth(FakeSimulator(toy, {"etch_depth": 5.0}))
-    plain = _design_run(toy, _spec(16.0), "adam", True, truth, STEP)
+    plain = _inverse_run(toy, _spec(16.0), "adam", True, truth, STEP)
     assert truth.seeds == [VERIFY_SEED] and not plain["success"] and plain["status"] == "met"
     truth.seeds.clear()
-    refined = _design_run(toy, _spec(16.0), "adam", True, truth, STEP, EXACT)
+    refined = _inverse_run(toy, _spec(16.0), "adam", True, truth, STEP, EXACT)
     assert truth.seeds[-1] == VERIFY_SEED and set(truth.seeds[:-1]) == {LOOP_SEED}
     assert refined["success"] and refined["status"] == "verified"
     assert refined["cost"]["simulator_runs"] == len(truth.seeds) - 1 == 3

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, PHYS_MIN, to_normalized
 from bench.extrapolation import ExtrapolationConfig, box_distance, recipes, run_extrapolation
+from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, PHYS_MIN, to_normalized
 
 torch.set_num_threads(1)
 

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, to_normalized
 from bench.invariants import (
     InvariantConfig,
     format_invariants,
@@ -20,6 +19,7 @@ from bench.invariants import (
     write_noise,
     zero_flux_recipes,
 )
+from nemsim.controls import CONTROL_INDEX, FLUX_INDICES, to_normalized
 
 torch.set_num_threads(1)
 STEPS = 5  # simulated transitions: enough for the ion fluxes to move the depth beyond the seed noise

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from bench.noise import bench_pair_noise, pair_group
 from nemsim.cli import main
 from nemsim.controls import lhs_design, set_group
 from nemsim.data.hdf5 import TrajectoryWriter
-from bench.noise import bench_pair_noise, pair_group
 
 
 def _pair_file(path, scene, levels: tuple[float, float], seed: int, raw: np.ndarray) -> None:

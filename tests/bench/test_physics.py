@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from nemsim.controls import CONTROL_GROUPS, CONTROL_INDEX, HIGH, LOW, to_normalized
 from bench.physics import (
     PhysicsConfig,
     box_corners,
@@ -18,6 +17,7 @@ from bench.physics import (
     run_physics,
     sweep_recipes,
 )
+from nemsim.controls import CONTROL_GROUPS, CONTROL_INDEX, HIGH, LOW, to_normalized
 from nemsim.evaluation.truth import SimTruth, compare_case
 
 torch.set_num_threads(1)

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from nemsim.controls import CONTROL_INDEX, N_CONTROLS
 from bench.responses import fit_linear, response_rows, summarize
+from nemsim.controls import CONTROL_INDEX, N_CONTROLS
 
 CL = CONTROL_INDEX["flux_cl"]
 

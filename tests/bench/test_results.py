@@ -6,8 +6,8 @@ from __future__ import annotations
 import csv
 import json
 
-from nemsim.cli import main
 from bench.results import setting_key
+from nemsim.cli import main
 from nemsim.training.loop import CSV_FIELDS
 
 BUDGET = {"max_train_minutes": 45.0, "max_steps": None, "batch_size": 24}
@@ -120,7 +120,8 @@ def test_collect_names_multistep_models_apart(tmp_path):
     for k in (1, 5):
         summary = _summary(100, 60.0, 59.0, 0.01)
         d = _run_dir(tmp_path, f"k{k}", "control-id", 0.02 + 0.01 * k, BUDGET, summary)
-        torch.save({"format_version": 1, "model_name": "nemsim", "model_config": {"steps_per_call": k}},
+        torch.save({"format_version": 1, "model_name": "nemsim", "model_config": {"steps_per_call": k},
+                    "model_state": {}},
                    f"{d}/best.pt")
         runs.append(d)
     out = tmp_path / "results.json"

@@ -174,16 +174,3 @@ def test_cli_bench_rollout_window(tiny_checkpoint, tmp_path, monkeypatch, x0):
     win = json.loads(out.read_text())["variants"]["fp32-window"]
     assert 0.0 < win["fraction_computed"] <= 1.0
     assert win["max_abs_diff_vs_fp32"] < 0.25  # the stated tolerance is per-step RMS; a bound on max
-
-
-def test_service_stability_guard():
-    from service.surrogate import stability_warnings
-
-    traj = np.zeros((4, 2, 3, 3, 3), dtype=np.float32)
-    assert stability_warnings(traj) == []
-    traj[2, 1, 0, 0, 0] = 7.0
-    traj[3, 0, 1, 1, 1] = np.nan
-    msgs = stability_warnings(traj)
-    assert len(msgs) == 2
-    assert "step 3" in msgs[0] and "NaN" in msgs[0]
-    assert "step 2" in msgs[1] and "7" in msgs[1]

@@ -8,9 +8,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from bench.stress import initial_state
 from nemsim.evaluation.rollout import rollout
 from nemsim.inference.runtime import compile_model, openvino_available
-from bench.stress import initial_state
 from nemsim.model import NEMSim, NEMSimConfig
 from nemsim.model.monotone import MonotoneProjection, axis_eps_of
 from nemsim.scenes import TINY

@@ -17,8 +17,8 @@ import pytest
 import torch
 from torch import nn
 
-from nemsim.inference import runtime
 from nemsim.evaluation.rollout import rollout
+from nemsim.inference import runtime
 from nemsim.inference.runtime import compile_model, openvino_available
 
 torch.set_num_threads(1)
@@ -103,7 +103,7 @@ def test_openvino_multistep_matches_pytorch(trained_multistep, precision, unpack
     states formed by ``write_states`` (the default), or whole with the states as its output."""
     model, x0, u = trained_multistep
     ref = rollout(model, x0, u)
-    monkeypatch.setattr(runtime.OpenVINOPredictor, "unpack_states", unpack)
+    monkeypatch.setattr(runtime.OpenVINORuntime, "unpack_states", unpack)
     pred = compile_model(model, "openvino", precision)
     out = rollout(pred, x0, u)
     assert pred.backend == "openvino" and pred.k == 4 and out.shape == ref.shape
@@ -178,7 +178,7 @@ def test_fallback_when_the_export_fails(trained, monkeypatch, caplog):
     def broken(self, *args, **kwargs):
         raise RuntimeError("unsupported operation\nmore detail")
 
-    monkeypatch.setattr(runtime.OpenVINOPredictor, "_compile", broken)
+    monkeypatch.setattr(runtime.OpenVINORuntime, "_compile", broken)
     pred = compile_model(model, "openvino", "f32")
     with caplog.at_level(logging.WARNING, logger="nemsim.inference.runtime"):
         out = rollout(pred, x0, u)

@@ -108,7 +108,7 @@ def test_init_from_widens_a_checkpoint_without_the_columns(tmp_path, rules, tiny
     """``nemsim train --init-from`` of a checkpoint without the columns into a model with them: the stored
     weights in place, the columns at zero, the same predictions."""
     from nemsim.inference.checkpoint import save_checkpoint
-    from nemsim.train import _init_from
+    from nemsim.training.run import init_from
 
     torch.manual_seed(2)
     parent = NEMSim(rules).eval()
@@ -118,7 +118,7 @@ def test_init_from_widens_a_checkpoint_without_the_columns(tmp_path, rules, tiny
     path = save_checkpoint(tmp_path / "parent.pt", parent, model_name="nemsim",
                            model_config=dataclasses.asdict(parent.config), scene=tiny_scene, rules=rules)
     grown = NEMSim(rules, dataclasses.replace(parent.config, angle_features=True)).eval()
-    _init_from(grown, path, "nemsim", rules, tiny_scene)
+    init_from(grown, path, "nemsim", rules, tiny_scene)
     assert grown.mac.ctx_state.weight[:, 24 + N_CONTROLS:].abs().max() == 0
     x, u = _inputs()
     with torch.no_grad():

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from nemsim.baselines.rulefeat import RuleFeat
-from nemsim.inference.checkpoint import load_checkpoint, save_checkpoint
 from nemsim.controls import CONTROL_INDEX, HIGH, IS_LOG, LOW, to_normalized
+from nemsim.inference.checkpoint import load_checkpoint, save_checkpoint
 from nemsim.model import NEMSim, NEMSimConfig
 from nemsim.registry import build_model
 from nemsim.rules import kinetics

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
+from bench.stress import initial_state
 from nemsim.controls import FLUX_INDICES, HIGH, LOW, to_normalized
 from nemsim.evaluation.rollout import rollout
-from nemsim.inference.runtime import compile_model, openvino_available
-from bench.stress import initial_state
 from nemsim.geometry.profile import profile_metrics_batch
+from nemsim.inference.runtime import compile_model, openvino_available
 from nemsim.model import NEMSim, NEMSimConfig
 from nemsim.model.monotone import (
     MONOTONE_AXIS_EPS,

@@ -1,5 +1,5 @@
 """Fixtures for the service tests: a tiny checkpoint (untrained NEMSim on the `tiny` scene, written with
-`save_checkpoint`), the Surrogate over it, and TestClients.
+`save_checkpoint`), the ServedModel over it (fixture `served`), and TestClients.
 
 Until a trained small checkpoint is shipped, tests make their own on `tiny`. Rollouts start from
 `nemsim.sim.initial_state(scene)`, the simulator's SDF of the initial geometry.
@@ -17,10 +17,10 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")
-def surrogate(tiny_checkpoint):
-    from service.surrogate import Surrogate
+def served(tiny_checkpoint):
+    from service.served_model import ServedModel
 
-    s = Surrogate.from_checkpoint(tiny_checkpoint, cache_size=16)
+    s = ServedModel.from_checkpoint(tiny_checkpoint, cache_size=16)
     s.warm_up(1)  # as the server does before /ready: the runtime compiles here, not in a test's request
     return s
 
@@ -56,12 +56,13 @@ def client(tiny_checkpoint):
 
 
 @pytest.fixture
-def make_client(surrogate):
-    """A client over the shared surrogate with other settings (no reload): make_client(max_body_bytes=...)."""
+def make_client(served):
+    """A client over the shared served model with other settings (no reload):
+    make_client(max_body_bytes=...)."""
     from fastapi.testclient import TestClient
 
     from service.config import Settings
-    from service.deps import get_surrogate
+    from service.deps import get_served_model
     from service.main import create_app
 
     clients = []
@@ -69,8 +70,8 @@ def make_client(surrogate):
     def make(**overrides):
         # no rate limit unless a test asks: a whole test module may send hundreds of requests at once
         settings = Settings(**{"warmup_steps": 0, "rate_limit_per_minute": 0, **overrides})
-        app = create_app(settings, surrogate=surrogate)
-        app.dependency_overrides[get_surrogate] = lambda: surrogate
+        app = create_app(settings, served=served)
+        app.dependency_overrides[get_served_model] = lambda: served
         c = TestClient(app)
         c.__enter__()
         clients.append(c)

@@ -100,8 +100,8 @@ def test_configured_step_ceiling(make_client, default_controls):
     assert c.post("/rollout", json={"controls": default_controls}).status_code == 422
 
 
-def test_longer_than_horizon_warns(make_client, default_controls, surrogate, monkeypatch):
-    monkeypatch.setattr(type(surrogate), "horizon_steps", property(lambda self: 2))
+def test_longer_than_horizon_warns(make_client, default_controls, served, monkeypatch):
+    monkeypatch.setattr(type(served.predictor), "horizon_steps", property(lambda self: 2))
     r = make_client().post("/rollout", json={"controls": default_controls, "steps": 3})
     assert r.status_code == 200 and any("horizon" in w for w in r.json()["warnings"])
 
@@ -128,17 +128,17 @@ def test_oversized_streamed_body_413(make_client, default_controls):
     assert r.status_code == 413
 
 
-def test_busy_503(make_client, surrogate, default_controls, monkeypatch):
+def test_busy_503(make_client, served, default_controls, monkeypatch):
     """A full queue answers 503 with Retry-After instead of piling up work."""
     hold, release = threading.Event(), threading.Event()
-    compute = type(surrogate)._compute
+    compute = type(served)._compute
 
     def slow(self, *args):
         hold.set()
         release.wait(10)
         return compute(self, *args)
 
-    monkeypatch.setattr(type(surrogate), "_compute", slow)
+    monkeypatch.setattr(type(served), "_compute", slow)
     c = make_client(max_queue=0)
     first = threading.Thread(
         target=c.post,

@@ -7,14 +7,14 @@ from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import not_a_server_error
 
 
-def test_no_server_errors(surrogate):
+def test_no_server_errors(served):
     """Every operation of the schema, a bounded number of generated requests each (< 30 s in all)."""
     from service.config import Settings
     from service.main import create_app
 
     # sim_queue: a fuzzed simulator job must not meet a full queue (its 503 is tested in test_jobs.py)
     app = create_app(
-        Settings(warmup_steps=0, max_steps=3, rate_limit_per_minute=0, sim_queue=1000), surrogate=surrogate
+        Settings(warmup_steps=0, max_steps=3, rate_limit_per_minute=0, sim_queue=1000), served=served
     )
     schema = schemathesis.openapi.from_asgi("/openapi.json", app)
     operations = [result.ok() for result in schema.get_all_operations()]

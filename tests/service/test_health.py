@@ -65,25 +65,65 @@ def test_settings_from_env(monkeypatch, tmp_path):
         get_settings.cache_clear()
 
 
-def test_default_checkpoint_is_first_pt(monkeypatch, tmp_path):
+def test_default_checkpoint_is_exactly_the_scene_one(monkeypatch, tmp_path):
+    """The default is `nemsim-<scene>.pt` and nothing else: another *.pt (another scene's model, a
+    reference) is never chosen, and without the file the path is still that one (loading then fails)."""
     import service.config as config
 
-    (tmp_path / "b_model.pt").write_bytes(b"")
     (tmp_path / "a_model.pt").write_bytes(b"")
+    (tmp_path / "nemsim-small-k1.pt").write_bytes(b"")  # sorts before nemsim-small.pt
     monkeypatch.setattr(config, "checkpoint_dirs", lambda: [tmp_path / "nothing", tmp_path])
-    assert default_checkpoint() == tmp_path / "a_model.pt"
-    monkeypatch.setattr(config, "checkpoint_dirs", lambda: [tmp_path / "nothing"])
-    assert default_checkpoint() is None
+    assert default_checkpoint() == tmp_path / "nothing" / "nemsim-small.pt"
+    (tmp_path / "nemsim-small.pt").write_bytes(b"")
+    (tmp_path / "nemsim-tiny.pt").write_bytes(b"")
+    assert default_checkpoint() == tmp_path / "nemsim-small.pt"
+    assert Settings(scene="tiny").resolved_checkpoint() == tmp_path / "nemsim-tiny.pt"
+    assert Settings().expected_scene() == "small" and Settings(scene="tiny").expected_scene() == "tiny"
+    assert Settings(checkpoint=tmp_path / "a_model.pt").expected_scene() is None  # the operator named it
+    assert Settings(checkpoint=tmp_path / "nemsim-small.pt").expected_scene() == "small"  # the default file
 
 
-def test_default_checkpoint_is_the_shipped_one_beside_references(monkeypatch, tmp_path):
+def _failed(app) -> dict:
+    with TestClient(app) as c:
+        for _ in range(500):
+            ready = c.get("/ready")
+            if ready.json()["status"] == "failed":
+                return ready.json()
+            time.sleep(0.01)
+    raise AssertionError(f"never failed: {ready.json()}")
+
+
+def test_missing_default_checkpoint_is_a_startup_error(monkeypatch, tmp_path, tiny_checkpoint):
+    """Without `nemsim-small.pt` the server fails to start, naming the file; it does not serve the first
+    *.pt it finds (here a model of another scene)."""
+    import shutil
+
     import service.config as config
 
-    # "nemsim-small-k1.pt" sorts before "nemsim-small.pt": the served name wins, not the sort order
-    (tmp_path / "nemsim-small-k1.pt").write_bytes(b"")
-    (tmp_path / config.SHIPPED_CHECKPOINT).write_bytes(b"")
+    shutil.copy(tiny_checkpoint, tmp_path / "a_tiny_model.pt")
     monkeypatch.setattr(config, "checkpoint_dirs", lambda: [tmp_path])
-    assert default_checkpoint() == tmp_path / config.SHIPPED_CHECKPOINT
+    stopped: list[bool] = []
+    app = create_app(Settings(warmup_steps=0))
+    app.state.on_load_failure = lambda: stopped.append(True)
+    body = _failed(app)
+    assert "nemsim-small.pt" in body["detail"] and "not found" in body["detail"] and stopped == [True]
+
+
+def test_a_model_of_another_scene_is_refused(monkeypatch, tmp_path, tiny_checkpoint):
+    """`nemsim-small.pt` holding a `tiny` model, or NEMSIM_SCENE naming another scene: refused at load."""
+    import shutil
+
+    import service.config as config
+    from service.main import checkpoint_problem
+
+    shutil.copy(tiny_checkpoint, tmp_path / "nemsim-small.pt")
+    monkeypatch.setattr(config, "checkpoint_dirs", lambda: [tmp_path])
+    body = _failed(create_app(Settings(warmup_steps=0)))
+    assert "scene" in body["detail"] and "'tiny'" in body["detail"] and "'small'" in body["detail"]
+    assert "scene" in checkpoint_problem(Settings(checkpoint=tmp_path / "nemsim-small.pt"))  # serve passes it
+    assert "scene" in checkpoint_problem(Settings(checkpoint=tiny_checkpoint, scene="small"))
+    assert checkpoint_problem(Settings(checkpoint=tiny_checkpoint)) is None
+    assert checkpoint_problem(Settings(checkpoint=tiny_checkpoint, scene="tiny")) is None
 
 
 def test_openapi_docs(client):

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from service.jobs import JobCancelled, JobQueue, UnknownJob
-from service.surrogate import ServiceBusy
+from service.scheduler import ServiceBusy
 
 
 def wait_status(client, location: str, statuses: set[str], timeout_s: float = 90.0) -> dict:

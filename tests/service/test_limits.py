@@ -15,7 +15,7 @@ from service.protocol import free_port
 
 
 @pytest.fixture(scope="module")
-def server(surrogate):
+def server(served):
     """A real server with tight limits over the shared surrogate; yields (host, port)."""
     from service.config import Settings
     from service.main import create_app
@@ -29,7 +29,7 @@ def server(surrogate):
         body_timeout_s=1.0,
         max_connections=8,
     )
-    app = create_app(settings, surrogate=surrogate)
+    app = create_app(settings, served=served)
     port = free_port()
     config = uvicorn.Config(
         app, host="127.0.0.1", port=port, log_level="warning", lifespan="on", **uvicorn_options(settings)
@@ -122,14 +122,14 @@ def test_connection_cap(server):
     )
 
 
-def test_handler_timeout_504(make_client, surrogate, default_controls, monkeypatch):
-    compute = type(surrogate)._compute
+def test_handler_timeout_504(make_client, served, default_controls, monkeypatch):
+    compute = type(served)._compute
 
     def slow(self, *args):
         time.sleep(1.0)
         return compute(self, *args)
 
-    monkeypatch.setattr(type(surrogate), "_compute", slow)
+    monkeypatch.setattr(type(served), "_compute", slow)
     c = make_client(handler_timeout_s=0.2)
     r = c.post("/rollout", json={"controls": {**default_controls, "flux_cl": 0.0093}, "steps": 1})
     assert r.status_code == 504 and "0.2 s" in r.json()["message"]
@@ -142,16 +142,16 @@ def test_garbage_request_400_json(server):
     assert status == 400 and body["message"]
 
 
-def test_requests_in_flight_capped(make_client, surrogate, default_controls, monkeypatch):
+def test_requests_in_flight_capped(make_client, served, default_controls, monkeypatch):
     started, release = threading.Event(), threading.Event()
-    compute = type(surrogate)._compute
+    compute = type(served)._compute
 
     def slow(self, *args):
         started.set()
         release.wait(20)
         return compute(self, *args)
 
-    monkeypatch.setattr(type(surrogate), "_compute", slow)
+    monkeypatch.setattr(type(served), "_compute", slow)
     c = make_client(limit_concurrency=1)
     first = threading.Thread(
         target=c.post,
@@ -169,21 +169,21 @@ def test_requests_in_flight_capped(make_client, surrogate, default_controls, mon
         first.join()
 
 
-def test_queued_work_dropped_when_clients_leave(server, surrogate, default_controls, monkeypatch):
+def test_queued_work_dropped_when_clients_leave(server, served, default_controls, monkeypatch):
     """Through a real server: clients that give up while queued leave the queue at once and their
     rollouts are never computed (defect 9: they used to hold the queue and run anyway)."""
     import httpx
 
     release = threading.Event()
     calls: list[int] = []
-    compute = type(surrogate)._compute
+    compute = type(served)._compute
 
     def slow(self, *args):
         calls.append(1)
         release.wait(20)
         return compute(self, *args)
 
-    monkeypatch.setattr(type(surrogate), "_compute", slow)
+    monkeypatch.setattr(type(served), "_compute", slow)
     base = f"http://{server[0]}:{server[1]}"
 
     def post(flux: float, timeout: float) -> None:

@@ -22,7 +22,7 @@ def test_default_base(client):
     assert len(res["base"]["lambda"]) == 37 and len(res["base"]["alpha"]) == 37
 
 
-def test_matches_library(client, surrogate):
+def test_matches_library(client, served):
     """Same numbers as calling mechanism_response directly (what `nemsim counterfactual` does)."""
     import numpy as np
 
@@ -32,7 +32,7 @@ def test_matches_library(client, surrogate):
     raw = default_controls_raw()
     raw[3] *= 2.0  # flux_cl
     body = client.get("/mechanisms", params={"flux_cl": float(raw[3])}).json()
-    direct = mechanism_response(surrogate.loaded, raw, x0=surrogate.x0)
+    direct = mechanism_response(served.predictor.loaded, raw, x0=served.predictor.x0)
     assert body["result"]["base"]["lambda"] == pytest.approx(direct["base"]["lambda"], rel=1e-5)
     got = [i["delta_R_pct"] for i in body["result"]["interventions"]]
     want = [i["delta_R_pct"] for i in direct["interventions"]]

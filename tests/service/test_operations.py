@@ -11,12 +11,12 @@ OTHER = "o" * 24
 
 
 @pytest.fixture
-def app_with(surrogate):
+def app_with(served):
     from service.config import Settings
     from service.main import create_app
 
     def make(**overrides):
-        return create_app(Settings(**{"warmup_steps": 0, **overrides}), surrogate=surrogate)
+        return create_app(Settings(**{"warmup_steps": 0, **overrides}), served=served)
 
     return make
 

@@ -182,7 +182,7 @@ def test_concurrent_requests_are_safe(client):
     assert all(len(v) == 1 for v in ids.values()) and len(ids) == 3
 
 
-def test_served_trajectory_is_the_rollout(surrogate, default_controls):
+def test_served_trajectory_is_the_rollout(served, default_controls):
     """The server's trajectory (kept in a reused buffer, stored as float16) and metrics are those of
     `nemsim.evaluation.rollout` and `profile_metrics_batch`, for consecutive rollouts of different
     lengths through the same buffer."""
@@ -191,18 +191,79 @@ def test_served_trajectory_is_the_rollout(surrogate, default_controls):
     from nemsim.controls import to_normalized
     from nemsim.evaluation.rollout import rollout
     from nemsim.geometry.profile import profile_metrics_batch
-    from service.surrogate import Surrogate
+    from service.served_model import ServedModel
 
-    s = Surrogate(surrogate.loaded, model_id="buffer", x0=surrogate.x0, cache_size=0)
+    s = ServedModel(served.predictor, cache_size=0)
     base = np.array(list(default_controls.values()))
     for steps, scale in ((5, 1.0), (3, 1.3), (5, 0.8)):
         raw = np.tile(base * scale, (steps, 1))
         result, cached = s.rollout(raw)
         u = torch.from_numpy(np.asarray(to_normalized(raw), dtype=np.float32))[None]
         with torch.inference_mode():
-            ref = rollout(s.predictor, torch.from_numpy(s.x0)[None], u, steps)[0].numpy()  # (T+1, 2, D, H, W)
+            x0 = torch.from_numpy(s.predictor.x0)[None]
+            ref = rollout(s.predictor.runtime, x0, u, steps)[0].numpy()  # (T+1, 2, D, H, W)
         assert not cached and result.states.dtype == np.float16
         np.testing.assert_array_equal(result.states, ref.astype(np.float16))
         for name, values in profile_metrics_batch(ref, s.scene).items():
             np.testing.assert_allclose(np.array(result.metrics[name], dtype=float), values, equal_nan=True)
     assert len(s._buffers) == 1  # one rollout at a time: one buffer, reused
+
+
+def test_non_finite_prediction_is_a_4xx_never_a_200(served, default_controls):
+    """A model whose rollout turns NaN (weights damaged after the load-time check) answers 422 naming the
+    step, never 200 with a warning; the server stays up."""
+    import copy
+    import dataclasses
+
+    import torch
+    from fastapi.testclient import TestClient
+
+    from nemsim.inference import Predictor
+    from service.config import Settings
+    from service.deps import get_served_model
+    from service.main import create_app
+    from service.served_model import ServedModel
+
+    loaded = served.predictor.loaded
+    model = copy.deepcopy(loaded.model)
+    with torch.no_grad():
+        next(p for p in model.parameters() if p.numel() > 8).fill_(float("nan"))
+    broken = ServedModel(Predictor(dataclasses.replace(loaded, model=model), backend="torch"), cache_size=2)
+    app = create_app(Settings(warmup_steps=0, rate_limit_per_minute=0), served=broken)
+    app.dependency_overrides[get_served_model] = lambda: broken
+    with TestClient(app) as c:
+        for _ in range(2):  # computed, then from the cache: the same answer
+            r = c.post("/rollout", json={"controls": default_controls, "steps": 2})
+            assert r.status_code == 422 and "not finite" in r.json()["message"], r.text
+        assert c.get("/health").status_code == 200
+
+
+def test_a_rollout_request_normalizes_and_hashes_once(make_client, served, default_controls, monkeypatch):
+    """POST /rollout converts physical controls once (normalized ones not at all: the model reads them as
+    given) and computes the rollout id once, cached or not."""
+    import nemsim.inference.predictor as predictor_module
+    from service.served_model import ServedModel
+
+    counts = {"normalize": 0, "denormalize": 0, "hash": 0}
+    to_norm, from_norm, rid = (predictor_module.to_normalized, predictor_module.from_normalized,
+                               ServedModel.rollout_id)  # fmt: skip
+
+    def count(key, fn):
+        def wrapped(*args):
+            counts[key] += 1
+            return fn(*args)
+
+        return wrapped
+
+    monkeypatch.setattr(predictor_module, "to_normalized", count("normalize", to_norm))
+    monkeypatch.setattr(predictor_module, "from_normalized", count("denormalize", from_norm))
+    monkeypatch.setattr(ServedModel, "rollout_id", count("hash", rid))
+    c = make_client()
+    physical = {"controls": {**default_controls, "flux_cl": default_controls["flux_cl"] * 1.0371}, "steps": 2}
+    for _ in range(2):  # computed, then cached
+        counts.update(normalize=0, denormalize=0, hash=0)
+        assert c.post("/rollout", json=physical).status_code == 200
+        assert counts == {"normalize": 1, "denormalize": 0, "hash": 1}
+    counts.update(normalize=0, denormalize=0, hash=0)
+    assert c.post("/rollout", json={"controls_normalized": [0.137] * 14, "steps": 2}).status_code == 200
+    assert counts == {"normalize": 0, "denormalize": 1, "hash": 1}

@@ -11,16 +11,15 @@ import threading
 import numpy as np
 import pytest
 
-from service.scheduler import ClientGone, FairGate, run_gated
-from service.surrogate import ServiceBusy
+from service.scheduler import ClientGone, FairGate, ServiceBusy, run_gated
 
 
 @pytest.fixture
-def blocked_rollouts(surrogate, monkeypatch):
+def blocked_rollouts(served, monkeypatch):
     """block(): from then on uncached rollouts wait until `release` is set; `started` is set when one is
     computing."""
     started, release = threading.Event(), threading.Event()
-    compute = type(surrogate)._compute
+    compute = type(served)._compute
 
     def slow(self, *args):
         started.set()
@@ -28,7 +27,7 @@ def blocked_rollouts(surrogate, monkeypatch):
         return compute(self, *args)
 
     def block():
-        monkeypatch.setattr(type(surrogate), "_compute", slow)
+        monkeypatch.setattr(type(served), "_compute", slow)
         return started, release
 
     yield block
@@ -36,7 +35,7 @@ def blocked_rollouts(surrogate, monkeypatch):
 
 
 def test_cheap_requests_do_not_wait_behind_rollouts(
-    make_client, default_controls, surrogate, blocked_rollouts
+    make_client, default_controls, served, blocked_rollouts
 ):
     c = make_client(max_queue=0)
     done = c.post(
@@ -173,17 +172,17 @@ def test_disconnected_client_leaves_the_queue_and_its_work_never_runs():
     assert ran == []
 
 
-def test_rollout_cache_is_bounded_in_bytes(surrogate, default_controls):
+def test_rollout_cache_is_bounded_in_bytes(served, default_controls):
     """The cache keeps at most `cache_bytes` of states, evicting the least recently used."""
-    from service.surrogate import Surrogate
+    from service.served_model import ServedModel
 
-    s = Surrogate(surrogate.loaded, model_id="bytes", x0=surrogate.x0, cache_size=100, cache_bytes=1)
+    s = ServedModel(served.predictor, cache_size=100, cache_bytes=1)
     raw = np.array([list(default_controls.values())] * 2)
     result, cached = s.rollout(raw)
     assert not cached and result.states.nbytes > 1
     assert s.rollout(raw)[1] is False  # larger than the whole budget: never kept
     one = result.states.nbytes
-    s = Surrogate(surrogate.loaded, model_id="bytes2", x0=surrogate.x0, cache_size=100, cache_bytes=2 * one)
+    s = ServedModel(served.predictor, cache_size=100, cache_bytes=2 * one)
     rows = [raw * f for f in (1.0, 1.01, 1.02)]
     for r in rows:
         s.rollout(r)
@@ -191,29 +190,29 @@ def test_rollout_cache_is_bounded_in_bytes(surrogate, default_controls):
     assert s.rollout(rows[0])[1] is False and s.rollout(rows[2])[1] is True
 
 
-def test_mesh_warm_up_exports_every_format(surrogate, monkeypatch):
+def test_mesh_warm_up_exports_every_format(served, monkeypatch):
     import nemsim.geometry.mesh as mesh_lib
 
     seen: list[str] = []
     export = mesh_lib.export_mesh
     monkeypatch.setattr(mesh_lib, "export_mesh", lambda mesh, fmt: seen.append(fmt) or export(mesh, fmt))
-    surrogate.warm_up_meshes()
+    served.warm_up_meshes()
     assert sorted(seen) == ["glb", "obj", "ply", "stl"]
 
 
 @pytest.mark.skipif(not hasattr(os, "getpriority"), reason="thread priorities are a POSIX facility")
-def test_rollouts_compute_on_lower_priority_threads(make_client, default_controls, surrogate, monkeypatch):
+def test_rollouts_compute_on_lower_priority_threads(make_client, default_controls, served, monkeypatch):
     """Uncached rollouts run on the gate's own threads, `rollout_nice` nicer than the server's, so cheap
     answers get the CPU first when rollouts saturate it."""
     seen: list[tuple[str, int]] = []
-    compute = type(surrogate)._compute
+    compute = type(served)._compute
 
     def spy(self, *args):
         tid = threading.get_native_id()
         seen.append((threading.current_thread().name, os.getpriority(os.PRIO_PROCESS, tid)))
         return compute(self, *args)
 
-    monkeypatch.setattr(type(surrogate), "_compute", spy)
+    monkeypatch.setattr(type(served), "_compute", spy)
     c = make_client(rollout_nice=3)
     controls = {**default_controls, "flux_cl": default_controls["flux_cl"] * 1.0123}
     assert c.post("/rollout", json={"controls": controls, "steps": 2}).status_code == 200
@@ -250,7 +249,7 @@ def test_cancelled_work_holds_its_slot_until_the_thread_finishes():
 def test_cache_keeps_entries_in_use_under_a_flood_of_new_ones():
     """A stream of one-off entries evicts other one-off entries, not those that were hit again; the
     bounds in entries and bytes hold throughout."""
-    from service.surrogate import _LRU
+    from service.served_model import _LRU
 
     cache = _LRU(6, max_bytes=600, weigh=lambda v: v)
     for key in ("hot1", "hot2"):

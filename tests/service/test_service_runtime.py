@@ -32,17 +32,15 @@ def test_runtime_settings_from_the_environment(monkeypatch):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not openvino_available(), reason="openvino not installed (nemsim[fast])")
-def test_service_rollout_runs_on_openvino_and_matches_torch(surrogate):
-    from service.surrogate import Surrogate
+def test_service_rollout_runs_on_openvino_and_matches_torch(tiny_checkpoint):
+    from service.served_model import ServedModel
 
-    fast = Surrogate(surrogate.loaded, model_id="fast", x0=surrogate.x0, runtime_backend="openvino",
-                     runtime_precision="f32")  # fmt: skip
-    ref = Surrogate(surrogate.loaded, model_id="ref", x0=surrogate.x0, runtime_backend="torch",
-                    runtime_precision="f32")  # fmt: skip
+    fast = ServedModel.from_checkpoint(tiny_checkpoint, runtime_backend="openvino", runtime_precision="f32")
+    ref = ServedModel.from_checkpoint(tiny_checkpoint, runtime_backend="torch", runtime_precision="f32")
     fast.warm_up(2)  # compiles the graph before the first request
-    assert fast.predictor.backend == "openvino" and ref.predictor.backend == "torch"
+    assert fast.predictor.runtime.backend == "openvino" and ref.predictor.runtime.backend == "torch"
     a, _ = fast.rollout(_controls(5))
     b, _ = ref.rollout(_controls(5))
-    assert fast.predictor.backend == "openvino"  # no silent fallback inside the request
+    assert fast.predictor.runtime.backend == "openvino"  # no silent fallback inside the request
     # the API returns float16 states: compare at that resolution
     assert np.abs(a.states.astype(np.float32) - b.states.astype(np.float32)).max() <= 2e-3

@@ -134,7 +134,7 @@ def test_unknown_route_404_and_wrong_method_405(client):
     _uniform(client.get("/rollouts/" + "a" * 24 + "/mesh"), 404)
 
 
-def test_unhandled_error_500_is_generic(surrogate, monkeypatch, default_controls):
+def test_unhandled_error_500_is_generic(served, monkeypatch, default_controls):
     from fastapi.testclient import TestClient
 
     from service.config import Settings
@@ -143,8 +143,8 @@ def test_unhandled_error_500_is_generic(surrogate, monkeypatch, default_controls
     def boom(*args, **kwargs):
         raise RuntimeError("secret internals /home/someone/x.pt")
 
-    monkeypatch.setattr(type(surrogate), "_compute", boom)
-    app = create_app(Settings(warmup_steps=0), surrogate=surrogate)
+    monkeypatch.setattr(type(served), "_compute", boom)
+    app = create_app(Settings(warmup_steps=0), served=served)
     with TestClient(app, raise_server_exceptions=False) as c:
         controls = _controls(default_controls, flux_cl=0.0123)
         body = _uniform(c.post("/rollout", json={"controls": controls, "steps": 1}), 500)

@@ -10,12 +10,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from bench.yields import LITERATURE, fire
 from nemsim.rules import compile_rules, parse_rules
 from nemsim.rules.vocab import PROJECTILES
 from nemsim.sim import SimConfig
 from nemsim.sim import kernels as K
 from nemsim.sim.events import build_event_tables
-from bench.yields import LITERATURE, fire
 
 AR = PROJECTILES.index("Ar+")
 
@@ -190,8 +190,8 @@ def test_options_are_validated_recorded_and_absent_from_default_records():
 
 
 def test_bulge_of_an_equivalent_diameter_profile():
-    from nemsim.scenes import TINY
     from bench.bowing import bulge, equivalent_diameters
+    from nemsim.scenes import TINY
 
     # straight 4-voxel-wide square hole: no bulge; widen rows 3 and 4 below the top Si row by a voxel a side
     si = np.ones((TINY.nx, TINY.ny, TINY.nz), dtype=np.float32)

@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
+from bench.yields import fire
 from nemsim.rules.vocab import PROJECTILES
 from nemsim.sim import SimConfig
 from nemsim.sim import kernels as K
 from nemsim.sim.events import build_event_tables
-from bench.yields import fire
 
 
 def _fly(tables, mat, fill, species, energy, pos, direction, counters, config=None):

@@ -10,7 +10,12 @@ from contextlib import nullcontext
 import pytest
 import torch
 
-from nemsim.inference.checkpoint import checkpoint_sim_config, load_checkpoint, read_checkpoint, save_checkpoint
+from nemsim.inference.checkpoint import (
+    checkpoint_sim_config,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+)
 from nemsim.registry import build_model, model_config
 from nemsim.scenes import SMALL as SMALL_SCENE
 from nemsim.training.config import TrainConfig

@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from nemsim.cli import main
 from bench.comparison.plan import Choice, PlanError, format_status, plan_status, read_plan, record_run
+from nemsim.cli import main
 from nemsim.training.loop import CSV_FIELDS
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 SHIPPED = ROOT / "benchmarks" / "small" / "compare-45min.plan.yaml"
 
 
@@ -35,7 +35,8 @@ def _run(d: Path, vals=(), budget: float | None = None, wall_s: float = 60.0, te
         if test:
             (d / "test_metrics.json").write_text(json.dumps({"avg_rmse": 0.5, "setting": "control-id"}))
     if last_wall_s is not None:
-        torch.save({"format_version": 1, "train_state": {"wall_s": last_wall_s}}, d / "last.pt")
+        state = {"format_version": 1, "model_state": {}, "train_state": {"wall_s": last_wall_s}}
+        torch.save(state, d / "last.pt")
     return d
 
 

@@ -12,9 +12,9 @@ import time
 import pytest
 import yaml
 
-from nemsim.cli import main
 from bench.comparison.plan import PlanError, plan_status, read_plan
 from bench.comparison.runner import RunnerConfig, run_plan
+from nemsim.cli import main
 
 TWO_RUNS = (
     "  - {name: probe-fno-small, probe: true, model: fno, size: small, lr: 2.0e-3, minutes: 0.02}\n"

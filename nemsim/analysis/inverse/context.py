@@ -1,0 +1,101 @@
+"""The model side of inverse design: a loaded checkpoint with what the reports need, and differentiable
+rollouts to the target state."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from nemsim.analysis.intervals import Calibration, Support
+
+if TYPE_CHECKING:
+    from nemsim.sim import SimConfig
+
+
+@dataclass
+class InverseContext:
+    """A loaded surrogate with what the design reports need."""
+
+    model: torch.nn.Module
+    scene: Any
+    x0: torch.Tensor  # (2, D, H, W) float32 initial state
+    calibration: Calibration | None
+    support: Support
+    model_id: str
+    loaded: Any = None  # LoadedModel (rules and simulator configuration for verification)
+
+
+def simulator_config(loaded: Any) -> SimConfig | None:
+    """The SimConfig of the checkpoint's training data (``checkpoint_sim_config``), None for the simulator
+    defaults (a checkpoint that records none)."""
+    from nemsim.inference.checkpoint import checkpoint_sim_config
+    from nemsim.sim import SimConfig
+
+    return SimConfig.from_record(checkpoint_sim_config(loaded))
+
+
+def load_inverse_context(checkpoint: str | Path) -> InverseContext:
+    """Load a checkpoint, its initial state (its simulator configuration) and its calibration file."""
+    from nemsim.analysis.intervals import calibration_for, file_digest
+    from nemsim.inference.checkpoint import load_checkpoint
+    from nemsim.sim import initial_state
+
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise ValueError(f"checkpoint {path} does not exist")
+    loaded = load_checkpoint(path)
+    x0 = torch.from_numpy(np.asarray(initial_state(loaded.scene, simulator_config(loaded)), dtype=np.float32))
+    cal = calibration_for(path)
+    return InverseContext(
+        model=loaded.model,
+        scene=loaded.scene,
+        x0=x0,
+        calibration=cal,
+        support=Support.from_record(cal.support if cal else None),
+        model_id=f"{path.stem}@{file_digest(path)}",
+        loaded=loaded,
+    )
+
+
+def rollout_to(model: torch.nn.Module, x0: torch.Tensor, u: torch.Tensor, step: int) -> torch.Tensor:
+    """The state at ``step`` of constant-control rollouts, differentiable in u (and the weights).
+
+    Same predictions as ``nemsim.evaluation.rollout.rollout`` (multi-step models: chunks of k states per
+    call, the last chunk cut at ``step``); only the states the next call needs are kept.
+
+    Args:
+        x0: (2, D, H, W) initial state. u: (B, 14) normalized controls.
+    Returns:
+        (B, 2, D, H, W).
+    """
+    from nemsim.evaluation.rollout import steps_per_call
+    from nemsim.model.monotone import axis_eps_of, eps_field, monotone_eps_of, project
+
+    B = u.shape[0]
+    x = x0[None].expand(B, *x0.shape).to(u.dtype)  # (B, 2, D, H, W)
+    fast = callable(getattr(model, "precompute", None))
+    k = steps_per_call(model)
+    cache = model.precompute(u) if fast else None  # type: ignore[operator]
+    eps_of = monotone_eps_of(model, None)  # the rollout's monotone projection, if the model has one
+    eps = None if eps_of is None else eps_field(x.shape, eps_of, axis_eps_of(model), x.dtype, x.device)
+    running_max = x
+    t = 0
+    while t < step:
+        n = min(k, step - t)
+        if k > 1:
+            states = model.predict(x, cache)[:, :n]  # type: ignore[operator]  # (B, n, 2, D, H, W)
+        elif fast:
+            states = model.step(x, cache)[:, None]  # type: ignore[operator]
+        else:
+            states = model(x, u)[:, None]
+        if eps is None:
+            x = states[:, -1]
+        else:  # every state of the chunk updates the running maximum, as in the rollout
+            for j in range(n):
+                x, running_max = project(states[:, j], running_max, eps)
+        t += n
+    return x

@@ -1,0 +1,8 @@
+"""``python -m nemsim.cli ARGS``: the command line without the console script's allocator re-execution (which
+re-executes into this), e.g. under ``torchrun -m nemsim.cli train ARGS``."""
+
+import sys
+
+from nemsim.cli import main
+
+sys.exit(main())

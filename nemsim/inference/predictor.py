@@ -1,0 +1,369 @@
+"""``Predictor``: a checkpoint's model behind physical controls -- rollouts, profile metrics and meshes.
+
+Controls enter in physical units (a mapping name -> value, one mapping per transition, or a (T, 14) /
+(14,) array in ``CONTROL_NAMES`` order) and are normalized exactly once, into a ``ControlSchedule`` that
+carries both forms from then on; a caller holding normalized controls builds the schedule with
+``ControlSchedule.from_normalized`` and nothing converts them back and forth. A rollout runs the
+checkpoint's model through a runtime (``nemsim.inference.runtime``: PyTorch or OpenVINO) from the scene's
+initial state, built by the simulator with the configuration of the checkpoint's training data when it
+records one, and returns the trajectory with its profile metrics (``nemsim.geometry.profile``) and the
+stability guard's findings.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import inspect
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
+from nemsim.inference import range_check
+from nemsim.inference.checkpoint import LoadedModel, load_checkpoint
+from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
+
+log = logging.getLogger(__name__)
+
+BACKEND_CHOICES: tuple[str, ...] = ("auto", *BACKENDS)  # "auto": openvino when installed, else torch
+STATE_BOUND = 1.5  # |normalized SDF| above this is outside anything the model learned (data are in [-1, 1])
+
+Controls = Mapping[str, float] | Sequence[Mapping[str, float]] | np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ControlSchedule:
+    """Controls per transition in both forms: ``raw`` (T, 14) float64 physical units and ``normalized``
+    (T, 14) float32, what the model reads. Build it with ``control_schedule`` or ``from_normalized``."""
+
+    raw: np.ndarray  # (T, 14) float64, physical units
+    normalized: np.ndarray  # (T, 14) float32
+
+    @classmethod
+    def physical(cls, raw: np.ndarray) -> ControlSchedule:
+        """From (T, 14) physical controls: the one place they are normalized."""
+        raw = np.array(raw, dtype=np.float64, copy=True).reshape(-1, len(CONTROL_NAMES))  # (T, 14)
+        return cls(raw, np.asarray(to_normalized(raw), dtype=np.float32))
+
+    @classmethod
+    def from_normalized(cls, u: Any, steps: int | None = None) -> ControlSchedule:
+        """From normalized controls (T, 14), or (14,) repeated over ``steps`` transitions; the model reads
+        them as given, the physical values are derived once (for reports and range checks)."""
+        u = np.asarray(u, dtype=np.float32)
+        u = _per_transition(u, steps)  # (T, 14)
+        return cls(np.asarray(from_normalized(u.astype(np.float64)), dtype=np.float64), u.copy())
+
+    @property
+    def steps(self) -> int:
+        return int(self.raw.shape[0])
+
+
+def _per_transition(rows: np.ndarray, steps: int | None) -> np.ndarray:
+    """(T, 14) from a (14,) vector repeated ``steps`` times or a (T, 14) array (``steps`` must be T)."""
+    n = len(CONTROL_NAMES)
+    if rows.ndim == 1 and rows.shape[0] == n:
+        if steps is None or steps < 1:
+            raise ValueError(f"constant controls need steps >= 1, got {steps}")
+        return np.repeat(rows[None], steps, axis=0)
+    if rows.ndim != 2 or rows.shape[1] != n or rows.shape[0] < 1:
+        raise ValueError(f"controls must be ({n},) or (T, {n}), got shape {rows.shape}")
+    if steps is not None and steps != rows.shape[0]:
+        raise ValueError(f"{rows.shape[0]} control sets but steps = {steps}: give one per transition")
+    return rows
+
+
+def _row(controls: Mapping[str, float]) -> np.ndarray:
+    """(14,) float64 from a mapping naming every control exactly once."""
+    unknown = sorted(set(controls) - set(CONTROL_NAMES))
+    missing = [n for n in CONTROL_NAMES if n not in controls]
+    if unknown or missing:
+        raise ValueError(
+            f"controls must name each of {list(CONTROL_NAMES)}; unknown {unknown}, missing {missing}"
+        )
+    return np.array([float(controls[n]) for n in CONTROL_NAMES], dtype=np.float64)
+
+
+def control_schedule(controls: Controls | ControlSchedule, steps: int | None = None) -> ControlSchedule:
+    """A ``ControlSchedule`` from physical controls.
+
+    Args:
+        controls: a mapping name -> value (constant; needs ``steps``), a sequence of mappings (one per
+            transition), a (14,) or (T, 14) array in ``CONTROL_NAMES`` order, or a ``ControlSchedule``
+            (returned as it is).
+        steps: transitions; for time-varying controls it must equal their number (or be None).
+    """
+    if isinstance(controls, ControlSchedule):
+        if steps is not None and steps != controls.steps:
+            raise ValueError(f"the schedule has {controls.steps} transitions but steps = {steps}")
+        return controls
+    if isinstance(controls, Mapping):
+        rows = _row(controls)
+    elif isinstance(controls, np.ndarray):
+        rows = np.asarray(controls, dtype=np.float64)
+    else:
+        rows = np.stack([_row(c) for c in controls]) if len(controls) else np.zeros((0, len(CONTROL_NAMES)))
+    return ControlSchedule.physical(_per_transition(rows, steps))
+
+
+def stability_warnings(traj: np.ndarray, bound: float = STATE_BOUND) -> list[str]:
+    """Readable warnings for a predicted trajectory (T+1, 2, D, H, W): the first step whose state is not
+    finite, and the first step whose |value| exceeds ``bound`` (`nemsim stress` measures the same)."""
+    return stability_report(traj, bound)[0]
+
+
+def stability_report(traj: np.ndarray, bound: float = STATE_BOUND) -> tuple[list[str], int | None]:
+    """(``stability_warnings``, the first step whose state is not finite or None).
+
+    Two reductions per step and no temporary of the trajectory's size: a step is finite exactly when its
+    max and min are (both propagate NaN and carry an infinity); only non-finite steps are scanned again
+    to find their largest finite |value|."""
+    flat = traj.reshape(traj.shape[0], -1)
+    hi, lo = flat.max(axis=1), flat.min(axis=1)  # (T+1,) each
+    finite = np.isfinite(hi) & np.isfinite(lo)
+    peak = np.maximum(hi, -lo)
+    for row in np.flatnonzero(~finite):
+        ok = flat[row][np.isfinite(flat[row])]
+        peak[row] = np.abs(ok).max() if ok.size else 0.0
+    out: list[str] = []
+    first_non_finite = None
+    if not finite.all():
+        k = first_non_finite = int(np.argmin(finite))
+        out.append(
+            f"the prediction is not finite from step {k} on (NaN/Inf): states and metrics from there on "
+            "are unusable"
+        )
+    if (peak > bound).any():
+        k = int(np.argmax(peak > bound))
+        out.append(
+            f"the predicted field leaves the signed-distance range from step {k} on (|value| up to "
+            f"{float(peak.max()):.3g}, data lie in [-1, 1]): the surrogate is unstable for these controls; "
+            "treat later steps as unreliable"
+        )
+    return out, first_non_finite
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """One rollout: the states, their profile metrics and what the stability guard found."""
+
+    schedule: ControlSchedule
+    states: np.ndarray  # (T+1, 2, D, H, W) float32 normalized SDF (a view of ``out`` when one was given)
+    metrics: dict[str, np.ndarray]  # name -> (T+1,) values in nm (NaN where undefined)
+    times_s: list[float]  # (T+1,)
+    rollout_s: float
+    metrics_s: float
+    warnings: tuple[str, ...] = ()
+    non_finite_from: int | None = None  # the first step whose state is not finite (NaN/Inf), None: none
+
+    @property
+    def steps(self) -> int:
+        return self.schedule.steps
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _recorded_sim_config(raw: dict[str, Any]) -> tuple[Any, str]:
+    """(SimConfig or None, how the initial state is built) from a checkpoint's ``sim_config`` record, read
+    defensively: older checkpoints have none, and an unreadable one falls back to the simulator defaults."""
+    from nemsim.sim.config import SimConfig
+
+    recorded = raw.get("sim_config")
+    if not isinstance(recorded, dict) or not recorded:
+        return None, "simulator defaults (the checkpoint records no simulator configuration)"
+    try:
+        return SimConfig.from_record(recorded), "the checkpoint's simulator configuration (sim_config)"
+    except (TypeError, ValueError) as exc:
+        log.warning("checkpoint sim_config unreadable (%s): initial state from the simulator defaults", exc)
+        return None, "simulator defaults (the checkpoint's simulator configuration could not be read)"
+
+
+def resolve_backend(backend: str) -> str:
+    """``"auto"`` -> ``"openvino"`` when it is installed, else ``"torch"``; other names are checked."""
+    if backend not in BACKEND_CHOICES:
+        raise ValueError(f"unknown backend {backend!r}; expected one of {list(BACKEND_CHOICES)}")
+    if backend == "auto":
+        return "openvino" if openvino_available() else "torch"
+    return backend
+
+
+class Predictor:
+    """A loaded checkpoint behind physical controls (module docstring). Thread-safe; no caching."""
+
+    def __init__(
+        self,
+        loaded: LoadedModel,
+        *,
+        model_id: str | None = None,
+        backend: str = "auto",
+        precision: str = "f32",
+        threads: int = 1,
+        x0: np.ndarray | None = None,
+    ) -> None:
+        """Args:
+            loaded: from ``load_checkpoint``.
+            model_id: how responses name the model (default: the checkpoint's stem).
+            backend: "auto", "torch" or "openvino" (which falls back to torch, logged, when unavailable).
+            precision: "f32" or "bf16". threads: OpenVINO threads per rollout.
+            x0: (2, D, H, W) initial state; default the scene's, built as the checkpoint's data were.
+        """
+        self.loaded = loaded
+        self.scene = loaded.scene
+        self.model_id = model_id or (loaded.path.stem if loaded.path else loaded.name)
+        self.runtime: Runtime = compile_model(loaded.model, resolve_backend(backend), precision, threads)  # type: ignore[arg-type]
+        self.sim_config, source = _recorded_sim_config(loaded.raw or {})
+        if x0 is None:
+            from nemsim.sim import initial_state
+
+            x0 = initial_state(self.scene, self.sim_config)
+        else:
+            source = "given by the caller"
+        self.x0 = np.asarray(x0, dtype=np.float32)  # (2, D, H, W)
+        self.initial_state_source = source
+        expected = tuple(self.scene.state_shape)
+        if self.x0.shape != expected:
+            raise ValueError(
+                f"initial state has shape {self.x0.shape}, scene {self.scene.name!r} needs {expected}"
+            )
+        ranges = (loaded.raw or {}).get("control_ranges") or {}
+        # the training box: what the checkpoint recorded at training time, else the current design range
+        self.train_range = {
+            s.name: (
+                float(ranges.get(s.name, {}).get("low", s.low)),
+                float(ranges.get(s.name, {}).get("high", s.high)),
+            )
+            for s in CONTROL_SPECS
+        }
+
+    @classmethod
+    def from_checkpoint(
+        cls, path: str | Path, *, scene: str | None = None, device: str = "cpu", **kwargs: Any
+    ) -> Predictor:
+        """Load ``path`` (``load_checkpoint``: weights-only, verified) and build its predictor; the model id
+        is the file's stem and the first 12 hex digits of its SHA-256.
+
+        Args:
+            scene: the scene name the checkpoint must be trained on (CheckpointMismatch otherwise); None: any.
+            kwargs: ``Predictor``'s (backend, precision, threads, x0).
+        """
+        path = Path(path)
+        loaded = load_checkpoint(path, scene=scene, device=device)
+        return cls(loaded, model_id=f"{path.stem}@{file_sha256(path)[:12]}", **kwargs)
+
+    # --- facts ----------------------------------------------------------------------------------------
+    @property
+    def model(self) -> torch.nn.Module:
+        return self.loaded.model
+
+    @property
+    def n_params(self) -> int:
+        return int(sum(p.numel() for p in self.model.parameters() if p.requires_grad))
+
+    @property
+    def horizon_steps(self) -> int:
+        """Transitions of the scene's trajectories (what the model was trained on)."""
+        return int(self.scene.n_transitions)
+
+    @property
+    def control_saturation(self) -> tuple[float, float] | None:
+        """The model's control saturation (knee, limit) in box half-widths, None if it reads controls as
+        given (``nemsim.model.saturation``)."""
+        sat = getattr(getattr(self.model, "config", None), "control_saturation", None)
+        return None if sat is None else (float(sat[0]), float(sat[1]))
+
+    @functools.cached_property
+    def supports_mechanisms(self) -> bool:
+        """Only NEMSim models expose event intensities and attributions (forward(..., return_aux=True))."""
+        return "return_aux" in inspect.signature(self.model.forward).parameters
+
+    # --- controls -------------------------------------------------------------------------------------
+    def schedule(self, controls: Controls | ControlSchedule, steps: int | None = None) -> ControlSchedule:
+        """``control_schedule(controls, steps)``."""
+        return control_schedule(controls, steps)
+
+    def check_range(
+        self, schedule: ControlSchedule, policy: str = "allow"
+    ) -> tuple[ControlSchedule, list[str], list[range_check.Excursion], bool]:
+        """(schedule to use, warnings, excursions of the given controls, clipped?) for controls outside the
+        training box under ``policy`` (``range_check``); ``range_check.Refused`` under "refuse"."""
+        raw, warnings, found, clipped = range_check.apply(
+            schedule.raw, self.train_range, policy, self.control_saturation
+        )
+        return (ControlSchedule.physical(raw) if clipped else schedule), warnings, found, clipped
+
+    # --- rollouts -------------------------------------------------------------------------------------
+    def rollout(
+        self,
+        controls: Controls | ControlSchedule,
+        steps: int | None = None,
+        *,
+        out: torch.Tensor | None = None,
+    ) -> Prediction:
+        """Roll the model out from the initial state under ``controls`` (physical units, see
+        ``control_schedule``) and compute the profile metrics of every state.
+
+        Args:
+            out: optional float32 buffer (>= T+1, 2, D, H, W) the states are written into (the returned
+                ``states`` is then a view of it, valid while the caller does not reuse it).
+        """
+        from nemsim.evaluation.rollout import rollout
+
+        sched = self.schedule(controls, steps)
+        T = sched.steps
+        x0 = torch.from_numpy(self.x0)[None]  # (1, 2, D, H, W)
+        u = torch.from_numpy(sched.normalized)[None]  # (1, T, 14)
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            traj = rollout(self.runtime, x0, u, T, out=None if out is None else out[None])[0]  # type: ignore[arg-type]
+        t1 = time.perf_counter()
+        states = traj.numpy()  # (T+1, 2, D, H, W)
+        metrics = self.metrics(states)
+        t2 = time.perf_counter()
+        dt = float(self.scene.snapshot_dt_s)
+        warnings, non_finite_from = stability_report(states)
+        return Prediction(
+            schedule=sched,
+            states=states,
+            metrics=metrics,
+            times_s=[round(k * dt, 6) for k in range(T + 1)],
+            rollout_s=t1 - t0,
+            metrics_s=t2 - t1,
+            warnings=tuple(warnings),
+            non_finite_from=non_finite_from,
+        )
+
+    def metrics(self, states: np.ndarray) -> dict[str, np.ndarray]:
+        """Profile metrics (nm) of states (T+1, 2, D, H, W): name -> (T+1,) (``profile_metrics_batch``)."""
+        from nemsim.geometry.profile import profile_metrics_batch
+
+        return profile_metrics_batch(states, self.scene)
+
+    def warm_up(self, steps: int) -> None:
+        """One short rollout so the first request does not pay for allocation / graph compilation."""
+        if steps <= 0:
+            return
+        from nemsim.evaluation.rollout import rollout
+
+        u = torch.zeros(1, steps, len(CONTROL_NAMES))
+        with torch.inference_mode():
+            rollout(self.runtime, torch.from_numpy(self.x0)[None], u, steps, keep=False)  # type: ignore[arg-type]
+
+    # --- meshes ---------------------------------------------------------------------------------------
+    def mesh(self, field: np.ndarray, fmt: str, metadata: dict[str, Any] | None = None) -> bytes:
+        """File bytes (glb, ply, obj or stl) of the zero-level surface of one channel's field (D, H, W), in
+        nm, with ``metadata`` as provenance (``nemsim.geometry.mesh``)."""
+        from nemsim.geometry.mesh import export_mesh, surface_mesh
+
+        return export_mesh(surface_mesh(np.asarray(field, dtype=np.float32), self.scene, metadata), fmt)

@@ -1,0 +1,73 @@
+"""Inverse design: `POST /design` (202 + Location; `GET /jobs/{id}` for progress and the result)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import JSONResponse
+
+from nemsim.analysis.inverse import REFINE_WITH_VERIFY, refine_config_from_dict, spec_from_dict
+from service.deps import ServedModelDep, SettingsDep, busy, reject
+from service.inverse import design_work
+from service.inverse_schemas import DesignRequest
+from service.jobs import JobQueue
+from service.openapi import ErrorBody
+from service.routes.jobs import get_jobs
+from service.scheduler import ServiceBusy
+from service.schemas import JobCreated
+
+router = APIRouter(tags=["design"])
+
+
+@router.post(
+    "/design",
+    status_code=202,
+    response_model=JobCreated,
+    responses={503: {"model": ErrorBody, "description": "the job queue is full (Retry-After)"}},
+)
+async def post_design(
+    body: DesignRequest,
+    served: ServedModelDep,
+    settings: SettingsDep,
+    jobs: Annotated[JobQueue, Depends(get_jobs)],
+) -> JSONResponse:
+    """Find recipes whose predicted profile meets the targets (a job: poll its Location).
+
+    The result lists `k` ranked recipes with predicted metrics, conformal intervals, a distance-to-training-
+    data flag and the search's cost; `status` is `met` or `unreachable` (then the closest recipe and its
+    miss). With `verify`, the simulator runs the top recipes and the result reports achieved against target.
+    With `refine`, the simulator works inside the design loop (simulator-corrected rounds); the status is
+    then `verified`, `unverified` or `unreachable` and the top recipe is the best simulated one.
+    """
+    try:
+        spec = spec_from_dict(body.spec_dict())
+    except ValueError as exc:
+        reject(("body",), str(exc))
+    refine = None
+    if body.refine or (body.refine is None and body.verify and REFINE_WITH_VERIFY):
+        given = {"verify_top": body.verify_top, "rounds": body.refine_rounds}
+        refine = refine_config_from_dict({k: v for k, v in given.items() if v is not None})
+    horizon = served.predictor.horizon_steps
+    if spec.step is not None and spec.step > horizon:
+        reject(("body", "step"), f"step = {spec.step} is beyond the model's horizon of {horizon}")
+    try:
+        job = jobs.submit(
+            "design",
+            lambda j: design_work(
+                j,
+                served,
+                spec,
+                seed=body.seed,
+                verify=body.verify,
+                verify_top=body.verify_top or 1,
+                sim_seed=body.sim_seed,
+                sim_max_work=settings.sim_max_work,
+                refine=refine,
+            ),
+        )
+    except ServiceBusy as exc:
+        busy(exc)
+    location = f"/jobs/{job.id}"
+    created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location)
+    return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})

@@ -1,0 +1,320 @@
+"""The served model: a `nemsim.inference.Predictor` plus what a server needs around it.
+
+No physics here: rollouts, profile metrics and meshes are the predictor's, mechanisms
+`nemsim.analysis.counterfactual.mechanism_response`. This module adds:
+
+* a model id (checkpoint stem + the first 12 hex digits of the file's SHA-256);
+* an LRU cache of finished rollouts keyed by (model id, normalized controls per transition, steps); the
+  key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
+  controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway) and the
+  cache is bounded in entries and bytes, and segmented (`_LRU`) so one-off rollouts do not evict the ones
+  in use;
+* reused trajectory buffers (a fresh trajectory-sized array per rollout costs page faults);
+* cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
+  `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
+  computations through its own gates (`service.scheduler`). This class does no admission control.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from nemsim.inference import ControlSchedule, Predictor
+from service.schemas import array_to_controls, jsonable
+
+log = logging.getLogger(__name__)
+
+
+class UnknownRollout(KeyError):
+    """No cached rollout has this id (never computed here, or evicted)."""
+
+
+@dataclass(frozen=True)
+class RolloutResult:
+    id: str
+    model_id: str
+    steps: int
+    controls_raw: np.ndarray  # (T, 14) physical units
+    states: np.ndarray  # (T+1, 2, D, H, W) float16, normalized SDF
+    metrics: dict[str, list[float | None]]  # name -> (T+1,) values in nm, None where not finite
+    times_s: list[float]  # (T+1,)
+    rollout_ms: float
+    metrics_ms: float
+    warnings: tuple[str, ...] = ()  # stability guard findings (non-finite or out-of-range states)
+    non_finite_from: int | None = None  # the first step whose state is not finite, None: all finite
+
+
+class _LRU:
+    """Least-recently-used cache bounded in entries and, with `weigh`, in bytes (an entry larger than
+    the whole budget is not kept). Segmented, so a stream of one-off entries cannot flush the entries in
+    use: a new entry starts on probation; a hit moves it to the protected segment (at most
+    `PROTECTED_SHARE` of both bounds; its least recent entries step back to probation); eviction takes
+    the least recent probation entry first. Under a flood of distinct uncached rollouts the rollouts
+    that clients come back to (repeats, their meshes) stay cached."""
+
+    PROTECTED_SHARE = 0.5
+
+    def __init__(
+        self, size: int, max_bytes: int | None = None, weigh: Callable[[Any], int] | None = None
+    ) -> None:
+        self.size = size
+        self.max_bytes = max_bytes
+        self.weigh = weigh or (lambda value: 0)
+        self.bytes = 0  # both segments
+        self._probation: OrderedDict[Any, Any] = OrderedDict()
+        self._protected: OrderedDict[Any, Any] = OrderedDict()
+        self._protected_bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, key: Any) -> Any | None:
+        with self._lock:
+            if key in self._protected:
+                self._protected.move_to_end(key)
+                return self._protected[key]
+            if key not in self._probation:
+                return None
+            value = self._probation.pop(key)
+            self._protected[key] = value
+            self._protected_bytes += self.weigh(value)
+            while len(self._protected) > 1 and self._protected_over():
+                old_key, old = self._protected.popitem(last=False)
+                self._protected_bytes -= self.weigh(old)
+                self._probation[old_key] = old  # most recent end of probation
+            return value
+
+    def put(self, key: Any, value: Any) -> None:
+        weight = self.weigh(value)
+        if self.size <= 0 or (self.max_bytes is not None and weight > self.max_bytes):
+            return
+        with self._lock:
+            if key in self._protected:
+                old = self._protected[key]
+                self._protected[key] = value
+                self._protected_bytes += weight - self.weigh(old)
+                self.bytes += weight - self.weigh(old)
+            else:
+                if key in self._probation:
+                    self.bytes -= self.weigh(self._probation.pop(key))
+                self._probation[key] = value
+                self.bytes += weight
+            while len(self) > self.size or self._over_budget():
+                segment = self._probation if self._probation else self._protected
+                _, old = segment.popitem(last=False)
+                self.bytes -= self.weigh(old)
+                if segment is self._protected:
+                    self._protected_bytes -= self.weigh(old)
+
+    def _protected_over(self) -> bool:
+        share = self.PROTECTED_SHARE
+        over_bytes = self.max_bytes is not None and self._protected_bytes > share * self.max_bytes
+        return len(self._protected) > share * self.size or over_bytes
+
+    def _over_budget(self) -> bool:
+        return self.max_bytes is not None and self.bytes > self.max_bytes
+
+    def __len__(self) -> int:
+        return len(self._probation) + len(self._protected)
+
+
+class ServedModel:
+    """The predictor of the served checkpoint plus caches and trajectory buffers. Thread-safe."""
+
+    def __init__(self, predictor: Predictor, *, cache_size: int = 32, cache_bytes: int | None = None) -> None:
+        self.predictor = predictor
+        self.model_id = predictor.model_id
+        # cache_bytes: the budget of the rollout cache (states dominate: ~17 MB per 100-step `small`
+        # rollout); meshes get a quarter of it on top
+        self._rollouts = _LRU(cache_size, cache_bytes, lambda r: int(r.states.nbytes))
+        self._meshes = _LRU(4 * cache_size, None if cache_bytes is None else cache_bytes // 4, len)
+        self._mechanisms = _LRU(cache_size)
+        self._buffers: list[torch.Tensor] = []  # idle trajectory buffers (`_take_buffer`)
+        self._buffers_lock = threading.Lock()
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | Path,
+        *,
+        scene: str | None = None,
+        cache_size: int = 32,
+        cache_bytes: int | None = None,
+        runtime_backend: str = "openvino",
+        runtime_precision: str = "bf16",
+        runtime_threads: int = 1,
+    ) -> ServedModel:
+        """Load `path` weights-only (`nemsim.inference`; CheckpointError) and serve it; `scene`: the scene
+        the checkpoint must be of (None: any). Rollouts run through the fast CPU runtime (PyTorch eager
+        when openvino is missing, logged)."""
+        predictor = Predictor.from_checkpoint(
+            path, scene=scene, backend=runtime_backend, precision=runtime_precision, threads=runtime_threads
+        )
+        return cls(predictor, cache_size=cache_size, cache_bytes=cache_bytes)
+
+    @property
+    def scene(self) -> Any:
+        return self.predictor.scene
+
+    # --- rollouts ---------------------------------------------------------------------------------
+    def rollout_id(self, schedule: ControlSchedule) -> str:
+        h = hashlib.sha256(self.model_id.encode())
+        h.update(str(schedule.steps).encode())
+        h.update(np.ascontiguousarray(schedule.normalized, dtype="<f4").tobytes())
+        return h.hexdigest()[:24]
+
+    def get_rollout(self, rollout_id: str) -> RolloutResult:
+        result = self._rollouts.get(rollout_id)
+        if result is None:
+            raise UnknownRollout(rollout_id)
+        return result
+
+    def lookup_rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[str, RolloutResult | None]:
+        """(rollout id, the cached result or None) of a schedule or (T, 14) physical controls."""
+        rid = self.rollout_id(self.predictor.schedule(controls))
+        return rid, self._rollouts.get(rid)
+
+    def compute_rollout(
+        self, controls: ControlSchedule | np.ndarray, rollout_id: str | None = None
+    ) -> tuple[RolloutResult, bool]:
+        """Roll out and cache a schedule (blocking); `rollout_id`: its id when `lookup_rollout` gave it
+        already. Returns (result, served_from_cache): an identical request may have finished while this
+        one waited for a slot."""
+        schedule = self.predictor.schedule(controls)
+        rid = rollout_id or self.rollout_id(schedule)
+        cached = self._rollouts.get(rid)
+        if cached is not None:
+            return cached, True
+        result = self._compute(rid, schedule)
+        self._rollouts.put(rid, result)
+        return result, False
+
+    def rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[RolloutResult, bool]:
+        """Cached or computed rollout (blocking; no admission control)."""
+        schedule = self.predictor.schedule(controls)
+        rid, cached = self.lookup_rollout(schedule)
+        return (cached, True) if cached is not None else self.compute_rollout(schedule, rid)
+
+    def _compute(self, rid: str, schedule: ControlSchedule) -> RolloutResult:
+        buf = self._take_buffer(schedule.steps)  # (>= T+1, 2, D, H, W) float32
+        try:
+            pred = self.predictor.rollout(schedule, out=buf)
+            metrics = {
+                k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
+                for k, vals in pred.metrics.items()
+            }
+            # (T+1, 2, D, H, W) float16 (torch's conversion is vectorized)
+            states = buf[: schedule.steps + 1].half().numpy()
+        finally:
+            self._give_back(buf)
+        if pred.warnings:
+            log.warning("rollout %s: %s", rid, "; ".join(pred.warnings))
+        return RolloutResult(
+            id=rid,
+            model_id=self.model_id,
+            steps=schedule.steps,
+            controls_raw=schedule.raw,
+            states=states,
+            metrics=metrics,
+            times_s=pred.times_s,
+            rollout_ms=1e3 * pred.rollout_s,
+            metrics_ms=1e3 * pred.metrics_s,
+            warnings=pred.warnings,
+            non_finite_from=pred.non_finite_from,
+        )
+
+    def _take_buffer(self, steps: int) -> torch.Tensor:
+        """A float32 trajectory buffer of at least steps + 1 states, reused across rollouts: a fresh
+        array of a trajectory's size costs page faults on every rollout, and the stacked copy of the
+        states another one. One buffer per rollout computing at the same time (`_give_back`)."""
+        with self._buffers_lock:
+            for i, buf in enumerate(self._buffers):
+                if buf.shape[0] >= steps + 1:
+                    return self._buffers.pop(i)
+            if self._buffers:
+                self._buffers.pop(0)  # too short for this rollout: replaced by a longer one
+        with torch.inference_mode(False):
+            return torch.empty((steps + 1, *self.predictor.x0.shape), dtype=torch.float32)
+
+    def _give_back(self, buf: torch.Tensor) -> None:
+        with self._buffers_lock:
+            self._buffers.append(buf)
+
+    def warm_up(self, steps: int) -> None:
+        """One short uncached rollout so the first request does not pay for allocation/JIT."""
+        self.predictor.warm_up(steps)
+
+    # --- meshes -------------------------------------------------------------------------------------
+    def warm_up_meshes(self, formats: tuple[str, ...] = ("glb", "ply", "obj", "stl")) -> None:
+        """Extract and export the initial Si surface once per format, so the first mesh request does not
+        pay for imports and first-call compilation."""
+        for fmt in formats:
+            self.predictor.mesh(self.predictor.x0[1], fmt, {"warm_up": True})
+
+    def cached_mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes | None:
+        return self._meshes.get((result.id, step, channel, fmt))
+
+    def mesh(self, result: RolloutResult, step: int, channel: str, fmt: str) -> bytes:
+        """File bytes of the zero-level surface of one channel at one step (cached; blocking)."""
+        key = (result.id, step, channel, fmt)
+        data = self._meshes.get(key)
+        if data is not None:
+            return data
+        ch = 0 if channel == "mask" else 1
+        metadata = {
+            "model_id": self.model_id,
+            "rollout_id": result.id,
+            "step": step,
+            "time_s": result.times_s[step],
+            "channel": channel,
+            "scene": self.scene.name,
+            "controls": array_to_controls(result.controls_raw[max(step - 1, 0)]),
+        }
+        data = self.predictor.mesh(result.states[step, ch].astype(np.float32), fmt, metadata)  # (D, H, W)
+        self._meshes.put(key, data)
+        return data
+
+    # --- mechanisms ---------------------------------------------------------------------------------
+    @staticmethod
+    def _mechanisms_key(controls_raw: np.ndarray, factors: list[float] | None) -> tuple[bytes, Any]:
+        if not factors:
+            return np.asarray(controls_raw, dtype="<f8").tobytes(), None
+        levels = sorted({1.0, *map(float, factors)})
+        pairs = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
+        return np.asarray(controls_raw, dtype="<f8").tobytes(), pairs
+
+    def cached_mechanisms(
+        self, controls_raw: np.ndarray, factors: list[float] | None
+    ) -> dict[str, Any] | None:
+        return self._mechanisms.get(self._mechanisms_key(controls_raw, factors))
+
+    def mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any]:
+        """`nemsim.analysis.counterfactual.mechanism_response` for one base control vector (14,) physical
+        units from the predictor's initial state (cached), JSON-ready (`schemas.jsonable`: plain lists and
+        floats, non-finite as None), so a cache hit costs no conversion.
+
+        `factors` are flux multiplier levels; the interventions are every (s_Cl+, s_Cl) pair of the levels
+        and 1, except (1, 1) -- {0.5, 1.5} gives the paper's eight. None: the library default (the paper's).
+        """
+        key = self._mechanisms_key(controls_raw, factors)
+        cached = self._mechanisms.get(key)
+        if cached is not None:
+            return cached
+        from nemsim.analysis.counterfactual import mechanism_response
+
+        kwargs: dict[str, Any] = {} if key[1] is None else {"factors": key[1]}
+        raw = np.asarray(controls_raw, dtype=np.float64)
+        # no inference_mode: the library owns its autograd settings
+        predictor = self.predictor
+        result = jsonable(mechanism_response(predictor.loaded, raw, x0=predictor.x0, **kwargs))
+        self._mechanisms.put(key, result)
+        return result

@@ -1,0 +1,160 @@
+"""Inverse design, POST /design: 202 + Location, progress through GET /jobs/{id}, the result's recipes, 422
+on a bad spec, verification by the simulator; opt-in intervals on POST /rollout with and without a
+calibration."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import numpy as np
+
+SMALL_SEARCH = {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}
+
+
+def _poll(client, location: str, timeout_s: float = 120.0) -> tuple[dict, list[float]]:
+    seen = []
+    deadline = time.monotonic() + timeout_s
+    while True:
+        body = client.get(location).json()
+        seen.append(body["progress"])
+        if body["status"] in ("done", "failed", "cancelled") or time.monotonic() > deadline:
+            return body, seen
+        time.sleep(0.02)
+
+
+def test_design_job_202_progress_and_result(make_client, monkeypatch):
+    import service.routes.inverse as route
+
+    real = route.spec_from_dict
+    monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": SMALL_SEARCH}))
+    client = make_client()
+    r = client.post(
+        "/design",
+        json={
+            "targets": {"etch_depth": {"value": 20, "tol": 5}, "mask_loss": 1.0},
+            "step": 3,
+            "k": 2,
+            "verify": True,
+            "refine": False,  # the plain verification: simulate the top recipe only
+        },
+    )
+    assert r.status_code == 202, r.text
+    created = r.json()
+    assert created["kind"] == "design" and r.headers["location"] == created["location"]
+    done, seen = _poll(client, created["location"])
+    assert done["status"] == "done", done
+    assert done["progress"] == 1.0 and all(0.0 <= p <= 1.0 for p in seen)
+    assert seen == sorted(seen)  # progress never goes back
+    res = done["result"]
+    assert res["status"] in ("met", "unreachable") and len(res["recipes"]) == 2
+    top = res["recipes"][0]
+    assert set(top["targets"]) == {"etch_depth", "mask_loss"}
+    assert top["training_data"]["flag"] in ("inside", "far")
+    assert res["cost"]["rollouts"] > 0 and res["cost"]["wall_s"] > 0
+    ver = res["verification"]["recipes"]
+    assert len(ver) == 1 and set(ver[0]["achieved"]) >= {"etch_depth", "mask_loss"}
+    assert isinstance(ver[0]["met"], bool)
+
+
+def test_refined_design_job_reports_its_rounds(make_client, monkeypatch):
+    """`refine`: the simulator inside the loop (child processes); the top recipe is a simulated one."""
+    import service.routes.inverse as route
+
+    real = route.spec_from_dict
+    monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": SMALL_SEARCH}))
+    client = make_client()
+    body = {"targets": {"etch_depth": {"value": 20, "tol": 5}}, "step": 2, "k": 2, "refine": True,
+            "verify_top": 1, "refine_rounds": 1}
+    r = client.post("/design", json=body)
+    assert r.status_code == 202, r.text
+    done, seen = _poll(client, r.json()["location"], timeout_s=180.0)
+    assert done["status"] == "done", done
+    assert seen == sorted(seen) and done["progress"] == 1.0
+    res = done["result"]
+    runs = res["verification"]["recipes"]
+    assert 1 <= len(runs) <= 2 and res["cost"]["simulator_runs"] == len(runs)
+    assert [v["round"] for v in runs] == list(range(len(runs)))
+    assert res["status"] in ("verified", "unverified", "unreachable")
+    assert (res["status"] == "verified") == any(v["met"] for v in runs)
+    top = res["recipes"][0]
+    assert top["verified_by"] == "simulator" and set(top["simulated"]) >= {"etch_depth"}
+    assert res["refinement"]["rounds"][0]["simulated"][0]["simulated"]["etch_depth"] == runs[0]["achieved"][
+        "etch_depth"
+    ]
+
+
+def test_refined_design_skips_recipes_beyond_the_work_limit(make_client, monkeypatch):
+    import service.routes.inverse as route
+
+    real = route.spec_from_dict
+    monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": SMALL_SEARCH}))
+    client = make_client(sim_max_work=1e-6)
+    r = client.post("/design", json={"targets": {"etch_depth": 20}, "step": 2, "k": 2, "refine": True})
+    done, _ = _poll(client, r.json()["location"])
+    res = done["result"]
+    assert done["status"] == "done" and res["verification"]["recipes"] == []
+    assert len(res["verification"]["skipped"]) == 2 and "server limit" in res["verification"]["skipped"][0]
+    assert res["status"] in ("met", "unreachable")  # nothing simulated: the surrogate's word
+    assert all(r["verified_by"] == "surrogate" for r in res["recipes"])
+
+
+def test_bad_design_requests_are_422(make_client):
+    client = make_client()
+    for body, word in (
+        ({"targets": {}}, "targets"),
+        ({"targets": {"depth": 5}}, "targets"),
+        ({"targets": {"etch_depth": 5}, "fixed": {"flux_xx": 1.0}}, "unknown control"),
+        ({"targets": {"etch_depth": 5}, "step": 500}, "horizon"),
+        ({"targets": {"etch_depth": 5}, "refine_rounds": 9}, "refine_rounds"),
+    ):
+        r = client.post("/design", json=body)
+        assert r.status_code == 422, (body, r.text)
+        assert word in r.text
+
+
+def test_rollout_intervals_opt_in(make_client, tiny_checkpoint, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from nemsim.analysis.intervals import Calibration, file_digest, offsets_from_residuals
+    from service.config import Settings
+    from service.deps import get_served_model
+    from service.main import create_app
+    from service.served_model import ServedModel
+
+    client = make_client()
+    body = {"controls_normalized": [0.0] * 14, "steps": 3}
+    r = client.post("/rollout", json=body)
+    assert r.status_code == 200 and r.json()["intervals"] is None  # not asked
+    r = client.post("/rollout", json={**body, "intervals": True})
+    assert r.status_code == 200 and r.json()["intervals"]["available"] is False  # no calibration file
+
+    ckpt = tmp_path / "calibrated.pt"
+    shutil.copy(tiny_checkpoint, ckpt)
+    rng = np.random.default_rng(0)
+    res = {m: rng.normal(size=(30, 4)) for m in ("etch_depth", "mask_loss")}
+    Calibration(
+        checkpoint_sha256=file_digest(ckpt),
+        scene="tiny",
+        levels=(0.8, 0.9),
+        metrics=tuple(res),
+        offsets=offsets_from_residuals(res, (0.8, 0.9)),
+        calibration={"setting": "control-id", "split": "val", "cases": 30},
+    ).write(tmp_path / "calibrated.calibration.json")
+    served = ServedModel.from_checkpoint(ckpt, cache_size=4)
+    app = create_app(Settings(warmup_steps=0, rate_limit_per_minute=0), served=served)
+    app.dependency_overrides[get_served_model] = lambda: served
+    with TestClient(app) as c:
+        out = c.post("/rollout", json={**body, "intervals": True}).json()
+    iv = out["intervals"]
+    assert iv["available"] is True and iv["levels"] == [0.8, 0.9]
+    for level in ("0.8", "0.9"):
+        depth = iv["by_level"][level]["etch_depth"]
+        pred = out["metrics"]["etch_depth"]
+        assert len(depth["lo"]) == len(pred) == 4
+        assert all(
+            lo <= p <= hi for lo, p, hi in zip(depth["lo"][1:], pred[1:], depth["hi"][1:], strict=True)
+        )
+    wide = iv["by_level"]["0.9"]["etch_depth"]
+    narrow = iv["by_level"]["0.8"]["etch_depth"]
+    assert all(w_lo <= n_lo for w_lo, n_lo in zip(wide["lo"][1:], narrow["lo"][1:], strict=True))

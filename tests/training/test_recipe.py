@@ -1,0 +1,96 @@
+"""`nemsim train --recipe`: stages run in order, each warm-started from the previous best.pt, skipped once
+finished and resumed when interrupted; malformed recipes are one line, exit 2."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from nemsim.cli import main
+from nemsim.training.recipe import STAGE_RECORD, recipe_from_dict
+
+ROOT = Path(__file__).parents[2]
+STEPS = 4  # as in tests/training/conftest.py
+
+
+def _stage_args(tiny_data: Path) -> list[str]:
+    return ["--model", "test-standin", "--data", str(tiny_data), "--setting", "control-id", "--splits",
+            str(tiny_data.parent / "splits"), "--epochs", "1", "--rollout-steps", str(STEPS), "--no-test"]
+
+
+def _recipe(tmp_path: Path, tiny_data: Path, scene: str = "tiny", **extra: list[str]) -> Path:
+    stages = [{"name": "first", "args": _stage_args(tiny_data) + extra.get("first", [])},
+              {"name": "second", "args": _stage_args(tiny_data) + extra.get("second", [])}]
+    path = tmp_path / f"recipe-{len(list(tmp_path.glob('recipe-*.yaml')))}.yaml"
+    path.write_text(yaml.safe_dump({"scene": scene, "stages": stages}))
+    return path
+
+
+def test_stages_run_in_order_warm_started_then_skip_or_resume(tmp_path, tiny_data, capsys):
+    recipe, out = _recipe(tmp_path, tiny_data), tmp_path / "runs"
+    assert main(["train", "--recipe", str(recipe), "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    first, second = out / "first", out / "second"
+    assert "stage 1/2 first: starting ->" in printed
+    assert f"stage 2/2 second: starting, warm start from {first / 'best.pt'}" in printed
+    assert printed.count("done in") == 2
+    for stage in (first, second):
+        assert (stage / "best.pt").is_file() and (stage / STAGE_RECORD).is_file()
+    assert f"initialized from {first / 'best.pt'}" in (second / "train.log").read_text()
+    assert "initialized from" not in (first / "train.log").read_text()  # each stage logs to its own file
+    assert json.loads((second / STAGE_RECORD).read_text())["init_from"] == str(first / "best.pt")
+
+    before = (second / "best.pt").stat().st_mtime_ns
+    assert main(["train", "--recipe", str(recipe), "--out", str(out), "--no-progress"]) == 0
+    assert capsys.readouterr().out.count("done, skipped") == 2
+    assert (second / "best.pt").stat().st_mtime_ns == before
+
+    (second / STAGE_RECORD).unlink()  # as if killed after its last checkpoint
+    assert main(["train", "--recipe", str(recipe), "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "stage 1/2 first: done, skipped" in printed
+    assert "stage 2/2 second: resuming from its last.pt" in printed
+    assert "resumed from" in (second / "train.log").read_text() and (second / STAGE_RECORD).is_file()
+
+
+def test_malformed_recipes_are_one_line_exit_2(tmp_path, tiny_data, capsys):
+    out = str(tmp_path / "runs")
+    cases = [
+        (["--recipe", str(_recipe(tmp_path, tiny_data)), "--out", out, "--epochs", "3"],
+         "beside it give only --out, --device, --no-progress (got --epochs)"),
+        (["--recipe", str(_recipe(tmp_path, tiny_data))], "needs --out"),
+        (["--recipe", str(_recipe(tmp_path, tiny_data, second=["--out", "x"])), "--out", out],
+         "--out is set by the recipe"),
+        (["--recipe", str(_recipe(tmp_path, tiny_data, second=["--init-from", "x.pt"])), "--out", out],
+         "only the first stage"),
+        (["--recipe", str(_recipe(tmp_path, tiny_data, scene="small")), "--out", out], "on scene 'tiny'"),
+        (["--recipe", str(_recipe(tmp_path, tiny_data, first=["--no-such-flag"])), "--out", out],
+         "stage first: unrecognized arguments: --no-such-flag"),
+    ]
+    for argv, words in cases:
+        capsys.readouterr()
+        assert main(["train", *argv]) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (argv, err)
+    assert not (tmp_path / "runs").exists()  # nothing ran
+    assert main(["train", "--model", "test-standin", "--out", out]) == 2
+    assert "required: --data, --setting" in capsys.readouterr().err
+
+
+def test_shipped_recipe_parses():
+    """configs/nemsim-small.yaml (the served model's recipe) is a valid recipe whose stage arguments parse."""
+    from nemsim.cli.train import add_train_arguments
+
+    path = ROOT / "configs" / "nemsim-small.yaml"
+    if not path.is_file():
+        pytest.skip(f"{path} not present")
+    recipe = recipe_from_dict(yaml.safe_load(path.read_text()))
+    for stage in recipe.stages:
+        parser = argparse.ArgumentParser()
+        add_train_arguments(parser)
+        args = parser.parse_args([*stage.args, "--out", "unused"])
+        assert args.config is None or (ROOT / args.config).is_file(), (stage.name, args.config)
