@@ -18,4 +18,33 @@ serve: venv
 test: venv
 	$(BIN)/python -m pytest -x -q
 
-.PHONY: venv serve test
+.PHONY: venv serve test benchmarks
+
+# Benchmarks of the served model (benchmarks/README.md lists every result and its command): the data of the
+# model card's recipe first (resumable; about 20 core-minutes per 500 `small` cases), then each benchmark, then
+# every result stamped with the checkpoint's id. Long: hours of CPU; run it in the background.
+CKPT ?= checkpoints/nemsim-small.pt
+DATA ?= data
+CACHE ?= runs/truth-cache
+SMALL := benchmarks/small
+
+$(DATA)/small.h5: | venv
+	$(BIN)/nemsim design --n 500 --seed 42 --out $(DATA)/design.csv
+	$(BIN)/nemsim generate --scene small --n 500 --seed 0 --out $@ --workers 2 --state-dtype float16
+	$(BIN)/nemsim splits --design $(DATA)/design.csv --out $(DATA)/splits
+
+benchmarks: venv $(DATA)/small.h5
+	$(BIN)/nemsim bench speed-error --data $(DATA)/small.h5 --splits $(DATA)/splits --setting control-id \
+	    --checkpoints $(CKPT) --runtimes torch-f32,openvino-bf16 --cases 5 --out $(SMALL)
+	$(BIN)/nemsim bench physics --checkpoint $(CKPT) --cache-dir $(CACHE) --out $(SMALL)/physics
+	$(BIN)/nemsim bench extrapolation --checkpoint $(CKPT) --cache-dir $(CACHE) --out $(SMALL)/extrapolation
+	$(BIN)/nemsim stress --checkpoint $(CKPT) --max-corners 32 --cache-dir $(CACHE) --json $(SMALL)/stress.json
+	NEMSIM_ALLOCATOR=default $(BIN)/nemsim bench service --checkpoint $(CKPT) -n 16 \
+	    --json $(SMALL)/service_latency.json
+	$(BIN)/nemsim counterfactual --checkpoint $(CKPT) --data $(DATA)/small.h5 --setting control-id \
+	    --splits $(DATA)/splits --out $(SMALL)/counterfactual
+	$(BIN)/nemsim bench inverse --checkpoint $(CKPT) --refine both --out $(SMALL)/inverse
+	$(BIN)/python -m bench.stamp $(CKPT) $(SMALL)/speed_error.json $(SMALL)/speed_error.md \
+	    $(SMALL)/physics/physics.json $(SMALL)/physics/physics.md $(SMALL)/extrapolation/extrapolation.json \
+	    $(SMALL)/extrapolation/extrapolation.md $(SMALL)/stress.json $(SMALL)/service_latency.json \
+	    $(SMALL)/counterfactual/counterfactual.json $(SMALL)/inverse/inverse.json $(SMALL)/inverse/inverse.md
