@@ -3,7 +3,7 @@
 The command line becomes a ``nemsim.training.run.TrainJob``: a TrainConfig read from --config, with the
 flags of ``CONFIG_FLAGS`` overriding one field each, plus what to train on and where to write.
 ``nemsim.training.run.run_training`` does the rest; ``nemsim.training.recipe`` runs the stages of a recipe.
-For DDP: ``torchrun --nproc-per-node N -m nemsim.cli train ARGS``.
+For DDP: ``torchrun --nproc-per-node N -m nemsim.train ARGS``.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import dataclasses
 import typing
 from pathlib import Path
 
-from nemsim.cli.common import Subparsers, UserError
+from nemsim.cli.common import Subparsers, UserError, seed_arg
 from nemsim.data.splits import SETTINGS
 
 # flags that override one TrainConfig field each (over --config); the type comes from the field
@@ -48,7 +48,8 @@ def _add_config_flags(p: argparse.ArgumentParser, flags: tuple[str, ...]) -> Non
         if kind == "bool":
             p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_text)
         else:
-            p.add_argument(flag, type={"int": int, "float": float}.get(kind, str), help=help_text,
+            typ = seed_arg if flag == "--seed" else {"int": int, "float": float}.get(kind, str)
+            p.add_argument(flag, type=typ, help=help_text,
                            metavar="M" if flag == "--max-minutes" else None)
 
 
@@ -103,7 +104,8 @@ def add_train_arguments(p: argparse.ArgumentParser, *, recipe: bool = False) -> 
     p.add_argument("--perturb", default="none",
                    help="rule-library perturbation (ablation): none (default), structure-only, "
                         "mechanism-shuffle, event-drop, rate-noise")
-    p.add_argument("--perturb-seed", type=int, default=0, help="seed of the rule perturbation (default 0)")
+    p.add_argument("--perturb-seed", type=seed_arg, default=0,
+                   help="seed of the rule perturbation (default 0)")
     p.add_argument("--no-test", action="store_true", help="skip the final test evaluation of best.pt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -123,7 +125,7 @@ def register(sub: Subparsers) -> None:
             "`nemsim train`) runs its stages in order into OUT/<name>, each warm-started (--init-from) from "
             "the previous stage's best.pt and run with --resume: rerunning the command skips finished "
             "stages and resumes an interrupted one; one progress line per stage. "
-            "For DDP: torchrun --nproc-per-node N -m nemsim.cli train ARGS. "
+            "For DDP: torchrun --nproc-per-node N -m nemsim.train ARGS. "
             "Example: nemsim train --model nemsim --data data/small.h5 --setting control-id --out "
             "runs/nemsim; nemsim train --recipe configs/nemsim-small.yaml --out runs/nemsim-small"
         ),

@@ -134,7 +134,7 @@ def test_torchrun_ddp_two_processes(tmp_path, tiny_data):
     out = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", "nemsim.cli", "train", "--model", "nemsim", "--data", str(tiny_data), "--setting",
+           "-m", "nemsim.train", "--model", "nemsim", "--data", str(tiny_data), "--setting",
            "control-id", "--out", str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1",
            "--rollout-steps", "2", "--no-progress", "--no-test"]
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180)
