@@ -41,6 +41,8 @@ benchmarks: venv $(DATA)/small.h5
 	$(BIN)/nemsim stress --checkpoint $(CKPT) --max-corners 32 --cache-dir $(CACHE) --json $(SMALL)/stress.json
 	NEMSIM_ALLOCATOR=default $(BIN)/nemsim bench service --checkpoint $(CKPT) -n 16 \
 	    --json $(SMALL)/service_latency.json
+	OMP_NUM_THREADS=1 $(BIN)/nemsim bench service --probes --checkpoint $(CKPT) --json $(SMALL)/service_probes.json \
+	    --md $(SMALL)/service_probes.md
 	$(BIN)/nemsim counterfactual --checkpoint $(CKPT) --data $(DATA)/small.h5 --setting control-id \
 	    --splits $(DATA)/splits --out $(SMALL)/counterfactual
 	$(BIN)/nemsim bench inverse --checkpoint $(CKPT) --refine both --out $(SMALL)/inverse

@@ -8,22 +8,14 @@ title. Stamping again replaces the stamp, so ``make benchmarks`` can run any num
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from nemsim.inference.checkpoint import checkpoint_id
+
 MARK = "_Made with checkpoint "
-
-
-def checkpoint_id(path: str | Path) -> str:
-    """The first 12 hex digits of the file's SHA-256."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()[:12]
 
 
 def stamp_json(path: Path, name: str, cid: str) -> None:

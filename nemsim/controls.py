@@ -40,6 +40,8 @@ import numpy as np
 
 EPS_U = 1e-12  # epsilon of the flux log transform, eq:supp_control_transformation
 DESIGN_N = 500  # N_control, eq:supp_lhs_design
+# the largest design drawn: about 60 MB of working arrays, and far more cases than any data set simulates
+MAX_DESIGN_N = 100_000
 DESIGN_SEED = 42
 LHS_SAMPLER = "scipy.stats.qmc.LatinHypercube(d=14, seed=42).random(500)  (numpy re-implementation)"
 
@@ -254,8 +256,8 @@ def lhs_unit(n: int = DESIGN_N, seed: int = DESIGN_SEED) -> np.ndarray:
 
     Column j holds (pi_j(i) - U_ij) / n with pi_j a random permutation of 1..n and U_ij ~ U[0, 1).
     """
-    if n < 1:
-        raise ValueError(f"n must be >= 1; got {n}")
+    if not 1 <= n <= MAX_DESIGN_N:
+        raise ValueError(f"n must be in 1..{MAX_DESIGN_N} (design size); got {n}")
     rng = np.random.default_rng(seed)
     jitter = rng.uniform(size=(n, N_CONTROLS))  # (n, 14), drawn first, as scipy does
     perms = np.tile(np.arange(1, n + 1), (N_CONTROLS, 1))  # (14, n)
@@ -428,23 +430,94 @@ def corner_design(n: int, seed: int, exclude: np.ndarray | None = None) -> np.nd
     return box_corner(np.stack(picked))  # (n, 14)
 
 
-def check_admissible(raw: np.ndarray) -> list[str]:
-    """One message per physically impossible value of raw controls, (14,) or (..., 14); empty if admissible.
+# --- admissible values: one set of rules for the service, the inverse design and the CLI --------------
 
-    Every row is checked; with more than one row each message starts with ``row i:`` (i indexes the
-    flattened rows).
+MAX_ABS_NORMALIZED = 1e3  # linear/int controls: |normalized| beyond this is no process at all
+MAX_FLUX_DECADES = 3.0  # fluxes: more than 10^3 x the design maximum is no process at all
+
+
+def guard_max(name: str) -> float:
+    """The largest accepted value of control ``name`` (physical units): the scale guard.
+
+    Linear and integer controls: MAX_ABS_NORMALIZED half-widths of the design box past its centre.
+    Log-sampled fluxes: MAX_FLUX_DECADES decades above the design maximum (a normalized bound would be
+    meaningless for fluxes: 1e300 mol m^-2 s^-1 normalizes to about 465). Zero is always admissible.
+    """
+    spec = CONTROL_SPECS[control_index(name)]
+    if spec.kind == "log":
+        return float(spec.high * 10.0**MAX_FLUX_DECADES)
+    return float(spec.low + (MAX_ABS_NORMALIZED + 1.0) * 0.5 * (spec.high - spec.low))
+
+
+GUARD_MAX = np.array([guard_max(n) for n in CONTROL_NAMES], dtype=np.float64)  # (14,)
+ACCEPT_MAX = np.minimum(PHYS_MAX, GUARD_MAX)  # (14,) the highest accepted value per control
+
+
+def admissible_range(name: str) -> tuple[float, float]:
+    """(lowest, highest) accepted value of control ``name``: the physical minimum and the smaller of the
+    physical maximum and the scale guard (``guard_max``), physical units."""
+    j = control_index(name)
+    return float(PHYS_MIN[j]), float(ACCEPT_MAX[j])
+
+
+def control_problem(name: str, value: float, *, whole: bool = True) -> str | None:
+    """Why ``value`` is no admissible value of control ``name`` (None if it is one).
+
+    Refused: non-finite values, values below the physical minimum or above the physical maximum
+    ("physically impossible"), values past the scale guard ("far outside any meaningful range") and, with
+    ``whole``, fractional values of the integer controls (cosine-power exponents).
+    """
+    spec = CONTROL_SPECS[control_index(name)]
+    lo, hi = admissible_range(name)
+    v = float(value)
+    accepted = f"accepted {lo:g}..{hi:g} {spec.unit}"
+    if not math.isfinite(v):
+        return f"{name} = {v!r} is not a finite number ({accepted})"
+    if v < spec.phys_min or v > spec.phys_max:
+        bound = f">= {spec.phys_min:g}" if v < spec.phys_min else f"<= {spec.phys_max:g}"
+        return f"{name} = {v:g} {spec.unit} is physically impossible: it must be {bound} {spec.unit}"
+    if v > hi:
+        return (f"{name} = {v:g} {spec.unit} is far outside any meaningful range (training range "
+                f"{spec.low:g}..{spec.high:g}, {accepted})")
+    if whole and spec.kind == "int" and v != math.floor(v):
+        return (f"{name} = {v:g} is not an integer: cosine-power exponents are whole numbers "
+                f"(e.g. {math.floor(v):g} or {math.ceil(v):g})")
+    return None
+
+
+def check_control(name: str, value: float, *, where: str = "", whole: bool = True) -> float:
+    """``value`` as a float, or ValueError (``where`` + ``control_problem``'s reason: the name, the value
+    and the accepted range). ``where``: a prefix such as ``"fixed."`` that locates the value."""
+    problem = control_problem(name, value, whole=whole)
+    if problem is not None:
+        raise ValueError(where + problem)
+    return float(value)
+
+
+def check_admissible(raw: np.ndarray) -> list[str]:
+    """One message per inadmissible value of raw controls, (14,) or (..., 14); empty if admissible.
+
+    Inadmissible: non-finite, physically impossible or past the scale guard (``control_problem``;
+    fractional exponents are allowed here). Every row is checked; with more than one row each message
+    starts with ``row i:`` (i indexes the flattened rows).
     """
     raw = np.asarray(raw, dtype=np.float64)
     _check_last_dim(raw)
     rows = raw.reshape(-1, N_CONTROLS)  # (N, 14)
-    bad = ~np.isfinite(rows) | (rows < PHYS_MIN) | (rows > PHYS_MAX)  # (N, 14)
+    bad = ~np.isfinite(rows) | (rows < PHYS_MIN) | (rows > ACCEPT_MAX)  # (N, 14)
     out = []
     for i, j in zip(*np.nonzero(bad), strict=True):
-        s = CONTROL_SPECS[j]
         where = f"row {i}: " if rows.shape[0] > 1 else ""
-        out.append(f"{where}{s.name}={float(rows[i, j])!r} outside the physically admissible range "
-                   f"[{s.phys_min}, {s.phys_max}]")
+        out.append(f"{where}{control_problem(CONTROL_NAMES[j], float(rows[i, j]), whole=False)}")
     return out
+
+
+def check_controls(raw: np.ndarray, where: str = "") -> None:
+    """ValueError naming the first inadmissible value of raw controls (14,) or (..., 14)
+    (``check_admissible``); ``where`` prefixes the message."""
+    bad = check_admissible(raw)
+    if bad:
+        raise ValueError(where + bad[0])
 
 
 def outside_design_range(raw: np.ndarray) -> list[str]:
@@ -477,8 +550,11 @@ def write_controls_csv(path: str | Path, raw: np.ndarray, seed_ids: np.ndarray |
 
 def _csv_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
     """(header with names stripped, data rows) of a controls CSV; ValueError on an empty file."""
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise ValueError(f"{path}: not a CSV text file ({exc})") from None
     if not rows:
         raise ValueError(f"{path}: empty file; expected a header with {list(CONTROL_NAMES)}")
     return [h.strip() for h in rows[0]], rows[1:]

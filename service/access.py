@@ -9,7 +9,13 @@ and request metrics, for every request (pure ASGI, nothing buffered).
   (401 otherwise; keys are compared in constant time and never logged: a key is known by the first 8
   hex digits of its SHA-256). Without keys the server answers only clients on this machine (loopback;
   403 for others) unless `NEMSIM_ALLOW_REMOTE_WITHOUT_KEY` is set; `nemsim serve` warns when it binds
-  elsewhere without keys.
+  elsewhere without keys. Without keys the Host header must also name this machine (localhost or a
+  loopback address, any port) or one of `NEMSIM_ALLOWED_HOSTS` (400 otherwise): a web page whose name
+  an attacker re-points at 127.0.0.1 (DNS rebinding) sends its own name, and is refused.
+* Client address: the TCP peer's, unless the peer is one of `NEMSIM_TRUSTED_PROXIES` (none by default;
+  loopback is not trusted by itself): then the rightmost address of `NEMSIM_PROXY_HEADER`
+  (X-Forwarded-For, or RFC 7239 Forwarded) that is not itself a trusted proxy, stored as the ASGI
+  client. Otherwise those headers are ignored, so rotating them changes nothing.
 * Rate limit per client (API key, else address): a token bucket of `rate_limit_per_minute` with bursts
   of `rate_limit_burst`; beyond it 429 with Retry-After. Probes and /metrics are exempt.
 * At most `limit_concurrency` requests in flight (probes exempt); beyond it 503 with Retry-After at once.
@@ -32,15 +38,18 @@ import uuid
 from collections import OrderedDict
 from typing import Any
 
+from starlette.routing import Router
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.config import IPNetwork, host_name
+from service.errors import matching_routes
 from service.middleware import send_error
 
 log = logging.getLogger("service.access")
 
 OPEN_PATHS = frozenset({"/health", "/ready"})  # probes: never need a key, never rate limited
 UNLIMITED_PATHS = OPEN_PATHS | {"/metrics"}
-DOCS_PATHS = frozenset({"/docs", "/redoc", "/docs/oauth2-redirect"})
+DOCS_PATHS = frozenset({"/docs", "/docs/oauth2-redirect"})
 _RID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 SECURITY_HEADERS = [
     (b"x-content-type-options", b"nosniff"),
@@ -72,6 +81,81 @@ def is_loopback(host: str | None) -> bool:
         return ipaddress.ip_address(host or "").is_loopback
     except ValueError:
         return False
+
+
+def in_networks(host: str | None, networks: tuple[IPNetwork, ...]) -> bool:
+    try:
+        ip = ipaddress.ip_address(host or "")
+    except ValueError:
+        return False
+    return any(ip in net for net in networks)
+
+
+def _hop_address(value: str) -> str | None:
+    """The IP address of one forwarded hop (`1.2.3.4`, `1.2.3.4:80`, `"[2001:db8::1]:4711"`), or None."""
+    value = value.strip().strip('"')
+    if value.startswith("["):
+        value = value[1 : value.find("]")] if "]" in value else ""
+    elif value.count(":") == 1:
+        value = value.split(":", 1)[0]
+    try:
+        return str(ipaddress.ip_address(value))
+    except ValueError:
+        return None
+
+
+def forwarded_hops(headers: dict[bytes, bytes], header: str) -> list[str | None]:
+    """The client addresses of X-Forwarded-For (`a, b`) or Forwarded (`for=a;proto=http, for=b`), in order
+    (None for a hop that is not an IP address, e.g. `unknown` or an obfuscated name)."""
+    raw = headers.get(header.encode(), b"").decode("latin-1")
+    if not raw.strip():
+        return []
+    if header == "x-forwarded-for":
+        return [_hop_address(v) for v in raw.split(",")]
+    hops: list[str | None] = []
+    for element in raw.split(","):
+        pairs = (p.split("=", 1) for p in element.split(";") if "=" in p)
+        hops += [_hop_address(v) for k, v in pairs if k.strip().lower() == "for"]
+    return hops
+
+
+def client_address(
+    peer: str | None, headers: dict[bytes, bytes], trusted: tuple[IPNetwork, ...], header: str
+) -> str | None:
+    """Who sent the request: `peer`, unless it is a trusted proxy; then the rightmost hop of `header` that
+    is not a trusted proxy (the peer itself where a hop is unreadable, so made-up values change nothing)."""
+    if not trusted or not in_networks(peer, trusted):
+        return peer
+    hops = forwarded_hops(headers, header)
+    for hop in reversed(hops):
+        if hop is None:
+            return peer
+        if not in_networks(hop, trusted):
+            return hop
+    return hops[0] if hops else peer
+
+
+def host_allowed(host: bytes | None, allowed: frozenset[str]) -> bool:
+    """Whether a Host header names this machine (localhost, a loopback address) or one of `allowed`
+    (host names, `*` for any); a request without Host (HTTP/1.0, never a browser) passes."""
+    if host is None or "*" in allowed:
+        return True
+    name = host_name(host.decode("latin-1"))
+    if name == "localhost" or name in allowed:
+        return True
+    try:
+        return ipaddress.ip_address(name.removeprefix("[").removesuffix("]")).is_loopback
+    except ValueError:
+        return False
+
+
+def route_label(scope: Scope, router: Router | None) -> str:
+    """The route template for logs and metrics, also for requests refused before routing ("unmatched":
+    no route has that path)."""
+    route = scope.get("route")
+    if route is None and router is not None:
+        route = next(matching_routes(router, scope), None)
+    return getattr(route, "path", None) or "unmatched"
 
 
 def bind_warning(host: str, keys: frozenset[str], allow_remote: bool) -> str | None:
@@ -111,10 +195,14 @@ class TokenBuckets:
 
 
 class AccessMiddleware:
-    def __init__(self, app: ASGIApp, settings: Any, metrics: Any) -> None:
+    def __init__(self, app: ASGIApp, settings: Any, metrics: Any, router: Router | None = None) -> None:
         self.app = app
+        self.router = router  # to label requests refused before routing
         self.keys = settings.api_key_set()
         self.allow_remote = settings.allow_remote_without_key
+        self.allowed_hosts = settings.allowed_host_names()
+        self.trusted = settings.trusted_proxy_networks()
+        self.proxy_header = settings.proxy_header
         self.buckets = (
             TokenBuckets(settings.rate_limit_per_minute, settings.rate_limit_burst)
             if settings.rate_limit_per_minute > 0
@@ -129,13 +217,22 @@ class AccessMiddleware:
         """(client key, refusal status or 0, refusal message)."""
         host = scope["client"][0] if scope.get("client") else None
         if not self.keys:
-            if self.allow_remote or is_loopback(host):
-                return host or "-", 0, ""
-            return (
-                None,
-                403,
-                "this server has no API keys configured and answers only clients on its own machine",
-            )
+            if not (self.allow_remote or is_loopback(host)):
+                return (
+                    None,
+                    403,
+                    "this server has no API keys configured and answers only clients on its own machine",
+                )
+            if not host_allowed(headers.get(b"host"), self.allowed_hosts):
+                name = host_name(headers[b"host"].decode("latin-1"))[:100]
+                return (
+                    None,
+                    400,
+                    f"the Host header {name!r} does not name this server: without API keys it answers only "
+                    "localhost, 127.0.0.1 and [::1] (a guard against DNS rebinding); add the name to "
+                    "NEMSIM_ALLOWED_HOSTS to serve it",
+                )
+            return host or "-", 0, ""
         given = headers.get(b"x-api-key", b"").decode("latin-1")
         if given and any(hmac.compare_digest(given.encode(), k.encode()) for k in self.keys):
             return key_id(given), 0, ""
@@ -156,6 +253,10 @@ class AccessMiddleware:
         state = scope.setdefault("state", {})
         state["request_id"] = rid
         path = scope.get("path", "")
+        peer = scope["client"][0] if scope.get("client") else None
+        address = client_address(peer, headers, self.trusted, self.proxy_header)
+        if address != peer:
+            scope["client"] = (address, 0)
         status, size = 500, 0
         extra = [(b"x-request-id", rid.encode()), *SECURITY_HEADERS]
         if is_page(path):
@@ -208,7 +309,7 @@ class AccessMiddleware:
                 self.in_flight -= 1
         finally:
             seconds = time.perf_counter() - t0
-            route = getattr(scope.get("route"), "path", None) or "unmatched"
+            route = route_label(scope, self.router)
             self.metrics.observe_request(scope.get("method", "-"), route, status, seconds)
             if self.access_log:
                 log.info(

@@ -6,6 +6,7 @@ Read through the cached `get_settings()` dependency (never at import); tests rep
 
 from __future__ import annotations
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -38,6 +39,31 @@ def default_checkpoint(scene: str = DEFAULT_SCENE) -> Path:
 
 
 MIN_KEY_CHARS = 16  # shorter API keys are guessable
+IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
+def parse_networks(text: str) -> tuple[IPNetwork, ...]:
+    """Comma-separated addresses or networks (`10.0.0.0/8`, `::1`); ValueError naming a bad entry."""
+    out = []
+    for entry in (e.strip() for e in text.split(",")):
+        if not entry:
+            continue
+        try:
+            out.append(ipaddress.ip_network(entry, strict=False))
+        except ValueError:
+            raise ValueError(
+                f"NEMSIM_TRUSTED_PROXIES: {entry!r} is not an IP address or network (e.g. 10.0.0.0/8)"
+            ) from None
+    return tuple(out)
+
+
+def host_name(host: str) -> str:
+    """The name of a Host header value: lower case, without the port and a trailing dot (`[::1]:80` ->
+    `[::1]`)."""
+    host = host.strip().lower()
+    if host.startswith("["):
+        return host[: host.find("]") + 1] if "]" in host else host
+    return host.rsplit(":", 1)[0].rstrip(".") if host.count(":") == 1 else host.rstrip(".")
 
 
 class Settings(BaseSettings):
@@ -70,12 +96,23 @@ class Settings(BaseSettings):
         default=1, ge=1, description="uncached /mechanisms analyses at the same time (never behind rollouts)"
     )
     queue_timeout_s: float = Field(default=60.0, gt=0, description="longest wait for a slot before 503")
-    cache_size: int = Field(default=32, ge=0, description="rollouts kept (LRU) for repeats and mesh requests")
+    cache_size: int = Field(
+        default=32,
+        ge=0,
+        description="rollouts kept for repeats, mesh links and slices: a rollout's id (and its mesh links) "
+        "resolves until this many other rollouts have been answered by POST /rollout after it (computed or "
+        "repeated; follow-up requests of other ids do not count): under a flood of new rollouts, this many "
+        "rollout computations; rollouts whose follow-ups or repeats were requested stay longer, up to half "
+        "this many more, as the memory budget allows. Later: 404, and POST /rollout again gives the same id",
+    )
     cache_max_mb: int = Field(
-        default=192,
+        default=128,
         ge=1,
-        description="memory budget of the rollout cache in MB (meshes: a quarter more); the default keeps a "
-        "loaded `small` server under 1 GB resident",
+        description="memory budget of the rollout cache in MB (meshes: a quarter more); the states are "
+        "stored losslessly in a fraction of their float16 size, so `cache_size` 100-step `small` rollouts of "
+        "the design box fit in the default (the id guarantee above holds while they fit; far larger "
+        "rollouts leave room for fewer), and the loaded `small` server stays under 1 GB resident while no "
+        "inverse-design job runs",
     )
     max_meshes: int = Field(default=8, ge=0, description="meshes one POST /rollout may ask for inline")
     warmup_steps: int = Field(
@@ -94,12 +131,11 @@ class Settings(BaseSettings):
         default="bf16", description="rollout precision (bf16: same Avg RMSE within 1 %, measured)"
     )
     rollout_nice: int = Field(
-        default=10,
+        default=0,
         ge=0,
         le=19,
-        description="rollouts compute on threads this much nicer than the server (Linux), so cached answers, "
-        "meshes and metadata get the CPU first when rollouts saturate it; outside a container's own CPU "
-        "group the rollouts also yield to other processes on the machine (0: same priority)",
+        description="rollouts compute on threads this much nicer than the server (Linux; 0: the same "
+        "priority). Interactive rollouts should stay above background work: simulator jobs run at nice 19",
     )
     runtime_threads: int = Field(
         default=1, ge=1, description="OpenVINO threads per rollout; keep threads x max_concurrency <= cores"
@@ -126,6 +162,10 @@ class Settings(BaseSettings):
     keep_alive_s: int = Field(
         default=5, ge=1, description="uvicorn: idle keep-alive connections close after this"
     )
+    max_connections_per_client: int = Field(
+        default=32, ge=1, description="open connections one client address may hold (trusted proxies "
+        "exempt); more are dropped at once, so one address cannot take every connection",
+    )
 
     # --- access control and operations (service.access, service.metrics) ---
     api_keys: SecretStr = Field(
@@ -137,11 +177,23 @@ class Settings(BaseSettings):
     allow_remote_without_key: bool = Field(
         default=False, description="without API keys, also answer clients on other machines (not advised)"
     )
+    allowed_hosts: str = Field(
+        default="", description="without API keys, Host names answered besides localhost and loopback "
+        "addresses (comma-separated; * for any, not advised): others get 400 (DNS rebinding)",
+    )
+    trusted_proxies: str = Field(
+        default="", description="addresses or networks (comma-separated, e.g. 10.0.0.0/8) of reverse proxies "
+        "whose proxy_header names the client; none by default (loopback is not trusted by itself)",
+    )
+    proxy_header: Literal["x-forwarded-for", "forwarded"] = Field(
+        default="x-forwarded-for", description="the header the trusted proxies append the client to (the "
+        "other one is ignored)",
+    )
     rate_limit_per_minute: int = Field(
         default=1200, ge=0, description="requests per minute per client (API key, else address); 0: no limit"
     )
     rate_limit_burst: int = Field(default=100, ge=1, description="requests a client may send at once")
-    docs: bool = Field(default=True, description="serve /docs, /redoc and /openapi.json")
+    docs: bool = Field(default=True, description="serve /docs and /openapi.json")
     access_log: bool = Field(
         default=True, description="one JSON line per request on the service.access logger"
     )
@@ -170,8 +222,24 @@ class Settings(BaseSettings):
     jobs_keep_max: int = Field(
         default=16, ge=1, le=10_000, description="finished jobs kept (oldest forgotten first)"
     )
+    jobs_per_client: int = Field(
+        default=1, ge=1, le=1_000,
+        description="jobs one client (API key, else address) may have running or waiting; more get 429 + "
+        "Retry-After",
+    )
+    jobs_dir: Path | None = Field(
+        default=None,
+        description="where simulator jobs keep their files (a nemsim-job-* folder each, removed when the job "
+        "ends; the folders of a server that died are removed at start-up); default: the system temp dir",
+    )
 
-    @field_validator("checkpoint", "scene", mode="before")
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _networks(cls, value: str) -> str:
+        parse_networks(value)
+        return value
+
+    @field_validator("checkpoint", "scene", "jobs_dir", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
         return None if isinstance(value, str) and not value.strip() else value
@@ -180,6 +248,14 @@ class Settings(BaseSettings):
     @classmethod
     def _expand(cls, value: Path | None) -> Path | None:
         return value.expanduser() if value is not None else None
+
+    def trusted_proxy_networks(self) -> tuple[IPNetwork, ...]:
+        return parse_networks(self.trusted_proxies)
+
+    def allowed_host_names(self) -> frozenset[str]:
+        """`allowed_hosts` lower-cased, without ports and trailing dots."""
+        names = (host_name(h) for h in self.allowed_hosts.split(","))
+        return frozenset(n for n in names if n)
 
     def api_key_set(self) -> frozenset[str]:
         """The configured API keys (env and file); ValueError naming the source of a key too short."""

@@ -9,16 +9,21 @@ rest).
 from __future__ import annotations
 
 import logging
+import sys
+from collections.abc import Iterator
 from typing import Any
 
+import fastapi.routing
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Router
+from starlette.types import Scope
 
 log = logging.getLogger(__name__)
 
-# FastAPI's text for a body that is not even decodable (e.g. invalid UTF-8)
+# FastAPI's text for a body that json.loads refused other than as invalid JSON syntax; the cause says why
 _UNPARSABLE = "There was an error parsing the body"
 
 
@@ -47,6 +52,38 @@ def _readable(errors: list[dict]) -> list[dict]:
     return out
 
 
+def unparsable_body(cause: BaseException | None) -> str:
+    """What is wrong with a body FastAPI could not parse (`cause`: what json.loads raised)."""
+    if isinstance(cause, UnicodeDecodeError):
+        return "the request body could not be decoded: send UTF-8 encoded JSON"
+    if isinstance(cause, RecursionError):
+        return "the request body nests arrays or objects too deeply to parse: send a flatter JSON body"
+    if isinstance(cause, ValueError) and "integer string conversion" in str(cause):
+        return (
+            f"the request body holds an integer of more than {sys.get_int_max_str_digits()} digits "
+            "(number too large): send smaller numbers"
+        )
+    return "the request body could not be parsed as JSON"
+
+
+def matching_routes(router: Router, scope: Scope) -> Iterator[Any]:
+    """The routes whose path matches the request's (any method), in routing order, included routers
+    flattened (newer FastAPI keeps them nested: `fastapi.routing.iter_route_contexts` walks them)."""
+    walk = getattr(fastapi.routing, "iter_route_contexts", None)
+    for route in walk(router.routes) if walk is not None else router.routes:
+        if route.matches(scope)[0] is not Match.NONE:
+            yield route
+
+
+def allowed_methods(request: Request) -> str:
+    """Every method some route serves at this path (one route per method, e.g. GET and DELETE /jobs/{id},
+    while the 405 of the first route found lists only its own)."""
+    methods: set[str] = set()
+    for route in matching_routes(request.app.router, request.scope):
+        methods |= set(getattr(route, "methods", None) or ())
+    return ", ".join(sorted(methods))
+
+
 async def validation_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     detail = _readable(list(exc.errors()))
@@ -60,16 +97,19 @@ async def http_error_handler(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     detail = exc.detail
     message = detail if isinstance(detail, str) else f"HTTP {exc.status_code}"
+    headers = dict(getattr(exc, "headers", None) or {})
     if detail == _UNPARSABLE:
-        detail = message = "the request body could not be decoded: send UTF-8 encoded JSON"
+        detail = message = unparsable_body(exc.__cause__)
     elif exc.status_code == 404 and detail == "Not Found":
         message = f"no route {request.url.path!r}: see /docs (or /openapi.json) for the routes"
     elif exc.status_code == 405:
         message = f"{request.method} is not allowed on {request.url.path!r}"
+        allow = allowed_methods(request)
+        if allow:
+            headers = {k: v for k, v in headers.items() if k.lower() != "allow"} | {"Allow": allow}
+            message += f" (allowed: {allow})"
     return JSONResponse(
-        status_code=exc.status_code,
-        content=error_body(detail, message),
-        headers=getattr(exc, "headers", None),
+        status_code=exc.status_code, content=error_body(detail, message), headers=headers or None
     )
 
 

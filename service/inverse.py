@@ -28,6 +28,7 @@ from nemsim.analysis.inverse import (
     verify_recipes,
 )
 from nemsim.controls import CONTROL_NAMES
+from service.job_processes import SimulatorChildren
 from service.jobs import Job, JobCancelled, run_simulator
 
 SEARCH_SHARE = 0.6  # progress share of the search when the job also verifies
@@ -78,6 +79,10 @@ class _Share:
     @property
     def cancelled(self) -> bool:
         return self._job.cancelled
+
+    @property
+    def children(self) -> SimulatorChildren | None:
+        return self._job.children  # the queue's: its folder, and stopped with it
 
     @property
     def progress(self) -> float:

@@ -1,15 +1,19 @@
 """Request model of `POST /design` (inverse design) and the interval part of rollout responses.
 
-The spec itself is validated by `nemsim.analysis.inverse.spec_from_dict` (one set of rules for the CLI and
-the service); this model adds the request's own options and the JSON schema readers see.
+The spec is validated by the library's rules (`nemsim.analysis.inverse`: `check_target`, `check_tolerance`,
+`check_fixed`, `check_bounds`; the held controls by `nemsim.controls.check_control`, as `/rollout`'s), one
+set of rules for the CLI and the service: the validators below call them, so bad input is a 422 naming the
+field; the route then checks the targets against the served model's scene (`check_targets`). This model
+adds the request's own options and the JSON schema readers see.
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
+from nemsim.analysis.inverse import MIN_TOL_NM, check_bounds, check_fixed, check_target, check_tolerance
 from service.schemas import _json_integer
 
 MetricName = Literal["etch_depth", "top_width", "bottom_width", "mask_loss", "bowing"]
@@ -17,9 +21,16 @@ MetricName = Literal["etch_depth", "top_width", "bottom_width", "mask_loss", "bo
 
 class TargetValue(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    value: float = Field(description="target value, nm")
+    value: float = Field(
+        description="target value, nm: from 0 to the Si thickness (depth), the domain width (widths, "
+        "bowing) or the mask thickness (mask loss) of the model's scene",
+        json_schema_extra={"minimum": 0},
+    )
     tol: float | None = Field(
-        None, gt=0, description="tolerance, nm (default: depth 5, widths 3, mask loss 2, bowing 2)"
+        None,
+        description=f"tolerance, nm, at least {MIN_TOL_NM:g} and at most the metric's range (default: depth "
+        "5, widths 3, mask loss 2, bowing 2)",
+        json_schema_extra={"minimum": MIN_TOL_NM},
     )
 
 
@@ -58,7 +69,8 @@ class DesignRequest(BaseModel):
         None, description="state index the targets refer to (default: the model's horizon, 100 = 10 s)"
     )
     fixed: dict[str, float] = Field(
-        default_factory=dict, description="controls held at these values (physical units)"
+        default_factory=dict,
+        description="controls held at these values (physical units; the ranges `/rollout` accepts)",
     )
     bounds: dict[str, tuple[float, float]] = Field(
         default_factory=dict,
@@ -92,12 +104,38 @@ class DesignRequest(BaseModel):
         1, description="simulator seed of the verification runs"
     )
 
+    @field_validator("targets")
+    @classmethod
+    def _targets(cls, targets: dict[str, TargetValue | float]) -> dict[str, TargetValue | float]:
+        for name, t in targets.items():
+            if isinstance(t, TargetValue):
+                check_target(name, t.value, where=f"targets.{name}.value")
+                if t.tol is not None:
+                    check_tolerance(name, t.tol)
+            else:
+                check_target(name, t)
+        return targets
+
+    @field_validator("fixed")
+    @classmethod
+    def _fixed(cls, fixed: dict[str, float]) -> dict[str, float]:
+        check_fixed(fixed)
+        return fixed
+
+    @field_validator("bounds")
+    @classmethod
+    def _bounds(cls, bounds: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+        check_bounds(bounds)
+        return bounds
+
     def spec_dict(self) -> dict[str, Any]:
         """The spec part in `nemsim.analysis.inverse.spec_from_dict`'s form."""
-        targets = {
-            k: (v if isinstance(v, float | int) else {"value": v.value, **({"tol": v.tol} if v.tol else {})})
-            for k, v in self.targets.items()
-        }
+        targets: dict[str, Any] = {}
+        for k, v in self.targets.items():
+            if isinstance(v, TargetValue):
+                targets[k] = {"value": v.value} if v.tol is None else {"value": v.value, "tol": v.tol}
+            else:
+                targets[k] = v
         out: dict[str, Any] = {
             "targets": targets,
             "fixed": self.fixed,

@@ -5,11 +5,16 @@ most `max_queue` jobs waiting (more: `ServiceBusy`, answered 503 + Retry-After) 
 after `keep_s` seconds or beyond the newest `keep_max`. A job's work is a function `work(job)` that
 reports `job.progress` and checks `job.cancelled`; it returns the JSON result.
 
-The simulator job (`simulate_and_compare`) runs the Monte Carlo simulator in a child process (spawned,
-not forked: the server holds threads and torch), so cancelling terminates it at once and a crash of the
-numerical code cannot take the server down. The child reports transitions done through a shared counter
-(the simulator's `on_transition` hook). The comparison uses the helpers of `nemsim.evaluation.truth`
-(per-step RMSE in normalized SDF units) and the profile metrics of both trajectories.
+The simulator job (`simulate_and_compare`) runs the Monte Carlo simulator in a child process
+(`service.sim_child`, a fresh interpreter: the server holds threads and torch), so cancelling stops it at
+once and a crash of the numerical code cannot take the server down. The child and the queue's worker
+threads run at nice 19: jobs never take the CPU from interactive rollouts. Nothing outlives the server
+(`service.job_processes`): `JobQueue.open` (server start) removes the job folders under `work_dir` that
+dead servers left and kills the children on SIGTERM / SIGINT; `JobQueue.close` (shutdown) kills them.
+
+A client may have at most `per_client` jobs running or waiting (`TooManyJobs`, answered 429 +
+Retry-After). The comparison uses the helpers of `nemsim.evaluation.truth` (per-step RMSE in normalized
+SDF units) and the profile metrics of both trajectories.
 
 Choices: one seed per job (given, default 1), not the seed pair of the benchmarks: a job answers "how far
 is the surrogate from one simulator run", the page shows the per-step RMSE and the metric differences
@@ -20,10 +25,11 @@ outside, red inside, white on it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import multiprocessing as mp
+import math
+import pickle
 import secrets
-import tempfile
 import threading
 import time
 from collections import OrderedDict
@@ -34,7 +40,14 @@ from typing import Any
 
 import numpy as np
 
-from service.scheduler import ServiceBusy
+from service.job_processes import (
+    ChildrenStopped,
+    SimulatorChildren,
+    remove_orphaned_dirs,
+    stop_children_on_signals,
+)
+from service.memory import release_free_memory
+from service.scheduler import ServiceBusy, lower_thread_priority
 from service.schemas import jsonable
 
 log = logging.getLogger(__name__)
@@ -42,6 +55,8 @@ log = logging.getLogger(__name__)
 STATUSES = ("pending", "running", "done", "failed", "cancelled")
 KINDS = ("simulation", "design")  # simulator runs (routes/jobs.py), inverse design (routes/inverse.py)
 KEEP_ARTIFACTS = 4  # finished jobs whose trajectories are kept for GET /jobs/{id}/mesh
+JOB_NICE = 19  # the lowest CPU priority: job workers and simulator children
+RETRY_AFTER_S = (1, 300)  # bounds of the Retry-After of a client at its job limit
 
 
 class JobCancelled(Exception):
@@ -50,6 +65,15 @@ class JobCancelled(Exception):
 
 class UnknownJob(KeyError):
     """No job has this id (never created, or forgotten)."""
+
+
+class TooManyJobs(ServiceBusy):
+    """The client already has its limit of jobs running or waiting; `retry_after_s`: a guess of when one
+    is done."""
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
 
 
 @dataclass
@@ -65,6 +89,9 @@ class Job:
     finished: float | None = None
     cancel_event: threading.Event = field(default_factory=threading.Event, repr=False)
     artifacts: dict[str, Any] = field(default_factory=dict, repr=False)  # e.g. trajectories for meshes
+    client: str | None = field(default=None, repr=False)  # who submitted it (None: not counted per client)
+    started: float | None = None
+    children: SimulatorChildren | None = field(default=None, repr=False)  # its queue's simulator children
 
     @property
     def cancelled(self) -> bool:
@@ -85,30 +112,63 @@ class Job:
 class JobQueue:
     """Thread-safe job store and runner (module docstring)."""
 
-    def __init__(self, workers: int = 1, max_queue: int = 4, keep_s: float = 3600.0, keep_max: int = 16):
-        if workers < 1 or max_queue < 0 or keep_s <= 0 or keep_max < 1:
+    def __init__(
+        self,
+        workers: int = 1,
+        max_queue: int = 4,
+        keep_s: float = 3600.0,
+        keep_max: int = 16,
+        per_client: int = 1,
+        work_dir: Path | None = None,
+    ):
+        if workers < 1 or max_queue < 0 or keep_s <= 0 or keep_max < 1 or per_client < 1:
             raise ValueError(
-                f"need workers >= 1, max_queue >= 0, keep_s > 0, keep_max >= 1; got {workers}, "
-                f"{max_queue}, {keep_s}, {keep_max}"
+                f"need workers >= 1, max_queue >= 0, keep_s > 0, keep_max >= 1, per_client >= 1; got "
+                f"{workers}, {max_queue}, {keep_s}, {keep_max}, {per_client}"
             )
         self.workers, self.max_queue, self.keep_s, self.keep_max = workers, max_queue, keep_s, keep_max
+        self.per_client = per_client
+        self.children = SimulatorChildren(work_dir)
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._pending: list[Job] = []
         self._lock = threading.Condition()
         self._threads: list[threading.Thread] = []
         self._closed = False
 
-    def submit(self, kind: str, work: Callable[[Job], dict[str, Any]]) -> Job:
-        """Queue `work`; ServiceBusy when `max_queue` jobs are already waiting."""
+    @classmethod
+    def from_settings(cls, settings: Any) -> JobQueue:
+        return cls(
+            settings.sim_workers,
+            settings.sim_queue,
+            settings.jobs_keep_s,
+            settings.jobs_keep_max,
+            per_client=settings.jobs_per_client,
+            work_dir=settings.jobs_dir,
+        )
+
+    def open(self) -> list[Path]:
+        """At server start: remove the job folders that dead servers left and stop the children on
+        SIGTERM / SIGINT (from the main thread only). Returns the folders removed."""
+        removed = remove_orphaned_dirs(self.children.root)
+        if removed:
+            log.info("removed %d job folder(s) left by a server that is gone", len(removed))
+        stop_children_on_signals()
+        return removed
+
+    def submit(self, kind: str, work: Callable[[Job], dict[str, Any]], client: str | None = None) -> Job:
+        """Queue `work` for `client` (None: no per-client limit); TooManyJobs when the client has
+        `per_client` jobs running or waiting, ServiceBusy when `max_queue` jobs are already waiting."""
         with self._lock:
             self._prune()
+            if client is not None:
+                self._check_client(client)
             running = sum(j.status == "running" for j in self._jobs.values())
             if len(self._pending) >= self.max_queue and running + len(self._pending) >= self.workers:
                 raise ServiceBusy(
                     f"{len(self._pending)} {kind} jobs are waiting (the limit is {self.max_queue}): "
                     "retry later"
                 )
-            job = Job(id=secrets.token_hex(8), kind=kind, work=work)
+            job = Job(id=secrets.token_hex(8), kind=kind, work=work, client=client, children=self.children)
             self._jobs[job.id] = job
             self._pending.append(job)
             self._start_workers()
@@ -135,7 +195,8 @@ class JobQueue:
             return job
 
     def close(self) -> None:
-        """Cancel everything and stop the workers (tests, shutdown)."""
+        """Cancel everything, kill the simulator children (their files removed) and stop the workers
+        (tests, shutdown)."""
         with self._lock:
             self._closed = True
             for job in list(self._pending):
@@ -144,8 +205,25 @@ class JobQueue:
             for job in self._jobs.values():
                 job.cancel_event.set()
             self._lock.notify_all()
+        self.children.kill_all()
 
     # --- internals --------------------------------------------------------------------------------
+    def _check_client(self, client: str) -> None:
+        mine = [j for j in self._jobs.values() if j.client == client and j.status in ("pending", "running")]
+        if len(mine) < self.per_client:
+            return
+        now, left = time.time(), []
+        for j in mine:  # a running job's remaining time from its progress so far; else a guess
+            if j.status == "running" and j.started is not None and j.progress > 0.02:
+                left.append((now - j.started) * (1 - j.progress) / j.progress)
+        retry = min(max(math.ceil(min(left, default=10.0)), RETRY_AFTER_S[0]), RETRY_AFTER_S[1])
+        raise TooManyJobs(
+            f"this client already has {len(mine)} job(s) running or waiting ({', '.join(j.id for j in mine)}"
+            f"; the limit is {self.per_client} per client): wait for one to finish (GET /jobs/{{id}}) or "
+            "cancel it (DELETE /jobs/{id})",
+            retry,
+        )
+
     def _start_workers(self) -> None:
         self._threads = [t for t in self._threads if t.is_alive()]
         while len(self._threads) < self.workers:
@@ -154,6 +232,7 @@ class JobQueue:
             self._threads.append(t)
 
     def _worker(self) -> None:
+        lower_thread_priority(JOB_NICE)  # this thread runs jobs only: the surrogate side of a job yields too
         while True:
             with self._lock:
                 while not self._pending and not self._closed:
@@ -161,7 +240,7 @@ class JobQueue:
                 if self._closed:
                     return
                 job = self._pending.pop(0)
-                job.status = "running"
+                job.status, job.started = "running", time.time()
             try:
                 result = job.work(job)
             except JobCancelled:
@@ -178,6 +257,7 @@ class JobQueue:
                     else:
                         job.result, job.progress = result, 1.0
                         self._finish(job, "done")
+            release_free_memory()  # a design search's gradients leave hundreds of MB freed but resident
 
     def _finish(self, job: Job, status: str, message: str | None = None) -> None:
         job.status, job.message, job.finished = status, message, time.time()
@@ -203,33 +283,6 @@ class JobQueue:
 # --- the simulator job ---------------------------------------------------------------------------------
 
 
-def _simulate_child(scene: Any, config: Any, schedule: np.ndarray, seed: int, out: str, done: Any) -> None:
-    """Child process body: simulate, save the states to `out`, count transitions in `done`."""
-    import os
-
-    for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-    from nemsim.sim import run_trajectory
-
-    def report(k: int, _total: int) -> None:
-        done.value = k
-
-    try:
-        rules = compile_rules(load_rules())
-        # the simulator takes a full-horizon recipe; transitions past `steps` are never run
-        full = np.concatenate([schedule, np.repeat(schedule[-1:], scene.n_transitions - len(schedule), 0)])
-        res = run_trajectory(
-            scene, rules, full, np.random.default_rng(seed), config,
-            n_transitions=len(schedule), on_transition=report,
-        )  # fmt: skip
-    except Exception as exc:  # noqa: BLE001 -- the parent reports it on the job
-        Path(out + ".error").write_text(f"{type(exc).__name__}: {exc}")
-        raise
-    np.save(out, res.states.astype(np.float16))
-
-
 def run_simulator(
     job: Job,
     scene: Any,
@@ -239,33 +292,38 @@ def run_simulator(
     share: float = 0.9,
     poll_s: float = 0.05,
 ) -> np.ndarray:
-    """Simulate `schedule` (T, 14) in a child process; progress 0..`share`. Returns (T+1, 2, D, H, W) f16."""
-    ctx = mp.get_context("spawn")
-    done = ctx.Value("i", 0)
+    """Simulate `schedule` (T, 14) in a child process (`service.sim_child`); progress 0..`share`.
+    Returns (T+1, 2, D, H, W) f16."""
+    children = job.children if job.children is not None else SimulatorChildren()
     steps = len(schedule)
-    with tempfile.TemporaryDirectory(prefix="nemsim-job-") as tmp:
-        out = str(Path(tmp) / "states.npy")
-        proc = ctx.Process(
-            target=_simulate_child, args=(scene, config, schedule, seed, out, done), daemon=True
-        )
-        proc.start()
+    try:
+        job_dir = children.make_dir()
+    except OSError as exc:  # the job's message names no path
+        raise RuntimeError(f"cannot create the job's folder (NEMSIM_JOBS_DIR): {exc.strerror}") from exc
+    child = None
+    try:
+        (job_dir / "input.pkl").write_bytes(pickle.dumps((scene, config, np.asarray(schedule), int(seed))))
         try:
-            while proc.is_alive():
-                if job.cancelled:
-                    raise JobCancelled
-                job.progress = share * done.value / steps
-                proc.join(poll_s)
-        finally:
-            if proc.is_alive():
-                proc.terminate()
-                proc.join(5)
-        if job.cancelled:
+            child = children.start(job_dir)
+        except ChildrenStopped:
+            raise JobCancelled from None
+        except OSError as exc:
+            raise RuntimeError(f"cannot start the simulator: {exc.strerror or type(exc).__name__}") from exc
+        while child.poll() is None:
+            if job.cancelled:
+                raise JobCancelled
+            with contextlib.suppress(OSError, ValueError):  # not written yet, or being written
+                job.progress = share * int((job_dir / "progress").read_text()) / steps
+            time.sleep(poll_s)
+        if job.cancelled or children.stopped:
             raise JobCancelled
-        if proc.exitcode != 0:
-            err = Path(out + ".error")
-            why = err.read_text() if err.is_file() else f"exit code {proc.exitcode}"
+        if child.returncode != 0:
+            err = job_dir / "error"
+            why = err.read_text() if err.is_file() else f"exit code {child.returncode}"
             raise RuntimeError(f"the simulator failed: {why}")
-        return np.load(out)
+        return np.load(job_dir / "states.npy")
+    finally:
+        children.finish(child, job_dir)
 
 
 def compare(sim: np.ndarray, pred: np.ndarray, predictor: Any) -> dict[str, Any]:
@@ -330,8 +388,9 @@ def simulate_and_compare(job: Job, served: Any, schedule: Any, seed: int) -> dic
     if job.cancelled:
         raise JobCancelled
     job.progress = 0.95
-    out = compare(sim, result.states, predictor)
-    job.artifacts.update(sim=sim, pred=result.states)
+    pred = result.states.decode()  # (T+1, 2, D, H, W) float16
+    out = compare(sim, pred, predictor)
+    job.artifacts.update(sim=sim, pred=pred)
     steps = schedule.steps
     out.update(
         model_id=served.model_id,

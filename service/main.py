@@ -29,6 +29,7 @@ from service import errors, openapi
 from service.access import AccessMiddleware
 from service.config import Settings, get_settings
 from service.jobs import JobQueue
+from service.memory import release_free_memory
 from service.metrics import Metrics
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
 from service.routes import health, inverse, jobs, mechanisms, operations, page, rollouts
@@ -115,6 +116,7 @@ def load_model(state: ServiceState, settings: Settings, on_failure: Callable[[],
         served.warm_up(settings.warmup_steps)
         if settings.warmup_steps > 0:
             served.warm_up_meshes()
+        release_free_memory()
         state.served = served
         state.status = "ready"
         log.info("initial state: %s", served.predictor.initial_state_source)
@@ -134,6 +136,7 @@ def load_model(state: ServiceState, settings: Settings, on_failure: Callable[[],
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
+    app.state.jobs.open()  # remove what dead servers' jobs left; stop the simulator children on signals
     if state.served is None:
         threading.Thread(
             target=load_model,
@@ -158,16 +161,14 @@ def create_app(settings: Settings | None = None, served: ServedModel | None = No
         "surface meshes and event-mechanism counterfactuals from a NEMSim checkpoint.",
         lifespan=lifespan,
         responses=openapi.error_responses(*openapi.COMMON_ERRORS),
-        docs_url="/docs" if settings.docs else None,
-        redoc_url="/redoc" if settings.docs else None,
+        docs_url=None,  # service.openapi serves /docs from the vendored Swagger UI (offline)
+        redoc_url=None,  # ReDoc loads from a CDN: /docs (vendored Swagger UI) works offline
         openapi_url="/openapi.json" if settings.docs else None,
     )
     app.state.settings = settings
     app.state.service = ServiceState()
     app.state.gates = Gates.from_settings(settings)
-    app.state.jobs = JobQueue(
-        settings.sim_workers, settings.sim_queue, settings.jobs_keep_s, settings.jobs_keep_max
-    )
+    app.state.jobs = JobQueue.from_settings(settings)
     app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
     if served is not None:
         app.state.service.served, app.state.service.status = served, "ready"
@@ -179,7 +180,9 @@ def create_app(settings: Settings | None = None, served: ServedModel | None = No
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(HandlerTimeoutMiddleware, timeout_s=settings.handler_timeout_s)
     app.state.metrics = Metrics()
-    app.add_middleware(AccessMiddleware, settings=settings, metrics=app.state.metrics)  # outermost
+    app.add_middleware(  # outermost
+        AccessMiddleware, settings=settings, metrics=app.state.metrics, router=app.router
+    )
     errors.install(app)
     openapi.install(app, settings)
     app.include_router(health.router)

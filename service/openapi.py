@@ -10,6 +10,9 @@ Two rules tie fields of a rollout request together: a recipe of n control sets m
 `steps`, the recipe's length, else the default 100). JSON Schema cannot compare two values, so
 `steps_agreement` states them as one `if`/`then` per possible n (the server's ceiling bounds n); above
 `STEPS_RULES_MAX` the document would grow too large and the field descriptions carry them instead.
+
+`/docs` is Swagger UI from the files vendored under `static/vendor/swagger-ui` (no CDN), so the reference
+works without a network, as the page does.
 """
 
 from __future__ import annotations
@@ -17,7 +20,9 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import FastAPI
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
+from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, Field
 
 from service.schemas import DEFAULT_STEPS
@@ -52,6 +57,7 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorBody, "description": _WHY[code]} for code in codes}
 
 
+SWAGGER_UI = "/static/vendor/swagger-ui"
 STEPS_RULES_MAX = 1_000  # larger `steps` ceilings: the rules stay in the descriptions (module docstring)
 
 
@@ -95,7 +101,21 @@ def steps_agreement(max_steps: int) -> list[dict[str, Any]]:
 
 
 def install(app: FastAPI, settings: Any) -> None:
-    """Generate the document once, with this server's ceilings written in."""
+    """Generate the document once, with this server's ceilings written in; serve `/docs` (when
+    `settings.docs`) from the vendored Swagger UI."""
+    if settings.docs and app.openapi_url:
+        openapi_url = app.openapi_url
+
+        @app.get("/docs", include_in_schema=False)
+        async def swagger_ui() -> HTMLResponse:
+            return get_swagger_ui_html(
+                openapi_url=openapi_url,
+                title=f"{app.title} API",
+                swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
+                swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
+                swagger_favicon_url="/static/favicon.svg",
+                swagger_ui_parameters={"validatorUrl": None},
+            )
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema:

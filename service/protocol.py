@@ -11,13 +11,17 @@ file limit. `GuardedH11Protocol` adds, per connection:
 * a head not complete within `head_timeout_s` of the connection (or of the previous response) and a
   body not complete within `body_timeout_s` of its head -> 408 and close (a silent connection is
   just closed);
-* at most `max_connections` open connections: more are dropped at once, before any byte is read.
+* at most `max_connections` open connections, and at most `max_connections_per_client` from one client
+  address (trusted proxies exempt): more are dropped at once, before any byte is read, so sockets that
+  never send a request (which the app never sees) cannot take every connection from other clients.
 
 A request h11 cannot parse gets 400 in the same JSON shape (uvicorn's own answer is plain text).
 uvicorn's own settings do the rest (`nemsim serve` passes them): `timeout_keep_alive` (idle keep-alive
 connections) and `h11_max_incomplete_event_size` (set just above the head limit so our check answers
-first). The cap on requests in flight is the app's (`service.access`), so its 503 is JSON too. The limits
-come from `service.config.get_settings()`, so every worker process reads the same environment.
+first), and no `proxy_headers`: forwarded addresses are the app's to judge (`service.access`, from
+configured proxies only). The cap on requests in flight is the app's, so its 503 is JSON too. The limits
+come from `service.config.get_settings()`, so every worker process reads the same environment (the
+connection caps are per worker process).
 """
 
 from __future__ import annotations
@@ -25,11 +29,15 @@ from __future__ import annotations
 import asyncio
 import http
 import json
-from typing import Any
+import math
+import time
+from typing import Any, ClassVar
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
+from uvicorn.protocols.utils import get_remote_addr
 
+from service.access import in_networks
 from service.errors import error_body
 
 
@@ -43,10 +51,13 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 LINGER_S = 2.0  # read-and-drop window after an early error answer
 LINGER_MAX_BYTES = 8 << 20  # ... and at most this much
+DROP_LOG_S = 10.0  # at most one warning about dropped connections per this many seconds
 
 
 class GuardedH11Protocol(H11Protocol):
     settings: Any = None  # a Settings to use instead of get_settings() (`with_settings`)
+    # connections dropped by the caps since the last warning, and when it was logged (the process's)
+    _drops: ClassVar[dict[str, float]] = {"count": 0, "logged_at": -math.inf}
 
     @classmethod
     def with_settings(cls, settings: Any) -> type[GuardedH11Protocol]:
@@ -61,6 +72,8 @@ class GuardedH11Protocol(H11Protocol):
         self.max_line, self.max_head = s.max_request_line_bytes, s.max_header_bytes
         self.head_timeout_s, self.body_timeout_s = s.head_timeout_s, s.body_timeout_s
         self.max_connections = s.max_connections
+        self.max_per_client = s.max_connections_per_client
+        self.trusted = s.trusted_proxy_networks()
         self._timer: asyncio.TimerHandle | None = None
         self._phase = "head"  # head | body | app
         self._head = bytearray()  # the head received so far (at most max_head + 1 bytes)
@@ -70,13 +83,33 @@ class GuardedH11Protocol(H11Protocol):
     # --- connection lifetime -----------------------------------------------------------------------
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         if len(self.connections) >= self.max_connections:
-            self.logger.warning(
-                "connection cap (%d) reached: dropping a new connection", self.max_connections
-            )
-            transport.abort()
+            self._drop(transport, f"the connection cap ({self.max_connections}) is reached")
+            return
+        peer = get_remote_addr(transport)
+        if peer is not None and self._over_client_cap(peer[0]):
+            self._drop(transport, f"{peer[0]} holds {self.max_per_client} connections (the per-client cap)")
             return
         super().connection_made(transport)
         self._await_head()
+
+    def _drop(self, transport: asyncio.Transport, why: str) -> None:
+        """Close a new connection at once; warn at most once per DROP_LOG_S (a flood must not flood the
+        log)."""
+        transport.abort()
+        drops = GuardedH11Protocol._drops
+        drops["count"] += 1
+        now = time.monotonic()
+        if now - drops["logged_at"] >= DROP_LOG_S:
+            self.logger.warning(
+                "%s: dropping new connections at once (%d since the last such warning)", why, drops["count"]
+            )
+            drops["count"], drops["logged_at"] = 0, now
+
+    def _over_client_cap(self, host: str) -> bool:
+        if len(self.connections) < self.max_per_client or in_networks(host, self.trusted):
+            return False  # (fewer connections in all than the cap: no need to count)
+        held = sum(1 for c in self.connections if (getattr(c, "client", None) or ("",))[0] == host)
+        return held >= self.max_per_client
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_timer()
@@ -187,5 +220,6 @@ def uvicorn_options(settings: Any, *, bind_settings: bool = True) -> dict[str, A
         "h11_max_incomplete_event_size": max(settings.max_header_bytes, settings.max_request_line_bytes)
         + 4096,
         "timeout_keep_alive": settings.keep_alive_s,
+        "proxy_headers": False,  # uvicorn would trust X-Forwarded-For from loopback; service.access decides
         "access_log": False,  # service.access writes one JSON line per request instead
     }

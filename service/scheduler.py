@@ -10,11 +10,13 @@ turned cheap mesh requests into 503s, and requests whose client had already disc
   after `timeout_s`. Runs on the event loop: waiting costs no thread.
 * The app keeps one gate per kind of work (`Gates`): uncached rollouts, meshes, mechanisms. Cache hits
   never touch a gate, and meshes of finished rollouts never wait behind rollouts.
-* Rollouts run on their own worker threads (`low_priority_executor`) at a lower CPU priority (nice
-  `rollout_nice` above the server's, Linux only): on a saturated core the scheduler then hands the CPU
-  to the event loop (cheap answers, new requests) the moment it has work, instead of time-slicing it
-  with a rollout that takes a few hundred milliseconds anyway. The model runtime computes in the
-  calling thread, so the priority covers the forward passes; other work uses the default thread pool.
+* Rollouts run on their own worker threads (`low_priority_executor`), `rollout_nice` nicer than the
+  server (Linux only; default 0: the server's priority). Interactive rollouts must never yield to
+  background work: simulator jobs run at nice 19 (`service.jobs`), far below them. A positive
+  `rollout_nice` lets the event loop (cheap answers, new requests) take the CPU first when rollouts
+  saturate it, at the price of rollouts yielding to anything else on the machine. The model runtime
+  computes in the calling thread, so the priority covers the forward passes; other work uses the
+  default thread pool.
 * No micro-batching of concurrent uncached rollouts (one forward pass over several waiting requests):
   measured through the served runtime (OpenVINO bf16, one thread), it saved only a small share of the
   model's CPU per rollout (the post-processing per rollout does not batch), while every batch shape

@@ -23,7 +23,16 @@ from pydantic import (
 )
 from starlette.responses import Response
 
-from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
+from nemsim.controls import (
+    CONTROL_NAMES,
+    CONTROL_SPECS,
+    GUARD_MAX,
+    check_control,
+    check_controls,
+    from_normalized,
+    guard_max,
+    to_normalized,
+)
 from nemsim.inference import ControlSchedule
 
 DEFAULT_STEPS = 100  # the paper horizon: 100 transitions of 0.1 s
@@ -50,62 +59,18 @@ def _finite_or_none(x: float) -> float | None:
 
 
 def _admissible(spec: Any):
-    """After-validator: reject physically impossible values, values past the scale guard and fractional
-    values of integer controls, with a message naming the control."""
+    """After-validator: `nemsim.controls.check_control`, the rules `/design` and the CLI apply too
+    (physically impossible values, values past the scale guard, fractional exponents), naming the control."""
 
     def check(value: float) -> float:
-        if value < spec.phys_min or value > spec.phys_max:
-            bound = f">= {spec.phys_min:g}" if value < spec.phys_min else f"<= {spec.phys_max:g}"
-            raise ValueError(
-                f"{spec.name} = {value:g} {spec.unit} is physically impossible: it must be "
-                f"{bound} {spec.unit}"
-            )
-        check_scale_one(spec, value)
-        if spec.kind == "int" and value != math.floor(value):
-            raise ValueError(
-                f"{spec.name} = {value:g} is not an integer: cosine-power exponents are whole numbers "
-                f"(e.g. {math.floor(value):g} or {math.ceil(value):g})"
-            )
-        return value
+        return check_control(spec.name, value)
 
     return check
 
 
-MAX_ABS_NORMALIZED = 1e3  # linear/int controls: |normalized| beyond this is no process at all
-MAX_FLUX_DECADES = 3.0  # fluxes: more than 10^3 x the design maximum is no process at all
-
-
-def guard_max(name: str) -> float:
-    """The largest value of control `name` (physical units) the service accepts: the scale guard.
-
-    Linear and integer controls: MAX_ABS_NORMALIZED half-widths of the design box past its centre.
-    Log-sampled fluxes: MAX_FLUX_DECADES decades above the design maximum. (A normalized bound would be
-    meaningless for fluxes: 1e300 mol m^-2 s^-1 normalizes to about 465.) Zero is always admissible.
-    """
-    spec = CONTROL_SPECS[CONTROL_NAMES.index(name)]
-    if spec.kind == "log":
-        return float(spec.high * 10.0**MAX_FLUX_DECADES)
-    return float(spec.low + (MAX_ABS_NORMALIZED + 1.0) * 0.5 * (spec.high - spec.low))
-
-
-_GUARD_MAX = np.array([guard_max(n) for n in CONTROL_NAMES])  # (14,)
-
-
-def check_scale_one(spec: Any, value: float, where: str = "") -> None:
-    if not value <= _GUARD_MAX[CONTROL_NAMES.index(spec.name)]:  # also catches NaN
-        raise ValueError(
-            f"{where}{spec.name} = {value:g} {spec.unit} is far outside any meaningful range "
-            f"(training range {spec.low:g}..{spec.high:g}, accepted up to {guard_max(spec.name):g})"
-        )
-
-
 def check_scale(raw: np.ndarray, where: str) -> None:
-    """Raise ValueError naming the first control past the scale guard (`guard_max`). raw: (..., 14)."""
-    rows = np.asarray(raw, dtype=np.float64).reshape(-1, len(CONTROL_NAMES))  # (K, 14)
-    bad = ~(rows <= _GUARD_MAX)  # (K, 14), NaN counts as bad
-    if bad.any():
-        k, i = (int(v) for v in np.argwhere(bad)[0])
-        check_scale_one(CONTROL_SPECS[i], float(rows[k, i]), where)
+    """Raise ValueError naming the first inadmissible control of raw (..., 14) (`check_controls`)."""
+    check_controls(raw, where)
 
 
 def default_controls_raw() -> np.ndarray:
@@ -229,7 +194,7 @@ def _normalized_bounds() -> tuple[np.ndarray, np.ndarray]:
     directly, so the schema and the server agree to the last bit."""
     with np.errstate(divide="ignore"):
         lo = np.asarray(to_normalized(np.array([s.phys_min for s in CONTROL_SPECS], dtype=np.float64)))
-    hi = np.asarray(to_normalized(_GUARD_MAX.copy()))
+    hi = np.asarray(to_normalized(GUARD_MAX.copy()))
     return lo, hi
 
 
@@ -354,7 +319,9 @@ class RolloutRequest(ControlSource):
         max_length=64,
         description="surface meshes to return inline (server limit applies)",
     )
-    intervals: bool = Field(False, description="add per-step conformal intervals of the profile metrics")
+    intervals: bool = Field(
+        False, strict=True, description="add per-step conformal intervals of the profile metrics (true/false)"
+    )
 
     @model_validator(mode="after")
     def _meshes_in_range(self) -> RolloutRequest:

@@ -6,9 +6,10 @@ No physics here: rollouts, profile metrics and meshes are the predictor's, mecha
 * a model id (checkpoint stem + the first 12 hex digits of the file's SHA-256);
 * an LRU cache of finished rollouts keyed by (model id, normalized controls per transition, steps); the
   key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
-  controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway) and the
-  cache is bounded in entries and bytes, and segmented (`_LRU`) so one-off rollouts do not evict the ones
-  in use;
+  controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway),
+  stored compactly and losslessly (`service.compact_states`), so the entry count, not the memory budget,
+  bounds the cache: the ids of the last `cache_size` rollouts answered always resolve (while they fit in
+  the budget), and rollouts followed up or repeated outlive a flood of one-off ones (`_LRU`);
 * reused trajectory buffers (a fresh trajectory-sized array per rollout costs page faults);
 * cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
   `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 
 from nemsim.inference import ControlSchedule, Predictor
+from service.compact_states import CompactStates
 from service.schemas import array_to_controls, jsonable
 
 log = logging.getLogger(__name__)
@@ -46,7 +48,7 @@ class RolloutResult:
     model_id: str
     steps: int
     controls_raw: np.ndarray  # (T, 14) physical units
-    states: np.ndarray  # (T+1, 2, D, H, W) float16, normalized SDF
+    states: CompactStates  # (T+1, 2, D, H, W) float16, normalized SDF
     metrics: dict[str, list[float | None]]  # name -> (T+1,) values in nm, None where not finite
     times_s: list[float]  # (T+1,)
     rollout_ms: float
@@ -56,41 +58,44 @@ class RolloutResult:
 
 
 class _LRU:
-    """Least-recently-used cache bounded in entries and, with `weigh`, in bytes (an entry larger than
-    the whole budget is not kept). Segmented, so a stream of one-off entries cannot flush the entries in
-    use: a new entry starts on probation; a hit moves it to the protected segment (at most
-    `PROTECTED_SHARE` of both bounds; its least recent entries step back to probation); eviction takes
-    the least recent probation entry first. Under a flood of distinct uncached rollouts the rollouts
-    that clients come back to (repeats, their meshes) stay cached."""
+    """Least-recently-used cache: the `size` most recently used keys always stay (a plain LRU), and on top
+    up to `size` * `KEPT_SHARE` keys that fell out of it after being used again (a hit) stay longer, so a
+    stream of one-off entries cannot flush the entries clients come back to. `get(key, touch=False)` is a
+    follow-up look-up: it counts as a use again (the entry will be kept) without making the entry one of the
+    most recent, so follow-ups of old entries never push recent ones out. With `weigh`, both together are
+    bounded by `max_bytes` (the kept ones are evicted first; an entry larger than the whole budget is not
+    kept); the guarantee on the `size` most recent holds while they fit in the budget."""
 
-    PROTECTED_SHARE = 0.5
+    KEPT_SHARE = 0.5
 
     def __init__(
         self, size: int, max_bytes: int | None = None, weigh: Callable[[Any], int] | None = None
     ) -> None:
         self.size = size
+        self.kept_size = int(size * self.KEPT_SHARE)
         self.max_bytes = max_bytes
         self.weigh = weigh or (lambda value: 0)
         self.bytes = 0  # both segments
-        self._probation: OrderedDict[Any, Any] = OrderedDict()
-        self._protected: OrderedDict[Any, Any] = OrderedDict()
-        self._protected_bytes = 0
+        self._recent: OrderedDict[Any, tuple[Any, int, bool]] = OrderedDict()  # (value, weight, hit?)
+        self._kept: OrderedDict[Any, tuple[Any, int]] = OrderedDict()  # (value, weight)
         self._lock = threading.Lock()
 
-    def get(self, key: Any) -> Any | None:
+    def get(self, key: Any, *, touch: bool = True) -> Any | None:
         with self._lock:
-            if key in self._protected:
-                self._protected.move_to_end(key)
-                return self._protected[key]
-            if key not in self._probation:
+            if key in self._recent:
+                value, weight, _ = self._recent[key]
+                self._recent[key] = (value, weight, True)
+                if touch:
+                    self._recent.move_to_end(key)
+                return value
+            if key not in self._kept:
                 return None
-            value = self._probation.pop(key)
-            self._protected[key] = value
-            self._protected_bytes += self.weigh(value)
-            while len(self._protected) > 1 and self._protected_over():
-                old_key, old = self._protected.popitem(last=False)
-                self._protected_bytes -= self.weigh(old)
-                self._probation[old_key] = old  # most recent end of probation
+            if not touch:
+                self._kept.move_to_end(key)
+                return self._kept[key][0]
+            value, weight = self._kept.pop(key)
+            self._recent[key] = (value, weight, True)
+            self._shrink()
             return value
 
     def put(self, key: Any, value: Any) -> None:
@@ -98,33 +103,34 @@ class _LRU:
         if self.size <= 0 or (self.max_bytes is not None and weight > self.max_bytes):
             return
         with self._lock:
-            if key in self._protected:
-                old = self._protected[key]
-                self._protected[key] = value
-                self._protected_bytes += weight - self.weigh(old)
-                self.bytes += weight - self.weigh(old)
+            hit = False
+            if key in self._recent:
+                _, old, hit = self._recent.pop(key)
+                self.bytes -= old
+            elif key in self._kept:
+                self.bytes -= self._kept.pop(key)[1]
+                hit = True
+            self._recent[key] = (value, weight, hit)
+            self.bytes += weight
+            self._shrink()
+
+    def _shrink(self) -> None:
+        while len(self._recent) > self.size:
+            key, (value, weight, hit) = self._recent.popitem(last=False)
+            if hit and self.kept_size > 0:
+                self._kept[key] = (value, weight)
             else:
-                if key in self._probation:
-                    self.bytes -= self.weigh(self._probation.pop(key))
-                self._probation[key] = value
-                self.bytes += weight
-            while len(self) > self.size or self._over_budget():
-                segment = self._probation if self._probation else self._protected
-                _, old = segment.popitem(last=False)
-                self.bytes -= self.weigh(old)
-                if segment is self._protected:
-                    self._protected_bytes -= self.weigh(old)
-
-    def _protected_over(self) -> bool:
-        share = self.PROTECTED_SHARE
-        over_bytes = self.max_bytes is not None and self._protected_bytes > share * self.max_bytes
-        return len(self._protected) > share * self.size or over_bytes
-
-    def _over_budget(self) -> bool:
-        return self.max_bytes is not None and self.bytes > self.max_bytes
+                self.bytes -= weight
+        while len(self._kept) > self.kept_size:
+            self.bytes -= self._kept.popitem(last=False)[1][1]
+        while self.max_bytes is not None and self.bytes > self.max_bytes:
+            if self._kept:
+                self.bytes -= self._kept.popitem(last=False)[1][1]
+            else:
+                self.bytes -= self._recent.popitem(last=False)[1][1]
 
     def __len__(self) -> int:
-        return len(self._probation) + len(self._protected)
+        return len(self._recent) + len(self._kept)
 
 
 class ServedModel:
@@ -133,9 +139,9 @@ class ServedModel:
     def __init__(self, predictor: Predictor, *, cache_size: int = 32, cache_bytes: int | None = None) -> None:
         self.predictor = predictor
         self.model_id = predictor.model_id
-        # cache_bytes: the budget of the rollout cache (states dominate: ~17 MB per 100-step `small`
-        # rollout); meshes get a quarter of it on top
-        self._rollouts = _LRU(cache_size, cache_bytes, lambda r: int(r.states.nbytes))
+        # cache_bytes: the budget of the rollout cache (the compact states dominate); meshes get a quarter
+        # of it on top
+        self._rollouts = _LRU(cache_size, cache_bytes, lambda r: r.states.nbytes)
         self._meshes = _LRU(4 * cache_size, None if cache_bytes is None else cache_bytes // 4, len)
         self._mechanisms = _LRU(cache_size)
         self._buffers: list[torch.Tensor] = []  # idle trajectory buffers (`_take_buffer`)
@@ -173,7 +179,10 @@ class ServedModel:
         return h.hexdigest()[:24]
 
     def get_rollout(self, rollout_id: str) -> RolloutResult:
-        result = self._rollouts.get(rollout_id)
+        """A cached rollout by id, for a follow-up request (mesh, slices): the rollout counts as used again
+        (it outlives one-off rollouts) but does not become one of the `cache_size` most recent, so
+        follow-ups of old rollouts never evict the ids of the latest POST /rollout answers."""
+        result = self._rollouts.get(rollout_id, touch=False)
         if result is None:
             raise UnknownRollout(rollout_id)
         return result
@@ -212,8 +221,7 @@ class ServedModel:
                 k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
                 for k, vals in pred.metrics.items()
             }
-            # (T+1, 2, D, H, W) float16 (torch's conversion is vectorized)
-            states = buf[: schedule.steps + 1].half().numpy()
+            states = CompactStates.encode(buf[: schedule.steps + 1])  # float16 (T+1, 2, D, H, W), compactly
         finally:
             self._give_back(buf)
         if pred.warnings:
@@ -250,8 +258,11 @@ class ServedModel:
             self._buffers.append(buf)
 
     def warm_up(self, steps: int) -> None:
-        """One short uncached rollout so the first request does not pay for allocation/JIT."""
+        """One short uncached rollout so the first request does not pay for allocation/JIT (the compact
+        store's kernels included)."""
         self.predictor.warm_up(steps)
+        if steps > 0:
+            CompactStates.encode(torch.from_numpy(np.stack([self.predictor.x0] * 2))).decode()
 
     # --- meshes -------------------------------------------------------------------------------------
     def warm_up_meshes(self, formats: tuple[str, ...] = ("glb", "ply", "obj", "stl")) -> None:
@@ -279,7 +290,8 @@ class ServedModel:
             "scene": self.scene.name,
             "controls": array_to_controls(result.controls_raw[max(step - 1, 0)]),
         }
-        data = self.predictor.mesh(result.states[step, ch].astype(np.float32), fmt, metadata)  # (D, H, W)
+        field = result.states.state(step)[ch].astype(np.float32)  # (D, H, W)
+        data = self.predictor.mesh(field, fmt, metadata)
         self._meshes.put(key, data)
         return data
 

@@ -236,6 +236,24 @@ def test_damaged_checkpoint_is_one_line(capsys, damaged, data_file, kind):
         assert str(damaged[kind]) in line and "not a readable checkpoint" in line
 
 
+@pytest.mark.parametrize("digest", ["recorded", "absent"])
+def test_evaluate_refuses_non_finite_weights(tmp_path, capsys, tiny_checkpoint, data_file, digest):
+    """NaN weights (with the weights' digest recorded, or an older checkpoint without one): exit 2 with
+    the loader's one-line reason naming the file, never exit 0 with "Avg RMSE nan"."""
+    import torch
+
+    ckpt = torch.load(tiny_checkpoint, map_location="cpu", weights_only=True)
+    name = next(k for k, t in ckpt["model_state"].items() if t.is_floating_point() and t.numel() > 8)
+    ckpt["model_state"][name].view(-1)[:8] = float("nan")
+    if digest == "absent":
+        ckpt.pop("weights_sha256")
+    bad = tmp_path / "poisoned.pt"
+    torch.save(ckpt, bad)
+    line = _fails_cleanly(capsys, ["evaluate", "--checkpoint", bad, "--data", data_file, "--setting",
+                                   "control-id"])  # fmt: skip
+    assert "poisoned.pt" in line and "NaN or Inf" in line and "refused" in line
+
+
 def test_missing_file_is_one_line(tmp_path, capsys):
     line = _fails_cleanly(capsys, ["splits", "--design", tmp_path / "none.csv", "--out", tmp_path / "s"])
     assert "none.csv" in line and "No such file" in line

@@ -1,4 +1,5 @@
-"""`nemsim bench service`: latency of the HTTP service in-process, or under load against `nemsim serve`."""
+"""`nemsim bench service`: latency of the HTTP service in-process, under load against `nemsim serve`, or
+the probes of `bench.service_probes` (--probes) against `nemsim serve`."""
 
 from __future__ import annotations
 
@@ -32,8 +33,40 @@ def register(bench_sub: Subparsers) -> None:
                    help="load mode: start `nemsim serve` on a loopback port and drive it with this many "
                         "concurrent HTTP clients (mixed routes); reports p50/p95/p99 per route, errors, RSS")
     p.add_argument("--seconds", type=float, default=60.0, help="load mode: duration (default 60)")
+    p.add_argument("--probes", action="store_true",
+                   help="probe mode: start `nemsim serve` (default settings) on a loopback port and run "
+                        "quiet, load, burst, slowloris, silent-socket, fuzz, simulator-job, SIGTERM / "
+                        "kill -9 and memory probes (a few minutes); prints the targets, writes "
+                        "--json / --md")
+    p.add_argument("--fuzz-calls", type=int, default=10_000,
+                   help="probe mode: fuzzed requests (default 10000)")
+    p.add_argument("--md", dest="md_out", default=None, help="probe mode: also write the report as Markdown")
+    p.add_argument("--note", default="",
+                   help="probe mode: a sentence for the report (e.g. how the machine was shared)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_service)
+
+
+def _bench_service_probes(args: argparse.Namespace) -> int:
+    import sys
+    from pathlib import Path
+
+    from bench.service_probes import ProbeConfig, run_probes
+    from bench.service_report import probes_markdown
+
+    if args.fuzz_calls < 0:
+        raise UserError(f"--fuzz-calls must be >= 0, got {args.fuzz_calls}")
+    cfg = ProbeConfig(steps=args.steps, fuzz_calls=args.fuzz_calls, seed=args.seed)
+    report = run_probes(resolve_checkpoint(args.checkpoint), cfg, note=args.note,
+                        progress=lambda msg: print(msg, file=sys.stderr, flush=True))  # noqa: T201
+    page = probes_markdown(report)
+    print(page)  # noqa: T201
+    if args.json_out:
+        write_json(args.json_out, report)
+    if args.md_out:
+        Path(args.md_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.md_out).write_text(page)
+    return 0
 
 
 def _bench_service_load(args: argparse.Namespace) -> int:
@@ -78,6 +111,8 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would drown the report
     if args.steps < 1 or args.requests < 1 or args.cached_requests < 1:
         raise UserError("--steps, --requests and --cached-requests must be >= 1")
+    if args.probes:
+        return _bench_service_probes(args)
     if args.clients is not None:
         return _bench_service_load(args)
     report = bench_service(

@@ -31,7 +31,6 @@ data's controls are that design's rows, else the normalized controls).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -43,6 +42,7 @@ import numpy as np
 
 from nemsim.controls import DESIGN_N, DESIGN_SEED, lhs_design, to_normalized
 from nemsim.geometry.profile import METRIC_NAMES
+from nemsim.inference.checkpoint import checkpoint_id
 
 CALIBRATION_FORMAT = 1
 DEFAULT_LEVELS = (0.8, 0.9)
@@ -53,15 +53,6 @@ def calibration_path(checkpoint: str | Path) -> Path:
     """Where the calibration of a checkpoint lives: ``<dir>/<stem>.calibration.json``."""
     p = Path(checkpoint)
     return p.with_name(p.stem + ".calibration.json")
-
-
-def file_digest(path: str | Path) -> str:
-    """First 12 hex digits of the SHA-256 of a file (ties a calibration to its checkpoint)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()[:12]
 
 
 # --- conformal quantiles ------------------------------------------------------------------------------
@@ -188,8 +179,8 @@ class Calibration:
 def load_calibration(path: str | Path) -> Calibration:
     """Read a calibration file; ValueError if it is not one."""
     try:
-        data = json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise ValueError(f"{path}: not JSON ({exc})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: not a NEMSim calibration file")
@@ -202,7 +193,7 @@ def calibration_for(checkpoint: str | Path) -> Calibration | None:
     if not path.is_file():
         return None
     cal = load_calibration(path)
-    return cal if cal.checkpoint_sha256 == file_digest(checkpoint) else None
+    return cal if cal.checkpoint_sha256 == checkpoint_id(checkpoint) else None
 
 
 def _level_key(level: float, levels: Sequence[float]) -> str:
@@ -440,7 +431,7 @@ def calibrate(
         np.stack([tf.controls_raw[tf.row_of(c)] for c in train_ids]) if train_ids else np.zeros((0, 14))
     )
     return Calibration(
-        checkpoint_sha256=file_digest(checkpoint),
+        checkpoint_sha256=checkpoint_id(checkpoint),
         scene=tf.scene.name,
         levels=tuple(float(lv) for lv in levels),
         metrics=tuple(METRIC_NAMES),

@@ -131,7 +131,8 @@ def _first_line(exc: BaseException) -> str:
 def _named_file(args: argparse.Namespace, suffixes: tuple[str, ...]) -> str | None:
     """The one file argument of the command with one of these suffixes (None if none or several)."""
     names = {str(v) for k, v in vars(args).items()
-             if k in ("data", "file", "out", "checkpoint", "path", "config", "recipe") and v is not None
+             if k in ("data", "file", "out", "checkpoint", "path", "config", "recipe", "design", "controls",
+                      "spec") and v is not None
              and str(v).lower().endswith(suffixes)}  # fmt: skip
     return names.pop() if len(names) == 1 else None
 
@@ -190,6 +191,10 @@ def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(yaml_error, "problem", None) or _first_line(yaml_error)
         return EXIT_BAD_INPUT, f"{name + ': ' if name else ''}YAML syntax error{where}: {problem}"
+    if isinstance(exc, UnicodeDecodeError):  # a text file (CSV, JSON, YAML) that is not UTF-8 text
+        name = _named_file(args, (".csv", ".json", ".yaml", ".yml", ".txt"))
+        where = f"{name}: " if name else ""
+        return EXIT_BAD_INPUT, f"{where}not UTF-8 text ({exc.reason} at byte {exc.start})"
     if isinstance(exc, ValueError):
         return EXIT_BAD_INPUT, _first_line(exc)
     return EXIT_BUG, (f"unexpected error {type(exc).__name__}: {_first_line(exc)} (a bug; rerun with --debug "

@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
-from nemsim.cli.common import Subparsers, UserError, load_for_eval, output_path, write_json
+from nemsim.cli.common import (
+    Subparsers,
+    UserError,
+    load_for_eval,
+    output_path,
+    read_text_arg,
+    seed_arg,
+    write_json,
+)
 
 
 def register(sub: Subparsers) -> None:
@@ -64,7 +70,11 @@ def _add_inverse(sub: Subparsers) -> None:
             "closest recipe and its miss. Spec (JSON): {\"targets\": {\"etch_depth\": {\"value\": 100, "
             "\"tol\": 5}, \"bottom_width\": {\"value\": 30, \"tol\": 3}}, \"step\": 100, \"fixed\": "
             "{\"angle_cl\": 5}, \"bounds\": {\"flux_cl\": [0.002, 0.01]}, \"secondary\": {\"metric\": "
-            "\"mask_loss\", \"goal\": \"min\"}, \"k\": 3}. With --refine the simulator works inside the "
+            "\"mask_loss\", \"goal\": \"min\"}, \"k\": 3}. Targets lie in the scene's physical ranges (depth "
+            "0 to the Si thickness, widths and bowing 0 to the domain width, mask loss 0 to the mask "
+            "thickness), tolerances are at least 0.1 nm, held and bounded controls physically possible and "
+            "within the scale guard (e.g. a flux at most 10^3 x its design maximum), as for a rollout; "
+            "anything else exits 2 naming the key. With --refine the simulator works inside the "
             "design loop: it runs the top --verify-top recipes; if none meets every tolerance, the "
             "simulator-minus-surrogate offset at the best one shifts the targets and a local search "
             "around it (a trust region) proposes a new recipe for the simulator, for up to --rounds rounds "
@@ -90,9 +100,9 @@ def _add_inverse(sub: Subparsers) -> None:
     p.add_argument("--budget", type=float, default=None, metavar="S",
                    help="wall seconds of the whole design: a corrected round starts only if its estimated "
                    "cost fits (default 60)")
-    p.add_argument("--sim-seed", type=int, default=1,
+    p.add_argument("--sim-seed", type=seed_arg, default=1,
                    help="simulator seed of the verification runs (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="search seed (default 0)")
     p.add_argument("--json", dest="json_out", default=None, metavar="FILE",
                    help="write the full result as JSON to FILE (- for stdout, then no table)")
     p.set_defaults(handler=_cmd_inverse)
@@ -128,6 +138,7 @@ def _cmd_inverse(args: argparse.Namespace) -> int:
 
     from nemsim.analysis.inverse import (
         REFINE_WITH_VERIFY,
+        check_targets,
         format_result,
         load_inverse_context,
         refine_config_from_dict,
@@ -135,20 +146,26 @@ def _cmd_inverse(args: argparse.Namespace) -> int:
         spec_from_dict,
     )
 
-    text = sys.stdin.read() if args.spec == "-" else Path(args.spec).read_text()
+    _check_inverse_options(args)
+    text = read_text_arg(args.spec, "--spec")
     try:
         data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{args.spec}: not JSON: {exc}") from None
-    spec = spec_from_dict(data)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise UserError(f"--spec {args.spec}: not JSON: {exc}") from None
+    try:
+        spec = spec_from_dict(data)
+    except ValueError as exc:
+        raise UserError(f"--spec {args.spec}: {exc}") from None
     refine = None
     if args.refine or (args.refine is None and args.verify and REFINE_WITH_VERIFY):
         given = {"rounds": args.rounds, "budget_s": args.budget, "verify_top": args.verify_top}
         refine = refine_config_from_dict({k: v for k, v in given.items() if v is not None})
     top = 1 if args.verify_top is None else args.verify_top
-    if not 1 <= top <= 10:
-        raise UserError(f"--verify-top must be in 1..10, got {top}")
     ctx = load_inverse_context(args.checkpoint)
+    try:
+        check_targets(spec.targets, ctx.scene)
+    except ValueError as exc:
+        raise UserError(f"--spec {args.spec}: {exc}") from None
     result = run_inverse(ctx, spec, seed=args.seed, verify=args.verify, verify_top=top,
                          sim_seed=args.sim_seed, progress=args.json_out != "-", refine=refine)
     if args.json_out == "-":
@@ -159,6 +176,16 @@ def _cmd_inverse(args: argparse.Namespace) -> int:
         write_json(args.json_out, result)
         print(f"wrote {args.json_out}")  # noqa: T201
     return 0
+
+
+def _check_inverse_options(args: argparse.Namespace) -> None:
+    """UserError naming the first out-of-range option of `nemsim inverse` (whether or not it is used)."""
+    if args.budget is not None and not args.budget >= 0:  # NaN too
+        raise UserError(f"--budget must be a number of seconds >= 0, got {args.budget:g}")
+    if args.rounds is not None and not 0 <= args.rounds <= 10:
+        raise UserError(f"--rounds must be in 0..10, got {args.rounds}")
+    if args.verify_top is not None and not 1 <= args.verify_top <= 10:
+        raise UserError(f"--verify-top must be in 1..10, got {args.verify_top}")
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:

@@ -92,6 +92,35 @@ def config_values(items: list[str], option: str) -> dict[str, object]:
     return kwargs
 
 
+MAX_SEED = 2**63 - 1  # numpy's and torch's generators take seeds 0..2**63 - 1
+
+
+def seed_arg(text: str) -> int:
+    """argparse type of a random seed: an integer in 0..MAX_SEED (argparse names the option in its error)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be an integer in 0..{MAX_SEED} (a random seed), got {text!r}")
+    return value
+
+
+def read_text_arg(path: str | Path, option: str) -> str:
+    """The text of the file an option names (``-`` for stdin); UserError naming the option and the file if it
+    cannot be read or is not UTF-8 text."""
+    import sys
+
+    if str(path) == "-":
+        return sys.stdin.read()
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{option} {path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except OSError as exc:
+        raise UserError(f"{option} {path}: {exc.strerror or exc}") from None
+
+
 def floats(text: str, option: str) -> tuple[float, ...]:
     """Comma-separated numbers of an option, e.g. ``--m 50,300``."""
     try:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from nemsim.cli.common import Subparsers, UserError, output_path, write_json
+from nemsim.cli.common import Subparsers, UserError, output_path, seed_arg, write_json
 
 
 def register(sub: Subparsers) -> None:
@@ -32,7 +32,7 @@ def register(sub: Subparsers) -> None:
         ),
     )
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
-    p.add_argument("--seed", type=int, default=42, help="random seed (default 42, the paper's design)")
+    p.add_argument("--seed", type=seed_arg, default=42, help="random seed (default 42, the paper's design)")
     p.add_argument("--kind", choices=("lhs", "corners", "pairs", "lhs-log-angles"), default="lhs",
                    help="lhs: Latin hypercube (default, the paper's); corners: random corners of the box; "
                         "pairs: N/2 one-group sweep pairs with shared seeds (N even); lhs-log-angles: "
@@ -59,7 +59,7 @@ def register(sub: Subparsers) -> None:
     src.add_argument("--data", metavar="FILE.h5",
                      help="trajectory file (from `nemsim generate`): its case ids and controls")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
-    p.add_argument("--seed", type=int, default=0, help="partition seed (default 0)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="partition seed (default 0)")
     p.add_argument("--transitions", type=int, default=None,
                    help="transitions per trajectory (default: the data file's horizon, else 100)")
     p.set_defaults(handler=_cmd_splits)
@@ -129,10 +129,18 @@ def _cmd_data_stats(args: argparse.Namespace) -> int:
 
 
 def _cmd_design(args: argparse.Namespace) -> int:
-    from nemsim.controls import corner_design, heldout_corners, lhs_design, pair_design, write_controls_csv
+    from nemsim.controls import (
+        MAX_DESIGN_N,
+        corner_design,
+        heldout_corners,
+        lhs_design,
+        pair_design,
+        write_controls_csv,
+    )
 
-    if args.n < 1:
-        raise UserError(f"--n must be >= 1, got {args.n}")
+    if not 1 <= args.n <= MAX_DESIGN_N:
+        raise UserError(f"--n must be in 1..{MAX_DESIGN_N} (the largest design drawn; the paper's has 500 "
+                        f"cases), got {args.n}")
     seed_ids = None
     if args.kind == "pairs":
         if args.n % 2:

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-from nemsim.cli.common import Subparsers, UserError, add_scene_option, add_sim_overrides, sim_config
+from nemsim.cli.common import (
+    Subparsers,
+    UserError,
+    add_scene_option,
+    add_sim_overrides,
+    seed_arg,
+    sim_config,
+)
 
 
 def register(sub: Subparsers) -> None:
@@ -14,8 +21,9 @@ def register(sub: Subparsers) -> None:
         description=(
             "Run the Monte Carlo simulator on cases 0..N-1 of the 500-case design (or on the rows of "
             "--controls) and write one HDF5 trajectory file. Rerunning the same command resumes: finished "
-            "cases are kept, a half-written case is redone; a larger --n appends the new cases. Ctrl-C or "
-            "kill -TERM stops the workers and keeps every finished case. The file is validated on close. "
+            "cases are kept, a half-written case is redone; a larger --n appends the new cases; a file "
+            "whose finished cases cannot be read back (damaged) is refused, not resumed. Ctrl-C or kill "
+            "-TERM stops the workers and keeps every finished case. The file is validated on close. "
             "Example: nemsim generate --scene small --n 20 --workers 2 --out data/small.h5. The paper "
             "scene (~20 s per case on one core, hours for 500 cases): nemsim generate --scene paper "
             "--workers 2 --state-dtype float16 --out data/paper.h5 (rerun to resume), then nemsim data "
@@ -25,7 +33,7 @@ def register(sub: Subparsers) -> None:
     add_scene_option(p)
     p.add_argument("--n", type=int, default=None,
                    help="first N cases of the design or of --controls (default: all; the design has 500)")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--seed", type=seed_arg, default=0,
                    help="base simulator seed; per-case seeds derive from it and the case id (default 0)")
     p.add_argument("--out", required=True, metavar="FILE.h5", help="output trajectory file")
     p.add_argument("--controls", metavar="FILE.csv", default=None,

@@ -129,6 +129,25 @@ def validate_states(states: np.ndarray, scene: Scene) -> list[str]:
     return out
 
 
+def _damaged_cases(f: h5py.File, scene: Scene) -> list[str]:
+    """One line per complete case of an open trajectory file whose states cannot be read (a damaged chunk)
+    or are not valid states (``validate_states``): what a resume must not build on. Reads every complete
+    case's states."""
+    ids, complete = f["case_ids"][()], f["complete"][()] > 0
+    out = []
+    for r in np.flatnonzero(complete):
+        try:
+            states = f["states"][r].astype(np.float32, copy=False)  # (T, 2, D, H, W)
+        except OSError as exc:  # h5py: a chunk that does not decompress
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            out.append(f"case {int(ids[r])}: its states cannot be read ({first})")
+            continue
+        problems = validate_states(states, scene)
+        if problems:
+            out.append(f"case {int(ids[r])}: {'; '.join(problems)}")
+    return out
+
+
 class TrajectoryWriter:
     """Create (or resume) a trajectory file and write cases one at a time.
 
@@ -146,7 +165,9 @@ class TrajectoryWriter:
     An existing file is reopened to resume if scene, rules, generator and state dtype match and its case
     ids and controls (and schedule) equal the requested ones; if the requested list extends the file's
     (same ids and controls first, more after), the file grows by the new rows. Otherwise ValueError names
-    the mismatch and what to do. ``finished`` lists complete rows.
+    the mismatch and what to do. A file with a complete case whose states cannot be read or are invalid
+    (damaged) is refused with ValueError too: resuming would report it complete. ``finished`` lists
+    complete rows.
     """
 
     def __init__(
@@ -280,6 +301,14 @@ class TrajectoryWriter:
         if str(f.attrs["generator"]) != gen_json:
             raise ValueError(f"{where}: generator mismatch (file {f.attrs['generator']}, "
                              f"requested {gen_json})")
+        log.info("%s: reading back its finished cases before resuming", self.path)
+        damaged = _damaged_cases(f, self.scene)
+        if damaged:
+            more = f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else ""
+            raise ValueError(
+                f"{where}: the file is damaged: {damaged[0]}{more}; `nemsim data check {self.path}` reports "
+                "it; move the file away and regenerate, or write the other cases to another --out"
+            )
         if len(case_ids) > m:
             self._grow(m, case_ids, controls_raw, schedule)
 

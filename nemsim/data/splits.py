@@ -209,7 +209,12 @@ def load_manifest(path_or_dir: str | Path, setting: str | None = None) -> dict:
     if not p.is_file():
         raise ValueError(f"no split manifest {p}; make the manifests with `nemsim splits --data FILE.h5 "
                          f"--out {p.parent}` (or --design FILE.csv)")
-    m = json.loads(p.read_text())
+    try:
+        m = json.loads(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ValueError(f"{p}: not a JSON split manifest ({exc}); remake it with `nemsim splits`") from None
+    if not isinstance(m, dict):
+        raise ValueError(f"{p}: not a split manifest (a JSON {type(m).__name__}, not an object)")
     missing = [k for k in ("setting", "train", "val", "test", "unused", "visible_transitions") if k not in m]
     if missing:
         raise ValueError(f"{p}: manifest lacks {missing}")

@@ -103,6 +103,16 @@ def unwrap(model: nn.Module) -> nn.Module:
     return getattr(model, "_orig_mod", model)
 
 
+def checkpoint_id(path: str | Path) -> str:
+    """The checkpoint's id: the first 12 hex digits of the file's SHA-256 (``GET /model``, calibrations and
+    benchmark results name a checkpoint by it)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()[:12]
+
+
 def weights_digest(state: dict[str, Any]) -> str:
     """SHA-256 over a state_dict's names, dtypes, shapes and bytes (sorted by name): what the file's weights
     must still be at load."""
@@ -202,6 +212,17 @@ def verify_weights(ckpt: dict[str, Any], name: str = "checkpoint") -> None:
         )
 
 
+def _check_weight_names(model: nn.Module, state: dict[str, Any], name: str) -> None:
+    """CheckpointError naming the first missing or unexpected weight (a damaged or edited file)."""
+    expected, found = set(model.state_dict()), set(state)
+    missing, unexpected = sorted(expected - found), sorted(found - expected)
+    if missing or unexpected:
+        what = (f"weight {missing[0]!r} is missing" if missing else f"weight {unexpected[0]!r} is unexpected")
+        more = len(missing) + len(unexpected) - 1
+        also = f" ({more} more differ)" if more else ""
+        raise CheckpointError(f"checkpoint {name!r} is damaged: {what}{also}; refused")
+
+
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """The checkpoint dict, read weights-only, its format checked and its weights verified (module docstring).
 
@@ -297,6 +318,7 @@ def load_checkpoint(
         stored_scene = Scene.from_json(ckpt["scene"])
         stored_rules = rules_from_checkpoint(ckpt)
         model = build_model(ckpt["model_name"], stored_scene, stored_rules, dict(ckpt["model_config"]))
+        _check_weight_names(model, ckpt["model_state"], path.name)
         model.load_state_dict(ckpt["model_state"])
     except CheckpointError:
         raise

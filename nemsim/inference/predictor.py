@@ -13,7 +13,6 @@ stability guard's findings.
 from __future__ import annotations
 
 import functools
-import hashlib
 import inspect
 import logging
 import time
@@ -27,7 +26,7 @@ import torch
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
 from nemsim.inference import range_check
-from nemsim.inference.checkpoint import LoadedModel, load_checkpoint
+from nemsim.inference.checkpoint import LoadedModel, checkpoint_id, load_checkpoint
 from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
 
 log = logging.getLogger(__name__)
@@ -167,14 +166,6 @@ class Prediction:
         return self.schedule.steps
 
 
-def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _recorded_sim_config(raw: dict[str, Any]) -> tuple[Any, str]:
     """(SimConfig or None, how the initial state is built) from a checkpoint's ``sim_config`` record, read
     defensively: older checkpoints have none, and an unreadable one falls back to the simulator defaults."""
@@ -260,7 +251,7 @@ class Predictor:
         """
         path = Path(path)
         loaded = load_checkpoint(path, scene=scene, device=device)
-        return cls(loaded, model_id=f"{path.stem}@{file_sha256(path)[:12]}", **kwargs)
+        return cls(loaded, model_id=f"{path.stem}@{checkpoint_id(path)}", **kwargs)
 
     # --- facts ----------------------------------------------------------------------------------------
     @property

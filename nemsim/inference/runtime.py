@@ -185,6 +185,8 @@ class OpenVINORuntime(Runtime):
                         int(u.shape[0]), cache)  # fmt: skip
 
     def _compile(self, x: torch.Tensor, cache: _OVCache, key: tuple) -> Any:
+        from openvino.frontend.pytorch.ts_decoder import TorchScriptPythonDecoder
+
         ov = self._ov
         # the tracer cannot record inference tensors (a caller under torch.inference_mode): plain copies
         with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
@@ -194,7 +196,12 @@ class OpenVINORuntime(Runtime):
             graph = _StepGraph(self.model, self._spec, leaves, self._variable, self._unpack).eval()
             example = (x.detach().float().clone(), *(torch.from_numpy(a.copy()) for a in cache.inputs))
             with _export_kernels():
-                ov_model = ov.convert_model(graph, example_input=example)  # TorchScript trace
+                # TorchScript trace without torch.jit.trace's self-check: the check re-runs the model
+                # and imports torch.testing, which pulls in sympy (tens of MB resident for good)
+                decoder = TorchScriptPythonDecoder(
+                    graph, example_input=example, trace_kwargs={"check_trace": False}
+                )
+                ov_model = ov.convert_model(decoder, example_input=example)
             # the trace leaves every input dimension dynamic: fixing them lets the plugin fold the shape
             # arithmetic and plan memory and kernels once instead of on every call
             ov_model.reshape({i: ov.PartialShape([int(n) for n in t.shape]) for i, t in enumerate(example)})

@@ -150,7 +150,10 @@ def read_config_file(path: str | Path) -> tuple[TrainConfig, dict[str, Any]]:
     """
     import yaml  # JSON is a subset of YAML
 
-    text = Path(path).read_text()
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a YAML or JSON text file ({exc})") from None
     raw = yaml.safe_load(text) or {}
     if not isinstance(raw, dict):
         raise ValueError(f"{path}: expected a mapping of config keys, got {type(raw).__name__}")

@@ -4,17 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
 
-from nemsim.analysis.inverse import REFINE_WITH_VERIFY, refine_config_from_dict, spec_from_dict
-from service.deps import ServedModelDep, SettingsDep, busy, reject
+from nemsim.analysis.inverse import REFINE_WITH_VERIFY, check_targets, refine_config_from_dict, spec_from_dict
+from service.deps import ServedModelDep, SettingsDep, reject
 from service.inverse import design_work
 from service.inverse_schemas import DesignRequest
 from service.jobs import JobQueue
-from service.openapi import ErrorBody
-from service.routes.jobs import get_jobs
-from service.scheduler import ServiceBusy
+from service.routes.jobs import JOB_LIMIT_RESPONSES, get_jobs, submit_job
 from service.schemas import JobCreated
 
 router = APIRouter(tags=["design"])
@@ -24,9 +22,10 @@ router = APIRouter(tags=["design"])
     "/design",
     status_code=202,
     response_model=JobCreated,
-    responses={503: {"model": ErrorBody, "description": "the job queue is full (Retry-After)"}},
+    responses=JOB_LIMIT_RESPONSES,
 )
 async def post_design(
+    request: Request,
     body: DesignRequest,
     served: ServedModelDep,
     settings: SettingsDep,
@@ -44,6 +43,10 @@ async def post_design(
         spec = spec_from_dict(body.spec_dict())
     except ValueError as exc:
         reject(("body",), str(exc))
+    try:  # the physical ranges of the targets in the served model's scene
+        check_targets(spec.targets, served.predictor.scene)
+    except ValueError as exc:
+        reject(("body", "targets"), str(exc))
     refine = None
     if body.refine or (body.refine is None and body.verify and REFINE_WITH_VERIFY):
         given = {"verify_top": body.verify_top, "rounds": body.refine_rounds}
@@ -51,23 +54,22 @@ async def post_design(
     horizon = served.predictor.horizon_steps
     if spec.step is not None and spec.step > horizon:
         reject(("body", "step"), f"step = {spec.step} is beyond the model's horizon of {horizon}")
-    try:
-        job = jobs.submit(
-            "design",
-            lambda j: design_work(
-                j,
-                served,
-                spec,
-                seed=body.seed,
-                verify=body.verify,
-                verify_top=body.verify_top or 1,
-                sim_seed=body.sim_seed,
-                sim_max_work=settings.sim_max_work,
-                refine=refine,
-            ),
-        )
-    except ServiceBusy as exc:
-        busy(exc)
+    job = submit_job(
+        request,
+        jobs,
+        "design",
+        lambda j: design_work(
+            j,
+            served,
+            spec,
+            seed=body.seed,
+            verify=body.verify,
+            verify_top=body.verify_top or 1,
+            sim_seed=body.sim_seed,
+            sim_max_work=settings.sim_max_work,
+            refine=refine,
+        ),
+    )
     location = f"/jobs/{job.id}"
     created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location)
     return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})

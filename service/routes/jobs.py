@@ -1,9 +1,11 @@
 """Simulator jobs: `POST /simulations` (202 + Location), `GET /jobs/{id}`, `DELETE /jobs/{id}`, and the
-surrogate-error mesh of a finished simulator job."""
+surrogate-error mesh of a finished simulator job. `submit_job` is how every job route queues its work:
+a client at its job limit gets 429 + Retry-After, a full queue 503 + Retry-After."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from collections.abc import Callable
+from typing import Annotated, Any
 
 import anyio.to_thread
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
@@ -11,8 +13,8 @@ from fastapi.responses import JSONResponse, Response
 
 from nemsim.evaluation.truth import particle_work
 from nemsim.inference import MEDIA_TYPES, Refused
-from service.deps import ServedModelDep, SettingsDep, busy, reject, single_valued_query
-from service.jobs import Job, JobQueue, UnknownJob, error_mesh, simulate_and_compare
+from service.deps import ServedModelDep, SettingsDep, busy, client_key, reject, single_valued_query
+from service.jobs import Job, JobQueue, TooManyJobs, UnknownJob, error_mesh, simulate_and_compare
 from service.openapi import ErrorBody
 from service.scheduler import ServiceBusy
 from service.schemas import Channel, JobCreated, JobStatus, MeshFormat, SimulationRequest
@@ -24,6 +26,25 @@ JobId = Annotated[str, Path(max_length=64)]
 
 async def get_jobs(request: Request) -> JobQueue:
     return request.app.state.jobs
+
+
+JOB_LIMIT_RESPONSES: dict[int | str, dict[str, Any]] = {
+    429: {"model": ErrorBody, "description": "this client already has its limit of jobs (Retry-After)"},
+    503: {"model": ErrorBody, "description": "the job queue is full (Retry-After)"},
+}
+
+
+def submit_job(request: Request, jobs: JobQueue, kind: str, work: Callable[[Job], dict[str, Any]]) -> Job:
+    """Queue `work` for the requesting client (the rate limiter's identity): 429 + Retry-After at the
+    client's job limit, 503 + Retry-After when the queue is full."""
+    try:
+        return jobs.submit(kind, work, client=client_key(request))
+    except TooManyJobs as exc:
+        raise HTTPException(
+            status_code=429, detail=str(exc), headers={"Retry-After": str(exc.retry_after_s)}
+        ) from exc
+    except ServiceBusy as exc:
+        busy(exc)
 
 
 def _job(jobs: JobQueue, job_id: str) -> Job:
@@ -41,9 +62,10 @@ def _job(jobs: JobQueue, job_id: str) -> Job:
     "/simulations",
     status_code=202,
     response_model=JobCreated,
-    responses={503: {"model": ErrorBody, "description": "the simulator queue is full (Retry-After)"}},
+    responses=JOB_LIMIT_RESPONSES,
 )
 async def post_simulation(
+    request: Request,
     body: SimulationRequest,
     served: ServedModelDep,
     settings: SettingsDep,
@@ -71,10 +93,7 @@ async def post_simulation(
             f"{settings.sim_max_work:g}x (lower the fluxes or the steps)",
         )
     seed = body.seed
-    try:
-        job = jobs.submit("simulation", lambda j: simulate_and_compare(j, served, schedule, seed))
-    except ServiceBusy as exc:
-        busy(exc)
+    job = submit_job(request, jobs, "simulation", lambda j: simulate_and_compare(j, served, schedule, seed))
     location = f"/jobs/{job.id}"
     created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location)
     return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})

@@ -13,6 +13,7 @@ import numpy as np
 from fastapi import APIRouter, FastAPI, Path
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.concurrency import run_in_threadpool
 
 from service.deps import ServedModelDep
 from service.openapi import ErrorBody
@@ -48,7 +49,8 @@ async def get_slices(
     rollout, for the explorer page: normalized SDF quantized to bytes, round((sdf + 1) * 127.5)."""
     result = cached_rollout(served, rollout_id)
     y = int(round(served.scene.opening_centre[1])) + 1  # +1: the field is padded by one voxel
-    planes = np.asarray(result.states[:, :, :, y, :], dtype=np.float32)  # (T+1, 2, D, W)
+    states = await run_in_threadpool(result.states.decode)  # (T+1, 2, D, H, W): off the event loop
+    planes = np.asarray(states[:, :, :, y, :], dtype=np.float32)  # (T+1, 2, D, W)
     q = np.round((np.clip(planes, -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
     return SlicesResponse(
         shape=list(q.shape),

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import base64
 import time
+import uuid
+from collections.abc import Iterable, Iterator
 from typing import Annotated
 
+import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
+from starlette.concurrency import run_in_threadpool
 
 from nemsim.inference import MEDIA_TYPES, Refused
 from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
@@ -51,6 +55,47 @@ async def _mesh_bytes(
         return await gated(request, gates.mesh, served.mesh, result, step, channel, fmt)
     except ValueError as exc:  # e.g. no zero-level surface in this channel at this step
         reject(("query", "step"), f"no {channel} mesh at step {step}: {exc}")
+
+
+def _fields_payload(served: ServedModel, result: RolloutResult, data: str) -> FieldsPayload:
+    """The final state's field, or (`data` given: a placeholder for the stream) every state's."""
+    steps = [result.steps] if not data else list(range(result.steps + 1))
+    shape = [len(steps), *result.states.shape[1:]]
+    if not data:
+        state = result.states.take(steps).astype("<f2", copy=False)  # (1, 2, D, H, W)
+        data = base64.b64encode(state.data.cast("B")).decode("ascii")  # the array's own buffer, no copy
+    return FieldsPayload(  # type: ignore[call-arg]
+        shape=shape, steps=steps, d_max_nm=float(served.scene.d_max_nm), data=data
+    )
+
+
+def _base64_pieces(blocks: Iterable[np.ndarray]) -> Iterator[bytes]:
+    """base64 of the blocks' bytes in sequence, piece by piece (whole 3-byte groups but for the last)."""
+    carry = b""
+    for block in blocks:
+        raw = carry + block.astype("<f2", copy=False).tobytes()
+        cut = len(raw) - len(raw) % 3
+        carry = raw[cut:]
+        yield base64.b64encode(memoryview(raw)[:cut])
+    if carry:
+        yield base64.b64encode(carry)
+
+
+def _streamed_fields(response: RolloutResponse, slot: str, result: RolloutResult) -> Response:
+    """`response` with its fields' data (the placeholder `slot`) streamed, state block by state block, as
+    it is decoded: every state of a trajectory as one JSON string is tens of MB, and building it whole
+    (array, base64, string, JSON) took several times that at once per response."""
+    head, tail = response.model_dump_json().encode().split(f'"{slot}"'.encode())
+    n_bytes = 2 * int(np.prod(result.states.shape))  # float16
+    length = len(head) + len(tail) + 2 + 4 * -(-n_bytes // 3)
+
+    def body() -> Iterator[bytes]:
+        yield head + b'"'
+        yield from _base64_pieces(result.states.blocks())
+        yield b'"' + tail
+
+    # a plain iterator: Starlette runs each step in its thread pool, off the event loop
+    return StreamingResponse(body(), media_type="application/json", headers={"Content-Length": str(length)})
 
 
 def cached_rollout(served: ServedModel, rollout_id: str) -> RolloutResult:
@@ -110,15 +155,9 @@ async def post_rollout(
 
     t0 = time.perf_counter()
     fields = None
-    if body.fields != "none":
-        steps = list(range(result.steps + 1)) if body.fields == "all" else [result.steps]
-        data = result.states[steps].astype("<f2", copy=False)  # (n, 2, D, H, W)
-        fields = FieldsPayload(  # type: ignore[call-arg]
-            shape=list(data.shape),
-            steps=steps,
-            d_max_nm=float(served.scene.d_max_nm),
-            data=base64.b64encode(data.tobytes()).decode("ascii"),
-        )
+    slot = f"fields-{uuid.uuid4().hex}" if body.fields == "all" else ""  # placeholder of the streamed data
+    if body.fields != "none":  # decoding a state: off the event loop
+        fields = await run_in_threadpool(_fields_payload, served, result, slot)
     t1 = time.perf_counter()
     meshes = []
     for spec in body.meshes:
@@ -135,7 +174,7 @@ async def post_rollout(
         )
     t2 = time.perf_counter()
     varying = body.recipe is not None
-    return json_response(RolloutResponse(
+    response = RolloutResponse(
         id=result.id,
         model_id=result.model_id,
         steps=result.steps,
@@ -157,7 +196,8 @@ async def post_rollout(
             fields_ms=1e3 * (t1 - t0),
             meshes_ms=1e3 * (t2 - t1),
         ),
-    ))
+    )
+    return _streamed_fields(response, slot, result) if slot else json_response(response)
 
 
 @router.get(

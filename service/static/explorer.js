@@ -6,16 +6,32 @@ import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
 const $ = (id) => document.getElementById(id);
 const COLORS = ['#1f77b4', '#d62728', '#2ca02c', '#9467bd', '#ff7f0e', '#8c564b', '#17becf'];
 const state = {
-  model: null, specs: [], inputs: {}, run: null, step: 0, slices: null, meshes: new Map(),
-  fetchToken: 0, a: null, sim: null, playing: null, recipe: [],
+  model: null, specs: [], inputs: {}, run: null, step: 0, slices: null,
+  a: null, sim: null, playing: null, recipe: [], fit: {},
 };
 window.explorer = state; // for tests and the console (explorer.setStep(k) is set below)
 
 // --- API --------------------------------------------------------------------------------------------
+// The page asks the server only for what it shows and answers its limits: a 429 or 503 is waited out
+// (Retry-After, capped) and tried again, never shown as an empty result.
+const RETRY_CAP_S = 10;
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+const busy = (status) => status === 429 || status === 503;
+function retryDelayS(r, tries) {
+  const given = r ? Number(r.headers.get('Retry-After')) : NaN;
+  return Math.min(RETRY_CAP_S, Number.isFinite(given) && given > 0 ? given : 0.5 * 2 ** tries);
+}
+async function fetchPatiently(path, opts = {}, tries = 5) {
+  for (let i = 0; ; i++) {
+    const r = await fetch(path, opts);
+    if (!busy(r.status) || i >= tries) return r;
+    await sleep(1000 * retryDelayS(r, i));
+  }
+}
 async function api(method, path, body) {
   const opts = { method, headers: {} };
   if (body !== undefined) { opts.body = JSON.stringify(body); opts.headers['Content-Type'] = 'application/json'; }
-  const r = await fetch(path, opts);
+  const r = await fetchPatiently(path, opts);
   const text = await r.text();
   let data = null;
   try { data = text ? JSON.parse(text) : null; } catch (e) { data = null; }
@@ -45,17 +61,17 @@ function buildControls() {
     num.addEventListener('input', () => { rng.value = fwd(s, +num.value); markRange(s); });
     rng.addEventListener('input', () => {
       let v = inv(s, +rng.value); if (s.kind === 'int') v = Math.round(v);
-      num.value = fmt(v); markRange(s);
+      state.inputs[s.name].exact = v; num.value = fmt(v); markRange(s);
     });
-    state.inputs[s.name] = { num, rng, div };
+    state.inputs[s.name] = { num, rng, div, exact: undefined };
     box.appendChild(div);
   }
   setControls(Object.fromEntries(state.specs.map((s) => [s.name, s.default])));
 }
 function setControls(values) {
   for (const s of state.specs) {
-    const { num, rng } = state.inputs[s.name];
-    num.value = fmt(values[s.name]); rng.value = fwd(s, values[s.name]); markRange(s);
+    const inp = state.inputs[s.name];
+    inp.exact = values[s.name]; inp.num.value = fmt(values[s.name]); inp.rng.value = fwd(s, values[s.name]); markRange(s);
   }
 }
 function markRange(s) {
@@ -65,8 +81,9 @@ function markRange(s) {
 function readControls() {
   const out = {};
   for (const s of state.specs) {
-    const raw = state.inputs[s.name].num.value.trim();
-    out[s.name] = raw === '' ? NaN : Number(raw);
+    // the text shows a rounded value: while it is unedited, the exact value behind it is meant
+    const { num, exact } = state.inputs[s.name], raw = num.value.trim();
+    out[s.name] = exact !== undefined && raw === String(fmt(exact)) ? exact : raw === '' ? NaN : Number(raw);
   }
   return out;
 }
@@ -94,6 +111,35 @@ function requestBody() {
   for (const ph of state.recipe) for (let k = 0; k < Math.round(ph.duration * 10); k++) rows.push(ph.controls);
   if (rows.length > horizon()) throw new Error(`the recipe lasts ${rows.length / 10} s; at most ${horizon() / 10} s`);
   return { recipe: rows };
+}
+
+// --- canvases fit their column ----------------------------------------------------------------------
+// Each canvas is as wide as its panel (CSS) and drawn at the screen's resolution, in CSS pixels; the
+// page redraws when the window changes size, so nothing is cut at 1280 x 720 or stretched at 1920 x 1080.
+function fitCanvas(c, cssH) {
+  const dpr = window.devicePixelRatio || 1, w = Math.max(120, Math.floor(c.clientWidth || c.parentElement.clientWidth));
+  const W = Math.round(w * dpr), H = Math.round(cssH * dpr);
+  if (c.width !== W) c.width = W;
+  if (c.height !== H) c.height = H;
+  const ctx = c.getContext('2d'); ctx.setTransform(dpr, 0, 0, dpr, 0, 0); ctx.clearRect(0, 0, w, cssH);
+  ctx.font = '11px system-ui';
+  return { ctx, w, h: cssH };
+}
+function size3d() {
+  const canvas = $('canvas3d'), w = Math.max(200, Math.floor(canvas.parentElement.clientWidth));
+  const h = Math.round(Math.max(220, Math.min(0.8 * w, 0.6 * window.innerHeight)));
+  three.renderer.setPixelRatio(window.devicePixelRatio || 1);
+  three.renderer.setSize(w, h, false);
+  canvas.style.height = `${h}px`;
+  three.camera.aspect = w / h; three.camera.updateProjectionMatrix();
+}
+let resizeQueued = false;
+function redrawAll() {
+  resizeQueued = false;
+  if (three.renderer) { size3d(); render(); }
+  if (state.run) { drawSection(state.step); drawChart(); }
+  if (state.mechanisms) drawMechanisms(state.mechanisms);
+  if (state.sim) drawRmse(state.sim.result);
 }
 
 // --- 3-D view ---------------------------------------------------------------------------------------
@@ -127,7 +173,7 @@ function init3d() {
   scene.add(mask, si, err);
   Object.assign(three, { renderer, scene, camera, controls, mask, si, err });
   controls.addEventListener('change', render);
-  render();
+  size3d(); render();
 }
 function render() { three.renderer.render(three.scene, three.camera); }
 
@@ -162,68 +208,111 @@ function parseGLB(buf) {
   return geom;
 }
 async function fetchGeometry(url) {
-  const r = await fetch(url);
-  if (!r.ok) return null; // e.g. a channel with no surface at this step
+  const r = await fetchPatiently(url);
+  if (!r.ok) return null;
   return parseGLB(await r.arrayBuffer());
 }
-function meshPromise(id, step, channel) {
-  const key = `${id}|${step}|${channel}`;
-  if (!state.meshes.has(key)) {
-    const p = fetchGeometry(`/rollouts/${id}/mesh?step=${step}&channel=${channel}&format=glb`).catch(() => null);
-    state.meshes.set(key, p);
-    p.then((g) => { p.value = g; p.ready = true; });
+
+// --- meshes: fetched as shown -------------------------------------------------------------------------
+// Only the step on screen is asked for (and, while playing, a few steps ahead), at most MESH_IN_FLIGHT
+// requests at once and MESH_RATE per second (bursts of MESH_BURST): well inside the server's default
+// limits. Until a step's surfaces arrive the nearest step that has them is shown. An entry's status:
+// loading | ok | none (the server found no surface there: 422) | retry (busy: asked again at retryAt,
+// while still wanted) | failed (another error, shown once).
+const MESH_IN_FLIGHT = 3, MESH_RATE = 10, MESH_BURST = 20, LOOK_AHEAD = 6, CHANNELS = ['mask', 'si'];
+const meshes = { entries: new Map(), inFlight: 0, tokens: MESH_BURST, last: 0, timer: null, waiters: [], requests: 0 };
+const meshKey = (id, step, ch) => `${id}|${step}|${ch}`;
+const settled = (e) => !!e && (e.status === 'ok' || e.status === 'none' || e.status === 'failed');
+function wantedMeshes() {
+  const run = state.run; if (!run) return [];
+  const out = [];
+  for (const w of meshes.waiters) if (w.id === run.id) for (const ch of CHANNELS) out.push([run.id, w.step, ch]);
+  const ahead = state.playing ? LOOK_AHEAD : 0;
+  for (let k = state.step; k <= Math.min(run.steps, state.step + ahead); k++) for (const ch of CHANNELS) out.push([run.id, k, ch]);
+  return out;
+}
+function pumpMeshes() {
+  clearTimeout(meshes.timer); meshes.timer = null;
+  const now = performance.now();
+  meshes.tokens = Math.min(MESH_BURST, meshes.tokens + ((now - meshes.last) * MESH_RATE) / 1000); meshes.last = now;
+  let wake = Infinity;
+  for (const [id, step, ch] of wantedMeshes()) {
+    if (meshes.inFlight >= MESH_IN_FLIGHT) break;
+    const e = meshes.entries.get(meshKey(id, step, ch));
+    if (e && e.status !== 'retry') continue;
+    if (e && e.retryAt > now) { wake = Math.min(wake, e.retryAt); continue; }
+    if (meshes.tokens < 1) { wake = Math.min(wake, now + ((1 - meshes.tokens) * 1000) / MESH_RATE); break; }
+    meshes.tokens -= 1;
+    loadMesh(id, step, ch, e ? e.tries + 1 : 0);
   }
-  return state.meshes.get(key);
+  if (wake < Infinity) meshes.timer = setTimeout(pumpMeshes, Math.max(0, wake - now) + 5);
 }
-function nearestReady(id, step, channel) {
-  for (let d = 0; d <= state.run.steps; d++) {
-    for (const k of [step - d, step + d]) {
-      const p = state.meshes.get(`${id}|${k}|${channel}`);
-      if (p && p.ready) return p.value;
-    }
-  }
-  return undefined;
-}
-function showGeometry(obj, g) {
-  if (g === undefined) return;
-  obj.visible = !!g && g.attributes.position !== undefined;
-  if (g) obj.geometry = g;
-}
-async function showStep3d(step) {
-  const run = state.run; if (!run) return;
-  three.err.visible = false;
-  for (const [obj, ch] of [[three.mask, 'mask'], [three.si, 'si']]) {
-    const p = meshPromise(run.id, step, ch);
-    if (p.ready) showGeometry(obj, p.value);
+async function loadMesh(id, step, ch, tries) {
+  const e = { status: 'loading', tries, geom: null, retryAt: 0 };
+  meshes.entries.set(meshKey(id, step, ch), e); meshes.inFlight++; meshes.requests++;
+  let r = null;
+  try {
+    r = await fetch(`/rollouts/${id}/mesh?step=${step}&channel=${ch}&format=glb`);
+    if (r.ok) { e.geom = parseGLB(await r.arrayBuffer()); e.status = 'ok'; }
+    else if (r.status === 422) e.status = 'none'; // no zero-level surface in this channel at this step
+    else if (busy(r.status) || r.status >= 500) e.status = 'retry';
     else {
-      showGeometry(obj, nearestReady(run.id, step, ch));
-      p.then((g) => { if (state.run === run && state.step === step) { showGeometry(obj, g); render(); } });
+      e.status = 'failed';
+      showError(r.status === 404 ? 'this run is no longer in the server\'s cache: press Run again to see its surfaces'
+        : `the ${ch} surface at step ${step} could not be loaded (HTTP ${r.status})`);
     }
+  } catch (err) { e.status = 'retry'; } // the connection failed: try again later
+  if (e.status === 'retry') e.retryAt = performance.now() + 1000 * retryDelayS(r && busy(r.status) ? r : null, tries);
+  meshes.inFlight--;
+  if (state.run && state.run.id === id) show3d();
+  meshes.waiters = meshes.waiters.filter((w) => !(w.test() && (w.resolve(), true)));
+  pumpMeshes();
+}
+function meshesSettled(id, step) {
+  const done = () => CHANNELS.every((ch) => settled(meshes.entries.get(meshKey(id, step, ch))));
+  return done() ? Promise.resolve() : new Promise((resolve) => meshes.waiters.push({ id, step, test: done, resolve }));
+}
+function nearestSettled(id, step, ch) {
+  for (let d = 0; d <= state.run.steps; d++) {
+    for (const k of d ? [step - d, step + d] : [step]) {
+      const e = meshes.entries.get(meshKey(id, k, ch));
+      if (e && (e.status === 'ok' || e.status === 'none')) return e;
+    }
+  }
+  return null;
+}
+function show3d() {
+  const run = state.run; if (!run || !three.renderer) return;
+  for (const [obj, ch] of [[three.mask, 'mask'], [three.si, 'si']]) {
+    const e = nearestSettled(run.id, state.step, ch);
+    if (!e) continue; // nothing of this run yet: keep what is drawn
+    if (e.geom && obj.geometry !== e.geom) obj.geometry = e.geom;
+    if (!(obj === three.si && three.err.visible)) obj.visible = e.status === 'ok' && e.geom.attributes.position !== undefined;
   }
   render();
 }
-async function prefetch(run, token) {
-  const order = [];
-  for (let k = 0; k <= run.steps; k += 5) order.push(k);
-  for (let k = 0; k <= run.steps; k++) if (k % 5) order.push(k);
-  for (const k of order) {
-    if (state.fetchToken !== token) return;
-    await Promise.all([meshPromise(run.id, k, 'mask'), meshPromise(run.id, k, 'si')]);
-  }
+function forgetMeshes(keepId) {
+  for (const key of meshes.entries.keys()) if (!key.startsWith(`${keepId}|`)) meshes.entries.delete(key);
 }
+state.meshReady = (step) => !!state.run && CHANNELS.every((ch) => settled(meshes.entries.get(meshKey(state.run.id, step, ch))));
+state.meshStats = () => {
+  const n = { requests: meshes.requests };
+  for (const e of meshes.entries.values()) n[e.status] = (n[e.status] || 0) + 1;
+  return n;
+};
 
 // --- cross-section ----------------------------------------------------------------------------------
 function drawSection(step) {
-  const c = $('section'), ctx = c.getContext('2d');
-  ctx.fillStyle = '#fff'; ctx.fillRect(0, 0, c.width, c.height);
+  const c = $('section'), { ctx, w, h } = fitCanvas(c, 300);
+  ctx.fillStyle = '#fff'; ctx.fillRect(0, 0, w, h);
   if (!state.slices) return;
   // side by side with A when A is pinned (same time)
   const panels = [[state.slices, 'current']];
   if (state.a && state.a.slices) panels.push([state.a.slices, 'A']);
-  const pw = c.width / panels.length;
+  const pw = w / panels.length;
   panels.forEach(([sl, label], p) => {
     const [n, , D, W] = sl.shape, plane = D * W, base = Math.min(step, n - 1) * 2 * plane;
-    const img = ctx.createImageData(W, D);
+    const img = new ImageData(W, D);
     for (let z = 0; z < D; z++) for (let x = 0; x < W; x++) {
       const m = sl.bytes[base + z * W + x] / 127.5 - 1, s = sl.bytes[base + plane + z * W + x] / 127.5 - 1;
       const o = ((D - 1 - z) * W + x) * 4; // depth index grows upwards
@@ -234,32 +323,49 @@ function drawSection(step) {
     }
     const tmp = document.createElement('canvas'); tmp.width = W; tmp.height = D;
     tmp.getContext('2d').putImageData(img, 0, 0);
-    const scale = Math.min((pw - 8) / W, (c.height - 16) / D);
+    const scale = Math.min((pw - 8) / W, (h - 16) / D);
     ctx.imageSmoothingEnabled = false;
     ctx.drawImage(tmp, p * pw + (pw - W * scale) / 2, 16, W * scale, D * scale);
-    if (panels.length > 1) { ctx.fillStyle = '#334'; ctx.font = '11px system-ui'; ctx.fillText(label, p * pw + 6, 12); }
+    if (panels.length > 1) { ctx.fillStyle = '#334'; ctx.fillText(label, p * pw + 6, 12); }
   });
 }
 
 // --- chart ------------------------------------------------------------------------------------------
+function niceTicks(lo, hi, n = 5) {
+  if (!(hi > lo)) hi = lo + 1;
+  const raw = (hi - lo) / n, mag = 10 ** Math.floor(Math.log10(raw)), f = raw / mag;
+  const step = (f <= 1 ? 1 : f <= 2 ? 2 : f <= 2.5 ? 2.5 : f <= 5 ? 5 : 10) * mag;
+  const a = Math.floor(lo / step + 1e-9) * step, b = Math.ceil(hi / step - 1e-9) * step;
+  let dec = 0;
+  while (dec < 6 && Math.abs(Math.round(step * 10 ** dec) - step * 10 ** dec) > 1e-6) dec++;
+  const ticks = [];
+  for (let v = a; v <= b + step / 2; v += step) ticks.push(v);
+  return { lo: a, hi: b, ticks, label: (v) => v.toFixed(dec) };
+}
 function drawChart() {
-  const c = $('chart'), ctx = c.getContext('2d');
-  ctx.clearRect(0, 0, c.width, c.height);
+  const c = $('chart'), { ctx, w: cw, h: ch } = fitCanvas(c, 260);
   const run = state.run; if (!run) return;
   const names = Object.keys(run.metrics);
   const series = [[run, []], [state.a, [6, 4]], [state.sim, [2, 3]]].filter(([s]) => s);
   let ymin = 0, ymax = 1;
   for (const [s] of series) for (const n of names) for (const v of (s.metrics[n] || [])) if (v !== null) { ymin = Math.min(ymin, v); ymax = Math.max(ymax, v); }
-  const L = 44, R = 120, T = 8, B = 24, w = c.width - L - R, h = c.height - T - B;
   const tmax = Math.max(...series.map(([s]) => s.times_s[s.times_s.length - 1]));
-  const X = (t) => L + (w * t) / tmax, Y = (v) => T + h * (1 - (v - ymin) / (ymax - ymin || 1));
-  ctx.strokeStyle = '#99a'; ctx.fillStyle = '#445'; ctx.font = '11px system-ui'; ctx.lineWidth = 1;
+  const yt = niceTicks(ymin, ymax), xt = niceTicks(0, tmax);
+  const L = 8 + Math.max(...yt.ticks.map((v) => ctx.measureText(yt.label(v)).width));
+  const R = 30 + Math.max(...names.map((n) => ctx.measureText(n).width)), T = 16, B = 32;
+  const w = cw - L - R, h = ch - T - B;
+  const X = (t) => L + (w * t) / xt.hi, Y = (v) => T + h * (1 - (v - yt.lo) / (yt.hi - yt.lo));
+  ctx.strokeStyle = '#99a'; ctx.fillStyle = '#445'; ctx.lineWidth = 1;
   ctx.strokeRect(L, T, w, h);
-  for (let i = 0; i <= 4; i++) {
-    const v = ymin + ((ymax - ymin) * i) / 4; ctx.fillText(v.toFixed(0), 4, Y(v) + 4);
-    const t = (tmax * i) / 4; ctx.fillText(t.toFixed(1), X(t) - 8, c.height - 8);
-  }
-  ctx.fillText('nm', L + w + 8, T + h); ctx.fillText('time (s)', L + w + 22, c.height - 8);
+  ctx.textAlign = 'right';
+  for (const v of yt.ticks) ctx.fillText(yt.label(v), L - 4, Y(v) + 4);
+  ctx.textAlign = 'center';
+  for (const t of xt.ticks) ctx.fillText(xt.label(t), X(t), T + h + 13);
+  ctx.fillText('time (s)', L + w / 2, ch - 4);
+  ctx.textAlign = 'left'; ctx.fillText('nm', 2, 11);
+  ctx.strokeStyle = '#eef'; ctx.beginPath();
+  for (const v of yt.ticks.slice(1, -1)) { ctx.moveTo(L + 1, Y(v)); ctx.lineTo(L + w - 1, Y(v)); }
+  ctx.stroke();
   names.forEach((n, i) => {
     ctx.strokeStyle = COLORS[i % COLORS.length];
     for (const [s, dash] of series) {
@@ -271,8 +377,10 @@ function drawChart() {
     ctx.setLineDash([]); ctx.fillStyle = COLORS[i % COLORS.length];
     ctx.fillRect(L + w + 8, T + 6 + 15 * i, 10, 3); ctx.fillStyle = '#334'; ctx.fillText(n, L + w + 22, T + 10 + 15 * i);
   });
-  ctx.setLineDash([]); ctx.strokeStyle = '#000'; ctx.beginPath();
-  const xt = X(run.times_s[state.step]); ctx.moveTo(xt, T); ctx.lineTo(xt, T + h); ctx.stroke();
+  ctx.setLineDash([]); ctx.strokeStyle = '#000'; ctx.lineWidth = 1; ctx.beginPath();
+  const x = X(run.times_s[state.step]); ctx.moveTo(x, T); ctx.lineTo(x, T + h); ctx.stroke();
+  const legendRight = L + w + 22 + Math.max(...names.map((n) => ctx.measureText(n).width));
+  state.fit.chart = legendRight <= cw && T + 10 + 15 * (names.length - 1) <= ch;
 }
 function metricsTable() {
   const run = state.run; if (!run) return;
@@ -289,7 +397,8 @@ function metricsTable() {
 function setStep(step) {
   state.step = step; $('time').value = step;
   $('time-label').textContent = `t = ${state.run.times_s[step].toFixed(1)} s (step ${step})`;
-  showStep3d(step); drawSection(step); drawChart(); metricsTable();
+  three.err.visible = false;
+  show3d(); pumpMeshes(); drawSection(step); drawChart(); metricsTable();
 }
 function togglePlay() {
   if (state.playing) { clearInterval(state.playing); state.playing = null; $('play').textContent = 'Play'; return; }
@@ -299,6 +408,7 @@ function togglePlay() {
     if (state.step >= state.run.steps) { togglePlay(); return; }
     setStep(state.step + 1);
   }, 100);
+  pumpMeshes();
 }
 
 // --- run --------------------------------------------------------------------------------------------
@@ -306,53 +416,74 @@ async function run() {
   showError('');
   let body;
   try { body = requestBody(); } catch (e) { showError(e.message); return; }
-  $('run').disabled = true; $('run').textContent = 'Running…';
+  if (state.playing) togglePlay();
+  $('run').disabled = true; $('run').textContent = 'Running…'; $('play').disabled = true;
   const t0 = performance.now();
   try {
     const { data } = await api('POST', '/rollout', body);
-    state.run = data; state.body = body; state.sim = null; state.fetchToken++;
+    (state.rolloutMs = state.rolloutMs || []).push(performance.now() - t0);
+    state.run = data; state.body = body; state.sim = null;
     $('comparison').innerHTML = ''; $('rmse').hidden = true; $('job-status').textContent = '';
     const w = $('warnings');
     w.hidden = !data.warnings.length;
     w.innerHTML = data.warnings.map((x) => `⚠ ${x}`).join('<br>');
     for (const s of state.specs) state.inputs[s.name].div.classList.remove('api-out');
     for (const e of data.extrapolation || []) if (state.inputs[e.control]) state.inputs[e.control].div.classList.add('out', 'api-out');
-    const sl = (await api('GET', `/rollouts/${data.id}/slices`)).data;
+    // the final state first: its surfaces are asked for while the cross-sections load
+    const slider = $('time'); slider.disabled = true; slider.max = data.steps; slider.value = data.steps;
+    forgetMeshes(data.id); state.step = data.steps; three.err.visible = false; pumpMeshes();
+    const [sl] = await Promise.all([
+      api('GET', `/rollouts/${data.id}/slices`).then((x) => x.data), meshesSettled(data.id, data.steps),
+    ]);
     sl.bytes = Uint8Array.from(atob(sl.data), (ch) => ch.charCodeAt(0)); state.slices = sl;
-    const slider = $('time'); slider.max = data.steps; slider.disabled = false;
-    await Promise.all([meshPromise(data.id, data.steps, 'mask'), meshPromise(data.id, data.steps, 'si')]);
+    slider.disabled = false;
     setStep(data.steps);
     if (state.a) renderAB();
     state.firstViewMs = performance.now() - t0;
+    (state.firstViews = state.firstViews || []).push(state.firstViewMs);
     document.body.dataset.runs = String((+document.body.dataset.runs || 0) + 1);
     for (const id of ['play', 'pin-a', 'verify', 'mech-run']) $(id).disabled = false;
-    prefetch(data, state.fetchToken);
-    if (!$('recipe-mode').checked) mechanisms();
+    if (!$('recipe-mode').checked) mechanisms('for the controls of this run');
+    else {
+      state.mechanisms = null; fitCanvas($('mech'), 20);
+      $('mech-note').textContent = 'A recipe changes the controls over time; the mechanisms are computed for one constant set: press Compute to analyse the controls set on the left.';
+    }
   } catch (e) {
     showError(e.message);
-  } finally { $('run').disabled = false; $('run').textContent = 'Run'; }
+  } finally { $('run').disabled = false; $('run').textContent = 'Run'; $('play').disabled = !state.run; }
 }
 
 // --- mechanisms -------------------------------------------------------------------------------------
-async function mechanisms() {
-  const c = $('mech'), ctx = c.getContext('2d'); ctx.clearRect(0, 0, c.width, c.height);
-  ctx.font = '11px system-ui'; ctx.fillStyle = '#445';
+async function mechanisms(note = 'for the controls set on the left') {
   const q = new URLSearchParams(Object.entries(readControls()).map(([k, v]) => [k, String(v)]));
-  let res;
-  try { res = (await api('GET', `/mechanisms?${q}`)).data.result; } catch (e) { ctx.fillText(e.message, 4, 14); return; }
+  $('mech-note').textContent = 'computing…';
+  try {
+    state.mechanisms = (await api('GET', `/mechanisms?${q}`)).data.result;
+  } catch (e) { state.mechanisms = null; fitCanvas($('mech'), 20); $('mech-note').textContent = e.message; return; }
+  $('mech-note').textContent = note;
+  drawMechanisms(state.mechanisms);
+}
+function drawMechanisms(res) {
   const bars = [];
   const tot = Object.values(res.base.M).reduce((a, b) => a + Math.abs(b || 0), 0) || 1;
   for (const f of res.families) bars.push([`share ${f}`, (100 * (res.base.M[f] || 0)) / tot, '#1f77b4']);
   for (const iv of res.interventions) bars.push([`Cl+×${iv.s_cl_plus} Cl×${iv.s_cl}: ΔR`, iv.delta_R_pct || 0, '#d62728']);
+  const rowH = 16, { ctx, w } = fitCanvas($('mech'), 4 + rowH * bars.length);
+  const pct = (v) => `${v.toFixed(1)}%`;
+  const x0 = 6 + Math.max(...bars.map((b) => ctx.measureText(b[0]).width));
+  const room = 4 + Math.max(...bars.map((b) => ctx.measureText(pct(b[1])).width)); // a value label beside its bar
   const amax = Math.max(1, ...bars.map((b) => Math.abs(b[1])));
-  const rowH = Math.min(16, (c.height - 4) / bars.length), x0 = 170, half = (c.width - x0 - 40) / 2;
+  const half = Math.max(10, (w - x0 - 2 * room) / 2), mid = x0 + room + half;
+  let right = 0;
   bars.forEach(([label, v, col], i) => {
     const y = 2 + i * rowH; ctx.fillStyle = '#334'; ctx.fillText(label, 2, y + rowH - 4);
     ctx.fillStyle = col; const len = (half * v) / amax;
-    ctx.fillRect(x0 + half + Math.min(0, len), y + 2, Math.abs(len), rowH - 4);
-    ctx.fillStyle = '#334'; ctx.fillText(`${v.toFixed(1)}%`, x0 + half + Math.max(0, len) + 3, y + rowH - 4);
+    ctx.fillRect(mid + Math.min(0, len), y + 2, Math.abs(len), rowH - 4);
+    ctx.fillStyle = '#334'; const t = pct(v), tw = ctx.measureText(t).width;
+    const tx = len >= 0 ? mid + len + 3 : mid + len - 3 - tw; ctx.fillText(t, tx, y + rowH - 4);
+    right = Math.max(right, tx + tw);
   });
-  state.mechanisms = res;
+  state.fit.mech = right <= w;
 }
 
 // --- A/B --------------------------------------------------------------------------------------------
@@ -393,7 +524,7 @@ async function verify() {
       job = (await api('GET', data.location)).data;
       $('job-progress').value = job.progress; $('job-status').textContent = `job ${job.id}: ${job.status} (${Math.round(100 * job.progress)}%)`;
       if (['done', 'failed', 'cancelled'].includes(job.status)) break;
-      await new Promise((r) => setTimeout(r, 300));
+      await sleep(300);
     }
     if (job.status === 'cancelled') { $('job-status').textContent = `job ${job.id}: cancelled`; return; }
     if (job.status !== 'done') { showError(`simulator job ${job.status}: ${job.message || ''}`); return; }
@@ -402,15 +533,18 @@ async function verify() {
     $('verify').disabled = false; $('job-progress').hidden = true; $('job-cancel').hidden = true;
   }
 }
-function showComparison(res) {
-  state.sim = { metrics: res.simulator_metrics, times_s: res.times_s, result: res };
-  const c = $('rmse'); c.hidden = false; const ctx = c.getContext('2d'); ctx.clearRect(0, 0, c.width, c.height);
-  const r = res.rmse_per_step.map((v) => v || 0), rmax = Math.max(...r, 1e-6), L = 44, w = c.width - L - 8, h = c.height - 28;
-  ctx.strokeStyle = '#99a'; ctx.strokeRect(L, 6, w, h); ctx.fillStyle = '#445'; ctx.font = '11px system-ui';
-  ctx.fillText(rmax.toFixed(3), 2, 14); ctx.fillText('0', 30, 6 + h); ctx.fillText('per-step RMSE (normalized SDF) vs time', L + 4, c.height - 6);
+function drawRmse(res) {
+  const { ctx, w: cw, h: ch } = fitCanvas($('rmse'), 140);
+  const r = res.rmse_per_step.map((v) => v || 0), rmax = Math.max(...r, 1e-6), L = 44, w = cw - L - 8, h = ch - 28;
+  ctx.strokeStyle = '#99a'; ctx.strokeRect(L, 6, w, h); ctx.fillStyle = '#445';
+  ctx.fillText(rmax.toFixed(3), 2, 14); ctx.fillText('0', 30, 6 + h); ctx.fillText('per-step RMSE (normalized SDF) vs time', L + 4, ch - 6);
   ctx.strokeStyle = '#d62728'; ctx.beginPath();
   r.forEach((v, k) => { const x = L + (w * k) / (r.length - 1), y = 6 + h * (1 - v / rmax); k ? ctx.lineTo(x, y) : ctx.moveTo(x, y); });
   ctx.stroke();
+}
+function showComparison(res) {
+  state.sim = { metrics: res.simulator_metrics, times_s: res.times_s, result: res };
+  $('rmse').hidden = false; drawRmse(res);
   let html = `<p>avg RMSE ${res.avg_rmse.toFixed(4)} (normalized SDF), simulator ${res.simulator_s.toFixed(1)} s, seed ${res.seed}</p>`;
   html += '<table><tr><th>final</th><th>surrogate</th><th>simulator</th><th>difference</th></tr>';
   for (const [n, d] of Object.entries(res.final_differences)) {
@@ -434,7 +568,7 @@ async function start() {
   for (let i = 0; ; i++) {
     try { info = (await api('GET', '/model')).data; break; } catch (e) {
       if (e.status !== 503 || i > 120) { showError(e.message); return; }
-      await new Promise((r) => setTimeout(r, 1000));
+      await sleep(1000);
     }
   }
   state.model = info; state.specs = info.controls;
@@ -447,11 +581,12 @@ async function start() {
   $('play').addEventListener('click', togglePlay);
   $('pin-a').addEventListener('click', pinA);
   $('clear-a').addEventListener('click', () => { state.a = null; $('clear-a').disabled = true; $('ab-label').textContent = ''; renderAB(); });
-  $('mech-run').addEventListener('click', mechanisms);
+  $('mech-run').addEventListener('click', () => mechanisms());
   $('verify').addEventListener('click', verify);
   $('job-cancel').addEventListener('click', () => state.job && api('DELETE', state.job.location).catch((e) => showError(e.message)));
   $('recipe-mode').addEventListener('change', (e) => { $('recipe').hidden = !e.target.checked; });
   $('add-phase').addEventListener('click', () => { state.recipe.push({ duration: 2.5, controls: readControls() }); renderRecipe(); });
+  window.addEventListener('resize', () => { if (!resizeQueued) { resizeQueued = true; requestAnimationFrame(redrawAll); } });
   state.setStep = setStep;
   document.body.dataset.ready = '1';
 }

@@ -30,7 +30,7 @@ def ctx(tiny_checkpoint):
     [
         ({"targets": {}}, "at least one"),
         ({"targets": {"depth": 10}}, "unknown metric"),
-        ({"targets": {"etch_depth": {"value": 10, "tol": 0}}}, "tol must be > 0"),
+        ({"targets": {"etch_depth": {"value": 10, "tol": 0}}}, "tol = 0 nm .* at least 0.1 nm"),
         (
             {"targets": {"etch_depth": 10}, "fixed": {"flux_cl": 1e-3}, "bounds": {"flux_cl": [1e-3, 2e-3]}},
             "both fixed and bounded",

@@ -137,3 +137,36 @@ def test_schedule_roundtrip(make_file, tiny_scene):
         np.testing.assert_allclose(u[0], tf.controls_normalized[1])
         assert u[60, 0] < u[0, 0]
     assert check_dataset(path).ok
+
+
+
+def _damage_chunk(path, row: int, step: int, garbage: bool) -> None:
+    """Damage one stored state chunk of a case: overwrite half its bytes (``garbage``: it no longer
+    decompresses), or replace it by a well-formed chunk of NaN values."""
+    import zlib
+
+    with h5py.File(path, "r+") as f:
+        st = f["states"]
+        offset = (row, step, 0, 0, 0, 0)
+        info = st.id.get_chunk_info_by_coord(offset)
+        if not garbage:
+            nan = np.full(st.chunks, np.nan, dtype=st.dtype)
+            st.id.write_direct_chunk(offset, zlib.compress(nan.tobytes(), 4))
+    if garbage:
+        with open(path, "r+b") as fh:
+            fh.seek(info.byte_offset + info.size // 4)
+            fh.write(b"\xff" * (info.size // 2))
+
+
+@pytest.mark.parametrize("garbage", [True, False], ids=["undecodable-chunk", "nan-chunk"])
+def test_resume_refuses_a_damaged_file(make_file, tiny_scene, garbage):
+    """A complete case whose states are damaged is not resumed onto (the run would report it complete)."""
+    path = make_file(write=[0, 1, 2])
+    _damage_chunk(path, row=1, step=5, garbage=garbage)
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match=r"cannot resume .*the file is damaged: case 101") as info:
+        _writer(path, tiny_scene)
+    assert "nemsim data check" in str(info.value)
+    assert path.read_bytes() == before  # nothing written
+    with _writer(make_file(write=[0], name="ok.h5"), tiny_scene) as w:
+        assert w.finished == {0}  # an intact file resumes

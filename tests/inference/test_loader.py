@@ -102,15 +102,27 @@ def test_weights_that_differ_from_their_digest_are_refused(tiny_checkpoint, tmp_
         read_checkpoint(bad)
 
 
-def test_unbuildable_checkpoint_is_a_checkpoint_error(tiny_checkpoint, tmp_path):
+def test_a_missing_weight_is_named(tiny_checkpoint, tmp_path):
+    """One weight removed (digest dropped too): refused naming that weight, not as a version mismatch."""
+    gone: list[str] = []
+
     def drop(ckpt: dict) -> None:
-        ckpt["model_state"].pop(_first_float(ckpt))
+        gone.append(_first_float(ckpt))
+        ckpt["model_state"].pop(gone[0])
         ckpt.pop("weights_sha256")
 
     bad = _copy_with(tiny_checkpoint, tmp_path / "partial.pt", drop)
-    with pytest.raises(CheckpointError, match=r"partial\.pt.*could not be rebuilt") as info:
+    with pytest.raises(CheckpointError, match=rf"partial\.pt.*damaged: weight '{gone[0]}' is missing"):
         load_checkpoint(bad)
-    assert isinstance(info.value.__cause__, RuntimeError)  # load_state_dict's own message, for --debug
+
+
+def test_unbuildable_checkpoint_is_a_checkpoint_error(tiny_checkpoint, tmp_path):
+    def unknown_option(ckpt: dict) -> None:
+        ckpt["model_config"]["no_such_option"] = 1
+
+    bad = _copy_with(tiny_checkpoint, tmp_path / "odd.pt", unknown_option)
+    with pytest.raises(CheckpointError, match=r"odd\.pt.*could not be rebuilt"):
+        load_checkpoint(bad)
 
 
 def test_scene_by_name(tiny_checkpoint):
@@ -119,3 +131,4 @@ def test_scene_by_name(tiny_checkpoint):
     assert load_checkpoint(tiny_checkpoint, scene="tiny").scene.name == "tiny"
     with pytest.raises(CheckpointMismatch, match="scene"):
         load_checkpoint(tiny_checkpoint, scene="small")
+

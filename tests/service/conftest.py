@@ -7,13 +7,24 @@ Until a trained small checkpoint is shipped, tests make their own on `tiny`. Rol
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
 import torch
 
 torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def testclient_host():
+    """TestClient sends `Host: testserver`, which a server without API keys refuses (DNS-rebinding guard)
+    unless allowed: every Settings() of these tests allows it (tests of the guard pass allowed_hosts)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("NEMSIM_ALLOWED_HOSTS", "testserver")
+        yield
 
 
 @pytest.fixture(scope="session")
@@ -99,3 +110,37 @@ def decode_fields():
         return np.frombuffer(base64.b64decode(payload["data"]), dtype="<f2").reshape(payload["shape"])
 
     return decode
+
+
+@contextlib.contextmanager
+def _serve_in_thread(app, settings) -> Iterator[tuple[str, int]]:
+    """A real uvicorn server for ``app``, configured as `nemsim serve` configures it, in a daemon thread;
+    yields (host, port) once it listens and stops it on exit."""
+    import threading
+
+    import uvicorn
+
+    from service.protocol import free_port, uvicorn_options
+
+    port = free_port()
+    config = uvicorn.Config(
+        app, host="127.0.0.1", port=port, log_level="warning", lifespan="on", **uvicorn_options(settings)
+    )
+    srv = uvicorn.Server(config)
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not srv.started:
+        assert time.monotonic() < deadline, "server did not start"
+        time.sleep(0.02)
+    try:
+        yield ("127.0.0.1", port)
+    finally:
+        srv.should_exit = True
+        thread.join(timeout=10)
+
+
+@pytest.fixture(scope="session")
+def serve_in_thread():
+    """serve_in_thread(app, settings): a context manager yielding (host, port) of a real server."""
+    return _serve_in_thread

@@ -116,7 +116,8 @@ def test_bad_design_requests_are_422(make_client):
 def test_rollout_intervals_opt_in(make_client, tiny_checkpoint, tmp_path):
     from fastapi.testclient import TestClient
 
-    from nemsim.analysis.intervals import Calibration, file_digest, offsets_from_residuals
+    from nemsim.analysis.intervals import Calibration, offsets_from_residuals
+    from nemsim.inference.checkpoint import checkpoint_id
     from service.config import Settings
     from service.deps import get_served_model
     from service.main import create_app
@@ -134,7 +135,7 @@ def test_rollout_intervals_opt_in(make_client, tiny_checkpoint, tmp_path):
     rng = np.random.default_rng(0)
     res = {m: rng.normal(size=(30, 4)) for m in ("etch_depth", "mask_loss")}
     Calibration(
-        checkpoint_sha256=file_digest(ckpt),
+        checkpoint_sha256=checkpoint_id(ckpt),
         scene="tiny",
         levels=(0.8, 0.9),
         metrics=tuple(res),

@@ -9,18 +9,13 @@ import threading
 import time
 
 import pytest
-import uvicorn
-
-from service.protocol import free_port
 
 
 @pytest.fixture(scope="module")
-def server(served):
+def server(served, serve_in_thread):
     """A real server with tight limits over the shared surrogate; yields (host, port)."""
     from service.config import Settings
     from service.main import create_app
-    from service.protocol import uvicorn_options
-
     settings = Settings(
         warmup_steps=0,
         max_request_line_bytes=2048,
@@ -30,20 +25,8 @@ def server(served):
         max_connections=8,
     )
     app = create_app(settings, served=served)
-    port = free_port()
-    config = uvicorn.Config(
-        app, host="127.0.0.1", port=port, log_level="warning", lifespan="on", **uvicorn_options(settings)
-    )
-    srv = uvicorn.Server(config)
-    thread = threading.Thread(target=srv.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not srv.started:
-        assert time.monotonic() < deadline, "server did not start"
-        time.sleep(0.02)
-    yield ("127.0.0.1", port)
-    srv.should_exit = True
-    thread.join(timeout=10)
+    with serve_in_thread(app, settings) as addr:
+        yield addr
 
 
 def _exchange(addr, payload: bytes, *, wait_s: float = 5.0) -> bytes:
@@ -96,7 +79,8 @@ def test_slow_head_408(server):
 
 def test_stalled_body_408(server):
     head = (
-        b"POST /rollout HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\ncontent-length: 500\r\n\r\n"
+        b"POST /rollout HTTP/1.1\r\nhost: localhost\r\ncontent-type: application/json\r\n"
+        b"content-length: 500\r\n\r\n"
     )
     status, body = _status_and_body(_exchange(server, head + b'{"steps": 1, '))
     assert status == 408 and "body" in body["message"]

@@ -100,16 +100,17 @@ def test_serve_refuses_an_unreadable_checkpoint_before_binding(tmp_path):
 
 
 def test_serve_refuses_an_incompatible_checkpoint_before_binding(tmp_path, tiny_checkpoint):
-    """Readable but impossible to rebuild (unknown model; one weight missing): exit 3 with its one-line
-    reason, before binding (the model is rebuilt once before the workers start)."""
+    """Readable but impossible to rebuild (one weight missing): exit 3 with its one-line reason naming the
+    weight, before binding (the model is rebuilt once before the workers start)."""
     ckpt = torch.load(tiny_checkpoint, map_location="cpu", weights_only=True)
-    ckpt["model_state"].pop(next(iter(ckpt["model_state"])))
+    gone = next(iter(ckpt["model_state"]))
+    ckpt["model_state"].pop(gone)
     ckpt.pop("weights_sha256")
     bad = tmp_path / "incompatible.pt"
     torch.save(ckpt, bad)
     proc = _serve(bad)
     assert proc.returncode == 3, proc.stderr[-2000:]
-    assert "incompatible.pt" in proc.stderr and "could not be rebuilt" in proc.stderr
+    assert "incompatible.pt" in proc.stderr and f"weight '{gone}' is missing" in proc.stderr
     assert "Uvicorn running" not in proc.stderr
 
 

@@ -1,15 +1,19 @@
 """The explorer page in a real browser: Playwright for Python driving the system's Chromium.
 
-A real uvicorn serves the `tiny` checkpoint on a loopback port. Skipped (with the reason) when Playwright
-or a Chromium binary is missing; `.ci/run` installs Debian's `chromium`.
+A real uvicorn serves the `tiny` checkpoint on a loopback port with the server's default limits (rate
+limit included: the page must live within them). Every page records the responses that failed (4xx/5xx)
+and its console errors. Skipped (with the reason) when Playwright or a Chromium binary is missing;
+`.ci/run` installs Debian's `chromium`.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import threading
 import time
+from urllib.parse import urlparse
 
 import httpx
 import pytest
@@ -30,7 +34,6 @@ ARGS = [
 ]  # fmt: skip
 
 
-
 @pytest.fixture(scope="module")
 def server(tiny_checkpoint):
     import uvicorn
@@ -38,9 +41,8 @@ def server(tiny_checkpoint):
     from service.config import Settings
     from service.main import create_app
 
-    app = create_app(
-        Settings(checkpoint=tiny_checkpoint, warmup_steps=1, rate_limit_per_minute=0, runtime_backend="torch")
-    )
+    app = create_app(Settings(checkpoint=tiny_checkpoint, warmup_steps=1, runtime_backend="torch"))
+    assert app.state.settings.rate_limit_per_minute > 0  # the default limits apply
     port = free_port()
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     thread = threading.Thread(target=srv.run, daemon=True)
@@ -72,9 +74,14 @@ def browser():
 def page(browser, server):
     ctx = browser.new_context(viewport={"width": 1500, "height": 1000})
     pg = ctx.new_page()
-    pg.console_errors = []
+    pg.console_errors, pg.failed, pg.requests = [], [], []
     pg.on("console", lambda m: m.type == "error" and pg.console_errors.append(m.text))
     pg.on("pageerror", lambda e: pg.console_errors.append(str(e)))
+    pg.on("request", lambda r: pg.requests.append(r.url))
+    pg.on(
+        "response", lambda r: r.status >= 400 and pg.failed.append(f"{r.status} {r.request.method} {r.url}")
+    )
+    pg.on("requestfailed", lambda r: pg.failed.append(f"{r.failure} {r.method} {r.url}"))
     pg.goto(server + "/")
     try:
         pg.wait_for_selector("body[data-ready='1']", state="attached", timeout=15_000)
@@ -124,7 +131,8 @@ def test_page_runs_and_draws_without_console_errors(page):
     assert nchart > 500, "the metrics chart is empty"
     assert page.locator("#final-metrics tr").count() >= 4
     assert page.is_hidden("#error")
-    page.wait_for_timeout(300)  # mesh prefetch and mechanisms in flight
+    page.wait_for_load_state("networkidle")
+    assert sum("/mesh?" in url for url in page.requests) == 2  # the surfaces on screen, nothing more
     assert page.console_errors == []
 
 
@@ -136,8 +144,7 @@ def test_time_slider_changes_the_view(page):
         "() => { const s = document.getElementById('time'); s.value = 0;"
         " s.dispatchEvent(new Event('input')); }"
     )
-    page.wait_for_function("() => window.explorer.step === 0")
-    page.wait_for_timeout(500)  # the step-0 meshes arrive
+    page.wait_for_function("() => window.explorer.step === 0 && window.explorer.meshReady(0)")
     assert page.inner_text("#time-label").startswith("t = 0.0 s")
     assert canvas_stats(page, "#section")[1] != before_sec
     assert canvas_stats(page, "#canvas3d")[1] != before3d
@@ -159,34 +166,6 @@ def test_bad_request_shows_a_readable_message(page):
     assert "energy_std_cl_plus" in text and "physically impossible" in text
 
 
-def test_simulator_job_from_the_page_shows_the_comparison(page):
-    run_and_wait(page)
-    page.click("#pin-a")
-    page.click("#verify")
-    page.wait_for_selector("#comparison[data-done='1']", timeout=40_000)
-    text = page.inner_text("#comparison")
-    assert "avg RMSE" in text and "etch_depth" in text
-    assert page.is_visible("#rmse") and canvas_stats(page, "#rmse")[0] > 100
-    assert "simulator" in page.inner_text("#final-metrics")  # its curves join the chart and table
-
-
-def test_ab_and_recipe_mode(page):
-    run_and_wait(page)
-    _, alone = canvas_stats(page, "#section")
-    page.click("#pin-a")
-    assert canvas_stats(page, "#section")[1] != alone  # A's cross-section beside the current one
-    page.check("#recipe-mode")
-    page.click("#add-phase")
-    set_control(page, "energy_mean_cl_plus", 450)
-    page.click("#add-phase")
-    assert page.locator("#recipe-table tbody tr").count() == 2
-    run_and_wait(page, runs=2)
-    assert page.evaluate("() => window.explorer.run.recipe.length") == 50  # two phases of 2.5 s
-    ab = page.inner_text("#ab")
-    assert "energy_mean_cl_plus" in ab and "current − A" in ab
-    assert page.console_errors == []
-
-
 def test_a_simulator_job_can_be_cancelled_from_the_page(page):
     run_and_wait(page)
     page.click("#verify")
@@ -196,3 +175,154 @@ def test_a_simulator_job_can_be_cancelled_from_the_page(page):
         "() => document.getElementById('job-status').textContent.endsWith('cancelled')", timeout=15_000
     )
     assert page.is_hidden("#error") and page.inner_text("#comparison") == ""
+
+
+def drag_time_slider(page, to_left: bool) -> None:
+    box = page.locator("#time").bounding_box()
+    y, left, right = box["y"] + box["height"] / 2, box["x"] + 2, box["x"] + box["width"] - 2
+    page.mouse.move(right if to_left else left, y)
+    page.mouse.down()
+    page.mouse.move(left if to_left else right, y, steps=120)
+    page.mouse.up()
+
+
+def view3d_pixels(page) -> int:
+    return canvas_stats(page, "#canvas3d")[0]
+
+
+def test_a_user_visit_fails_no_request_and_logs_no_error(page):
+    """A scripted visit under the server's default limits: runs, A/B, recipe mode, the time slider dragged
+    across every step and back, Play, a simulator check. No response may fail (4xx/5xx) and nothing may be
+    logged as an error; the 3-D view is never blank."""
+    t0, in_flight, most = time.monotonic(), set(), [0]
+
+    def sent(request) -> None:
+        if "/mesh?" in request.url:
+            in_flight.add(request)
+            most[0] = max(most[0], len(in_flight))
+
+    page.on("request", sent)
+    page.on("requestfinished", lambda request: in_flight.discard(request))
+    page.on("requestfailed", lambda request: in_flight.discard(request))
+    page.evaluate(
+        "() => { window.seen = new Set(); document.getElementById('time')"
+        ".addEventListener('input', (e) => window.seen.add(+e.target.value)); }"
+    )
+    run_and_wait(page)
+    page.click("#pin-a")
+    set_control(page, "energy_mean_cl_plus", 450)
+    run_and_wait(page, runs=2)
+    ab = page.inner_text("#ab")
+    assert "energy_mean_cl_plus" in ab and "current − A" in ab
+    assert "flux_cl_plus" not in ab  # unchanged controls are not listed
+
+    page.click("#reset")
+    page.check("#recipe-mode")
+    page.click("#add-phase")
+    assert "(defaults)" in page.inner_text("#recipe-table tbody tr:nth-child(1)")
+    set_control(page, "energy_mean_cl_plus", 450)
+    page.click("#add-phase")
+    assert page.locator("#recipe-table tbody tr").count() == 2
+    assert page.inner_text("#recipe-table tbody tr:nth-child(2) td.left") == "energy_mean_cl_plus=450"
+    run_and_wait(page, runs=3)
+    assert page.evaluate("() => window.explorer.run.recipe.length") == 50  # two phases of 2.5 s
+    assert "Compute" in page.inner_text("#mech-note")  # the last run's mechanisms are not kept silently
+
+    drag_time_slider(page, to_left=True)
+    drag_time_slider(page, to_left=False)
+    assert page.evaluate("() => window.seen.size") >= 45  # (nearly) every one of the 51 steps was on screen
+    assert view3d_pixels(page) > 1000
+    page.wait_for_function("() => window.explorer.meshReady(window.explorer.step)", timeout=10_000)
+
+    page.evaluate("() => window.explorer.setStep(25)")
+    page.click("#play")
+    blank = []
+    while page.inner_text("#play") == "Pause":
+        blank += [page.evaluate("() => window.explorer.step")] if view3d_pixels(page) < 1000 else []
+        page.wait_for_timeout(150)
+    assert page.evaluate("() => window.explorer.step") == 50 and blank == []
+
+    page.click("#verify")
+    page.wait_for_selector("#comparison[data-done='1']", timeout=40_000)
+    text = page.inner_text("#comparison")
+    assert "avg RMSE" in text and "etch_depth" in text
+    assert page.is_visible("#rmse") and canvas_stats(page, "#rmse")[0] > 100
+    assert "simulator" in page.inner_text("#final-metrics")  # its curves join the chart and table
+    page.wait_for_load_state("networkidle")
+
+    stats = page.evaluate("() => window.explorer.meshStats()")
+    ms = page.evaluate("() => [window.explorer.rolloutMs, window.explorer.firstViews]")
+    logging.getLogger(__name__).info(
+        f"visit: {len(page.requests)} requests ({stats['requests']} meshes, at most {most[0]} at once), "
+        f"{len(page.failed)} failed, {len(page.console_errors)} console errors; after each Run the rollout "
+        f"answered in {', '.join(f'{x:.0f}' for x in ms[0])} ms and the first 3-D view was drawn in "
+        f"{', '.join(f'{x:.0f}' for x in ms[1])} ms; {time.monotonic() - t0:.1f} s"
+    )
+    assert most[0] <= 3
+    assert page.failed == [] and page.console_errors == []
+    assert set(stats) <= {"requests", "ok"}  # no step recorded as "no surface", none left waiting
+
+
+def test_a_busy_server_is_waited_out_not_drawn_empty(page):
+    """A 429/503 is retried after its Retry-After (a run, and every mesh), never recorded as no surface."""
+    asked: dict[str, list[float]] = {}
+
+    def busy_once(route, status: int) -> None:
+        times = asked.setdefault(f"{route.request.method} {route.request.url}", [])
+        times.append(time.monotonic())
+        if len(times) > 1:
+            route.continue_()
+            return
+        body = '{"detail": "busy", "message": "busy: retry in 1 s"}'
+        route.fulfill(status=status, headers={"Retry-After": "1"}, content_type="application/json", body=body)
+
+    page.route("**/rollout", lambda route: busy_once(route, 503))
+    page.route("**/rollouts/*/mesh?*", lambda route: busy_once(route, 429))
+    run_and_wait(page)
+    assert page.is_hidden("#error")
+    assert view3d_pixels(page) > 1000, "the 3-D view is empty"
+    assert page.evaluate("() => window.explorer.meshStats()") == {"requests": 4, "ok": 2}
+    assert len(asked) == 3 and all(len(t) == 2 and t[1] - t[0] >= 0.95 for t in asked.values())
+
+
+def test_the_page_fits_1280x720_to_1920x1080(page):
+    run_and_wait(page)
+    page.wait_for_function("() => window.explorer.mechanisms && window.explorer.fit.mech !== undefined")
+    for width, height in ((1280, 720), (1920, 1080)):
+        page.set_viewport_size({"width": width, "height": height})
+        page.wait_for_timeout(300)  # redrawn at the new size
+        fit = page.evaluate(
+            """() => ({
+              scroll: document.documentElement.scrollWidth, inner: window.innerWidth,
+              cut: [...document.querySelectorAll('canvas')].filter((c) => !c.hidden).filter((c) => {
+                const r = c.getBoundingClientRect(), p = c.closest('section').getBoundingClientRect();
+                return r.right > p.right + 0.5 || r.left < p.left - 0.5; }).map((c) => c.id),
+              drawn: window.explorer.fit })"""
+        )
+        assert fit["scroll"] <= fit["inner"], f"{width}x{height}: {fit['scroll']} px wide"
+        assert fit["cut"] == [], f"{width}x{height}: canvases wider than their panel"
+        assert fit["drawn"] == {"chart": True, "mech": True}, f"{width}x{height}: legend or bars cut"
+    assert page.console_errors == []
+
+
+def test_docs_render_with_the_network_off(browser, server):
+    ctx = browser.new_context()
+    remote: list[str] = []
+
+    def loopback_only(route) -> None:
+        if urlparse(route.request.url).hostname in ("127.0.0.1", "localhost", "::1"):
+            route.continue_()
+        else:
+            remote.append(route.request.url)
+            route.abort()
+
+    ctx.route("**/*", loopback_only)
+    pg = ctx.new_page()
+    try:
+        pg.goto(server + "/docs")
+        pg.wait_for_selector(".opblock", timeout=15_000)
+        assert pg.locator(".opblock").count() >= 10
+        assert "/rollout" in pg.inner_text(".swagger-ui")
+        assert remote == []
+    finally:
+        ctx.close()

@@ -181,13 +181,14 @@ def test_rollout_cache_is_bounded_in_bytes(served, default_controls):
     result, cached = s.rollout(raw)
     assert not cached and result.states.nbytes > 1
     assert s.rollout(raw)[1] is False  # larger than the whole budget: never kept
-    one = result.states.nbytes
-    s = ServedModel(served.predictor, cache_size=100, cache_bytes=2 * one)
     rows = [raw * f for f in (1.0, 1.01, 1.02)]
+    sizes = [s.rollout(r)[0].states.nbytes for r in rows]  # compact: each its own size
+    budget = sizes[1] + sizes[2]
+    s = ServedModel(served.predictor, cache_size=100, cache_bytes=budget)
     for r in rows:
         s.rollout(r)
-    assert s._rollouts.bytes <= 2 * one and len(s._rollouts) == 2
-    assert s.rollout(rows[0])[1] is False and s.rollout(rows[2])[1] is True
+    assert s._rollouts.bytes <= budget and len(s._rollouts) == 2
+    assert s.rollout(rows[2])[1] is True and s.rollout(rows[0])[1] is False
 
 
 def test_mesh_warm_up_exports_every_format(served, monkeypatch):
@@ -248,19 +249,26 @@ def test_cancelled_work_holds_its_slot_until_the_thread_finishes():
 
 def test_cache_keeps_entries_in_use_under_a_flood_of_new_ones():
     """A stream of one-off entries evicts other one-off entries, not those that were hit again; the
-    bounds in entries and bytes hold throughout."""
+    `size` most recent entries always stay, the reused ones on top (at most `KEPT_SHARE` more), and the
+    byte bound holds throughout."""
     from service.served_model import _LRU
 
-    cache = _LRU(6, max_bytes=600, weigh=lambda v: v)
+    cache = _LRU(6, max_bytes=900, weigh=lambda v: v)
     for key in ("hot1", "hot2"):
         cache.put(key, 100)
-        assert cache.get(key) == 100  # used again: protected
+        assert cache.get(key) == 100  # used again: kept when it falls out of the recent ones
     for k in range(50):
         cache.put(f"once{k}", 100)
-        assert len(cache) <= 6 and cache.bytes <= 600
+        assert len(cache) <= 6 + 3 and cache.bytes <= 900
+    assert cache.get("once43") is None and all(cache.get(f"once{k}") == 100 for k in range(44, 50))
     assert cache.get("hot1") == 100 and cache.get("hot2") == 100
-    assert cache.get("once0") is None and cache.get("once49") == 100
-    plain = _LRU(6, max_bytes=600, weigh=lambda v: v)  # same bounds, nothing reused: plain LRU order
+    plain = _LRU(6, max_bytes=600, weigh=lambda v: v)  # nothing reused: plain LRU order
     for k in range(8):
         plain.put(k, 100)
     assert [plain.get(k) for k in range(8)] == [None, None, *[100] * 6]
+    tight = _LRU(6, max_bytes=600, weigh=lambda v: v)  # the budget binds: the kept ones go first
+    tight.put("hot", 100)
+    tight.get("hot")
+    for k in range(6):
+        tight.put(k, 100)
+    assert tight.get("hot") is None and all(tight.get(k) == 100 for k in range(6))

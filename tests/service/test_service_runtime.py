@@ -43,4 +43,4 @@ def test_service_rollout_runs_on_openvino_and_matches_torch(tiny_checkpoint):
     b, _ = ref.rollout(_controls(5))
     assert fast.predictor.runtime.backend == "openvino"  # no silent fallback inside the request
     # the API returns float16 states: compare at that resolution
-    assert np.abs(a.states.astype(np.float32) - b.states.astype(np.float32)).max() <= 2e-3
+    assert np.abs(a.states.decode().astype(np.float32) - b.states.decode().astype(np.float32)).max() <= 2e-3

@@ -24,16 +24,23 @@ from nemsim.analysis.inverse.report import format_result
 from nemsim.analysis.inverse.run import run_inverse
 from nemsim.analysis.inverse.spec import (
     DEFAULT_TOL,
+    MIN_TOL_NM,
     TARGET_METRICS,
     InverseSpec,
     Progress,
     SearchCancelled,
     SearchConfig,
     Target,
+    check_bounds,
+    check_fixed,
+    check_target,
+    check_targets,
+    check_tolerance,
     misses,
     objective,
     spec_from_dict,
     spec_to_dict,
+    target_range,
 )
 from nemsim.analysis.inverse.surrogate_search import LocalRegion, search
 from nemsim.analysis.inverse.verify import (
@@ -47,6 +54,7 @@ from nemsim.analysis.inverse.verify import (
 
 __all__ = [
     "DEFAULT_TOL",
+    "MIN_TOL_NM",
     "REFINE_WITH_VERIFY",
     "TARGET_METRICS",
     "InverseContext",
@@ -60,6 +68,11 @@ __all__ = [
     "SimulateMetrics",
     "SimulationSkipped",
     "Target",
+    "check_bounds",
+    "check_fixed",
+    "check_target",
+    "check_targets",
+    "check_tolerance",
     "format_result",
     "load_inverse_context",
     "misses",
@@ -73,6 +86,7 @@ __all__ = [
     "simulator_config",
     "spec_from_dict",
     "spec_to_dict",
+    "target_range",
     "verify_recipe",
     "verify_recipes",
 ]

@@ -40,8 +40,8 @@ def simulator_config(loaded: Any) -> SimConfig | None:
 
 def load_inverse_context(checkpoint: str | Path) -> InverseContext:
     """Load a checkpoint, its initial state (its simulator configuration) and its calibration file."""
-    from nemsim.analysis.intervals import calibration_for, file_digest
-    from nemsim.inference.checkpoint import load_checkpoint
+    from nemsim.analysis.intervals import calibration_for
+    from nemsim.inference.checkpoint import checkpoint_id, load_checkpoint
     from nemsim.sim import initial_state
 
     path = Path(checkpoint)
@@ -56,7 +56,7 @@ def load_inverse_context(checkpoint: str | Path) -> InverseContext:
         x0=x0,
         calibration=cal,
         support=Support.from_record(cal.support if cal else None),
-        model_id=f"{path.stem}@{file_digest(path)}",
+        model_id=f"{path.stem}@{checkpoint_id(path)}",
         loaded=loaded,
     )
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from nemsim.analysis.inverse.context import InverseContext, simulator_config
 from nemsim.analysis.inverse.refine import RefineConfig, refine_with_simulator
-from nemsim.analysis.inverse.spec import InverseSpec, spec_to_dict
+from nemsim.analysis.inverse.spec import InverseSpec, check_targets, spec_to_dict
 from nemsim.analysis.inverse.surrogate_search import search
 from nemsim.analysis.inverse.verify import simulated_metrics, verify_recipes
 
@@ -29,8 +29,10 @@ def run_inverse(
 
     With ``refine`` (a ``RefineConfig``) the simulator is used inside the
     design loop instead (simulator-corrected rounds; implies ``verify``, and ``verify_top`` is the
-    config's).
+    config's). ValueError if a target or tolerance lies outside its physical range in the checkpoint's
+    scene (``check_targets``).
     """
+    check_targets(spec.targets, ctx.scene)
     bar = None
     if progress:
         from tqdm import tqdm

@@ -16,14 +16,14 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal
 
-import numpy as np
-
-from nemsim.controls import CONTROL_SPECS, N_CONTROLS, check_admissible, control_index, from_normalized
+from nemsim.controls import check_control, control_index
 from nemsim.geometry.soft_profile import SOFT_METRICS
+from nemsim.scenes import Scene
 
 TARGET_METRICS = SOFT_METRICS  # etch_depth, top_width, bottom_width, bowing, mask_loss
 DEFAULT_TOL = {"etch_depth": 5.0, "top_width": 3.0, "bottom_width": 3.0, "mask_loss": 2.0, "bowing": 2.0}
 SECONDARY_SCALE_NM = 10.0
+MIN_TOL_NM = 0.1  # the finest tolerance accepted: far below a voxel (2 to 8 nm), far above rounding
 Method = Literal["auto", "adam", "cma"]
 Progress = Callable[[float, str], None]
 
@@ -71,6 +71,62 @@ def _number(value: Any, where: str) -> float:
     return float(value)
 
 
+def target_range(metric: str, scene: Scene) -> tuple[float, float, str]:
+    """(low, high, what bounds it): the physical range of profile metric ``metric`` in ``scene``, nm.
+
+    The etch depth lies between 0 and the Si thickness, the widths and the bowing between 0 and the domain
+    width, the mask loss between 0 and the mask thickness.
+    """
+    if metric not in TARGET_METRICS:
+        raise ValueError(f"unknown metric {metric!r}; expected one of {list(TARGET_METRICS)}")
+    vox = scene.voxel_nm
+    if metric == "etch_depth":
+        return 0.0, scene.si_top * vox, "the Si thickness"
+    if metric == "mask_loss":
+        return 0.0, (scene.resist_top - scene.si_top) * vox, "the mask thickness"
+    return 0.0, min(scene.nx, scene.ny) * vox, "the domain width"
+
+
+def check_target(metric: str, value: Any, scene: Scene | None = None, where: str | None = None) -> float:
+    """``value`` (nm) as a float, or ValueError naming ``where`` (default ``targets.<metric>``), the value
+    and the accepted range: a finite number >= 0 and, with ``scene``, within ``target_range``."""
+    where = where or f"targets.{metric}"
+    v = _number(value, where)
+    if scene is None:
+        if v < 0:
+            raise ValueError(f"{where} = {v:g} nm is impossible: {metric} is >= 0 nm")
+        return v
+    lo, hi, what = target_range(metric, scene)
+    if not lo <= v <= hi:
+        raise ValueError(f"{where} = {v:g} nm is outside the physical range {lo:g}..{hi:g} nm of {metric} "
+                         f"(0 to {what} of scene {scene.name!r})")
+    return v
+
+
+def check_tolerance(metric: str, tol: Any, scene: Scene | None = None, where: str | None = None) -> float:
+    """``tol`` (nm) as a float, or ValueError naming ``where`` (default ``targets.<metric>.tol``), the value
+    and the accepted range: a finite number >= MIN_TOL_NM and, with ``scene``, at most the metric's range."""
+    where = where or f"targets.{metric}.tol"
+    t = _number(tol, where)
+    hi = math.inf
+    if scene is not None:
+        lo_m, hi_m, _ = target_range(metric, scene)
+        hi = hi_m - lo_m
+    if not MIN_TOL_NM <= t <= hi:
+        upper = f", at most {hi:g} nm (the range of {metric} in scene {scene.name!r})" if scene else ""
+        raise ValueError(f"{where} = {t:g} nm is outside the accepted tolerances: at least {MIN_TOL_NM:g} nm"
+                         f"{upper}")
+    return t
+
+
+def check_targets(targets: dict[str, Target], scene: Scene) -> None:
+    """ValueError naming the first target value or tolerance outside its range in ``scene``
+    (``check_target``, ``check_tolerance``): what an entry point checks once the scene is known."""
+    for name, t in targets.items():
+        check_target(name, t.value, scene, where=f"targets.{name}.value")
+        check_tolerance(name, t.tol, scene)
+
+
 def _control(name: Any, where: str) -> int:
     if not isinstance(name, str):
         raise ValueError(f"{where}: control names are strings, got {name!r}")
@@ -78,6 +134,62 @@ def _control(name: Any, where: str) -> int:
         return control_index(name)
     except ValueError as exc:
         raise ValueError(f"{where}: {exc}") from None
+
+
+def check_fixed(fixed: Any) -> dict[str, float]:
+    """Held controls {name: raw value}, each admissible (``nemsim.controls.check_control``: finite,
+    physically possible, within the scale guard, whole exponents); ValueError naming ``fixed.<name>``."""
+    if not isinstance(fixed, dict):
+        raise ValueError(f"fixed must be an object {{control: value}}, got {fixed!r}")
+    out: dict[str, float] = {}
+    for name, v in fixed.items():
+        _control(name, "fixed")
+        out[name] = check_control(name, _number(v, f"fixed.{name}"), where="fixed.")
+    return out
+
+
+def check_bounds(bounds: Any) -> dict[str, tuple[float, float]]:
+    """Search bounds {name: (low, high)} in physical units, both ends admissible values of the control
+    (``check_control``, fractions allowed) and low < high; ValueError naming ``bounds.<name>``."""
+    if not isinstance(bounds, dict):
+        raise ValueError(f"bounds must be an object {{control: [low, high]}}, got {bounds!r}")
+    out: dict[str, tuple[float, float]] = {}
+    for name, b in bounds.items():
+        _control(name, "bounds")
+        if not isinstance(b, list | tuple) or len(b) != 2:
+            raise ValueError(f"bounds.{name} must be [low, high] in physical units, got {b!r}")
+        lo, hi = (
+            check_control(name, _number(v, f"bounds.{name}[{i}]"), where=f"bounds.{name}[{i}]: ", whole=False)
+            for i, v in enumerate(b)
+        )
+        if not lo < hi:
+            raise ValueError(f"bounds.{name}: need low < high, got [{lo:g}, {hi:g}]")
+        out[name] = (lo, hi)
+    return out
+
+
+MAX_SEARCH_COUNT = 100_000  # the most screened recipes, starts, steps, batch or CMA-ES evaluations
+
+
+def _search_config(s: dict[str, Any]) -> SearchConfig:
+    """``SearchConfig`` from its JSON form (known keys only); ValueError naming ``search.<field>``."""
+    for k, v in s.items():
+        if k == "method":
+            if v not in ("auto", "adam", "cma"):
+                raise ValueError(f"search.method must be 'auto', 'adam' or 'cma', got {v!r}")
+            continue
+        _number(v, f"search.{k}")
+        count = isinstance(getattr(SearchConfig, k), int)
+        if count and (not isinstance(v, int) or abs(v) > MAX_SEARCH_COUNT):
+            raise ValueError(f"search.{k} must be an integer of at most {MAX_SEARCH_COUNT}, got {v!r}")
+    search = replace(SearchConfig(), **s)
+    if search.screen < 1 or search.starts < 1 or search.iterations < 0 or search.batch < 1:
+        raise ValueError("search: screen, starts and batch must be >= 1 and iterations >= 0")
+    if search.cma_evals < 1 or not 0 < search.cma_sigma <= 2 or not 0 < search.lr <= 10:
+        raise ValueError("search: cma_evals must be >= 1, cma_sigma in (0, 2] and lr in (0, 10]")
+    if search.min_separation < 0 or search.secondary_weight < 0:
+        raise ValueError("search: min_separation and secondary_weight must be >= 0")
+    return search
 
 
 def spec_from_dict(d: Any) -> InverseSpec:
@@ -108,45 +220,19 @@ def spec_from_dict(d: Any) -> InverseSpec:
             extra = sorted(set(t) - {"value", "tol"})
             if extra or "value" not in t:
                 raise ValueError(f'targets.{name}: expected {{"value": nm, "tol": nm}}, got {t!r}')
-            value = _number(t["value"], f"targets.{name}.value")
-            tol = _number(t.get("tol", DEFAULT_TOL[name]), f"targets.{name}.tol")
+            value = check_target(name, t["value"], where=f"targets.{name}.value")
+            tol = check_tolerance(name, t.get("tol", DEFAULT_TOL[name]))
         else:
-            value, tol = _number(t, f"targets.{name}"), DEFAULT_TOL[name]
-        if tol <= 0:
-            raise ValueError(f"targets.{name}.tol must be > 0 nm, got {tol:g}")
+            value, tol = check_target(name, t), DEFAULT_TOL[name]
         targets[name] = Target(value, tol)
     step = d.get("step")
     if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 1):
         raise ValueError(f"step must be an integer >= 1 (a state index; default the horizon), got {step!r}")
-    fixed: dict[str, float] = {}
-    for name, v in (d.get("fixed") or {}).items():
-        j = _control(name, "fixed")
-        fixed[name] = _number(v, f"fixed.{name}")
-        if CONTROL_SPECS[j].kind == "int" and fixed[name] != round(fixed[name]):
-            raise ValueError(f"fixed.{name} = {fixed[name]:g} is not an integer (cosine-power exponent)")
-    bounds: dict[str, tuple[float, float]] = {}
-    for name, b in (d.get("bounds") or {}).items():
-        _control(name, "bounds")
-        if not isinstance(b, list | tuple) or len(b) != 2:
-            raise ValueError(f"bounds.{name} must be [low, high] in physical units, got {b!r}")
-        lo, hi = _number(b[0], f"bounds.{name}[0]"), _number(b[1], f"bounds.{name}[1]")
-        if not lo < hi:
-            raise ValueError(f"bounds.{name}: need low < high, got [{lo:g}, {hi:g}]")
-        if name in fixed:
-            raise ValueError(f"{name} is both fixed and bounded; give one")
-        bounds[name] = (lo, hi)
-    probe = np.asarray(from_normalized(np.zeros(N_CONTROLS)), dtype=np.float64)
-    for name, v in fixed.items():
-        probe[control_index(name)] = v
-    bad = check_admissible(probe)
-    for name, (lo, _) in bounds.items():
-        if lo < CONTROL_SPECS[control_index(name)].phys_min:
-            bad.append(f"bounds.{name} low {lo:g} is below the physical minimum")
-    if bad:
-        raise ValueError(f"physically impossible input: {bad[0]}")
-    for name, (_, hi) in bounds.items():
-        if not math.isfinite(hi):
-            raise ValueError(f"bounds.{name} high must be finite")
+    fixed = check_fixed(d.get("fixed") or {})
+    bounds = check_bounds(d.get("bounds") or {})
+    both = sorted(set(fixed) & set(bounds))
+    if both:
+        raise ValueError(f"{both[0]} is both fixed and bounded; give one")
     secondary = None
     sec = d.get("secondary")
     if sec is not None:
@@ -172,11 +258,7 @@ def spec_from_dict(d: Any) -> InverseSpec:
                 f"search: unknown keys {sorted(set(s) - fields_) if isinstance(s, dict) else s!r}; "
                 f"expected some of {sorted(fields_)}"
             )
-        search = replace(search, **s)
-        if search.method not in ("auto", "adam", "cma"):
-            raise ValueError(f"search.method must be 'auto', 'adam' or 'cma', got {search.method!r}")
-        if search.screen < 1 or search.starts < 1 or search.iterations < 0 or search.batch < 1:
-            raise ValueError("search: screen, starts and batch must be >= 1 and iterations >= 0")
+        search = _search_config(s)
     return InverseSpec(
         targets=targets, step=step, fixed=fixed, bounds=bounds, secondary=secondary, k=k, search=search
     )

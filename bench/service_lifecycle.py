@@ -1,0 +1,176 @@
+"""Simulator jobs on a live server: their cost to interactive rollouts, and what is left of them on every
+exit path of the server.
+
+`probe_job_beside_rollouts`: uncached rollouts timed (sequential, distinct controls) just before and then
+while a simulator job runs; only the rollouts that began and ended with the job's child alive count. The
+job (`job_controls`): the design centre with every flux times JOB_FLUX_SCALE, over the model's horizon, so
+that it runs long enough (about 15-20 s on `small`) for the rollouts to meet the simulation itself rather
+than the child's start and the job's end.
+
+`probe_sigterm`: with a job's child running, SIGTERM the server: its exit status and time, whether it
+logged the end of its shutdown, and the children and job folders left under its jobs folder.
+
+`probe_kill9`: a new server on a fresh jobs folder starts a job and is killed with SIGKILL; how long its
+child outlives it, whether the folder is left (a dead server cannot remove it), and whether the next
+server on the same folder removes it at start-up.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from bench.live_server import (
+    LiveServer,
+    autogroup,
+    centre_controls,
+    client,
+    job_children,
+    job_dirs,
+    nice_of,
+    percentiles_ms,
+    random_controls,
+    wait_until,
+)
+
+JOB_SOURCE = "127.0.0.3"  # the job's client (the per-client job cap is its own)
+JOB_FLUX_SCALE = 4.0  # the work grows with the total flux: 4x a design-centre run, every flux in the box
+
+
+def job_controls() -> dict[str, float]:
+    """The simulator job's controls: the design centre, fluxes times JOB_FLUX_SCALE."""
+    return {k: v * JOB_FLUX_SCALE if k.startswith("flux") else v for k, v in centre_controls().items()}
+
+
+def start_job(
+    http: httpx.Client, server: LiveServer, steps: int, timeout_s: float = 90.0
+) -> tuple[str, float]:
+    """Submit a simulator job and wait until its child process runs: (job id, seconds to the child)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        r = http.post("/simulations", json={"controls": job_controls(), "steps": steps})
+        if r.status_code == 202:
+            break
+        if r.status_code != 429 or time.monotonic() > deadline:  # 429: this client's previous job ends
+            raise RuntimeError(f"POST /simulations answered {r.status_code}: {r.text[:300]}")
+        time.sleep(1.0)
+    job_id = r.json()["id"]
+    t = wait_until(lambda: bool(job_children(server.jobs_dir)), max(1.0, deadline - time.monotonic()))
+    if t is None:
+        raise RuntimeError(
+            f"job {job_id}: no simulator child appeared ({http.get(f'/jobs/{job_id}').text[:300]})"
+        )
+    return job_id, t
+
+
+def _timed(http: httpx.Client, rng: np.random.Generator, steps: int) -> float | None:
+    t0 = time.perf_counter()
+    r = http.post("/rollout", json={"controls": random_controls(rng), "steps": steps})
+    return time.perf_counter() - t0 if r.status_code == 200 else None
+
+
+def probe_job_beside_rollouts(
+    server: LiveServer, *, steps: int, rollouts: int, horizon: int, seed: int, cap_s: float
+) -> dict[str, Any]:
+    """Rollout p50 just before and while a simulator job runs (module docstring)."""
+    rng = np.random.default_rng(seed)
+    with client(server) as http, client(server, source=JOB_SOURCE) as jobs:
+        before = [t for t in (_timed(http, rng, steps) for _ in range(rollouts)) if t is not None]
+        during: list[float] = []
+        submitted, failures, child_s = 0, 0, []
+        nices: list[int | None] = []
+        groups: list[str | None] = []
+        deadline = time.monotonic() + cap_s
+        while len(during) < rollouts and time.monotonic() < deadline:
+            if not job_children(server.jobs_dir):
+                _, t = start_job(jobs, server, horizon)
+                submitted += 1
+                child_s.append(t)
+                time.sleep(1.0)  # past the child's start-up (imports), into the simulation itself
+                nices += [nice_of(pid) for pid in job_children(server.jobs_dir)]
+                groups += [autogroup(pid) for pid in job_children(server.jobs_dir)]
+            alive_before = bool(job_children(server.jobs_dir))
+            took = _timed(http, rng, steps)
+            if took is None:
+                failures += 1
+            elif alive_before and job_children(server.jobs_dir):
+                during.append(took)
+    b, d = percentiles_ms(before), percentiles_ms(during)
+    return {
+        "rollouts_before": b,
+        "rollouts_during_job": d,
+        "rollout_failures": failures,
+        "jobs_submitted": submitted,
+        "seconds_to_child": child_s,
+        "job_flux_scale": JOB_FLUX_SCALE,
+        "server_nice": nice_of(server.pid),
+        "job_child_nice": nices,
+        "server_autogroup": autogroup(server.pid),
+        "job_child_autogroup": groups,
+        "p50_ratio_to_just_before": d["p50_ms"] / b["p50_ms"] if d.get("n") and b.get("n") else None,
+    }
+
+
+def probe_sigterm(server: LiveServer, *, horizon: int) -> dict[str, Any]:
+    """SIGTERM with a job's child running (module docstring); stops `server`."""
+    with client(server, source=JOB_SOURCE) as jobs:
+        if not job_children(server.jobs_dir):
+            start_job(jobs, server, horizon)
+    children, folders = job_children(server.jobs_dir), job_dirs(server.jobs_dir)
+    code, exit_s = server.stop(signal.SIGTERM)
+    gone = wait_until(lambda: not job_children(server.jobs_dir), 10.0)
+    return {
+        "children_before": len(children),
+        "job_folders_before": len(folders),
+        "exit_status": code,
+        "exit_s": exit_s,
+        "children_left": len(job_children(server.jobs_dir)),
+        "children_gone_after_exit_s": gone,
+        "job_folders_left": len(job_dirs(server.jobs_dir)),
+        # uvicorn re-raises the signal after its shutdown, so the status is -15 (143 in a shell) either way
+        "graceful_shutdown": "Application shutdown complete" in server.log_path.read_text(errors="replace"),
+    }
+
+
+def probe_kill9(
+    checkpoint: str | Path, jobs_dir: Path, log_dir: Path, *, horizon: int, env: dict[str, str] | None = None
+) -> dict[str, Any]:
+    """kill -9 with a job running, then a restart on the same jobs folder (module docstring)."""
+    first = LiveServer(checkpoint, jobs_dir, log_dir / "server-kill9.log", env)
+    try:
+        first.wait_ready()
+        with client(first, source=JOB_SOURCE) as jobs:
+            start_job(jobs, first, horizon)
+        time.sleep(1.0)
+        children = job_children(jobs_dir)
+        folders_before = len(job_dirs(jobs_dir))
+        code, _ = first.stop(signal.SIGKILL)
+    finally:
+        first.stop(signal.SIGKILL)
+    child_gone_s = wait_until(lambda: not job_children(jobs_dir), 15.0)
+    folders_after_kill = len(job_dirs(jobs_dir))
+    second = LiveServer(checkpoint, jobs_dir, log_dir / "server-restart.log", env)
+    try:
+        ready_s = second.wait_ready()
+        folders_after_restart = len(job_dirs(jobs_dir))
+        children_after_restart = len(job_children(jobs_dir))
+    finally:
+        second_code, _ = second.stop(signal.SIGTERM)
+    return {
+        "children_before_kill": len(children),
+        "job_folders_before_kill": folders_before,
+        "exit_status": code,
+        "child_gone_after_kill_s": child_gone_s,
+        "children_left_after_kill": len(job_children(jobs_dir)),
+        "job_folders_left_by_the_killed_server": folders_after_kill,
+        "restart_ready_s": ready_s,
+        "job_folders_after_restart": folders_after_restart,
+        "children_after_restart": children_after_restart,
+        "restart_sigterm_exit_status": second_code,
+        "job_folders_after_restart_stopped": len(job_dirs(jobs_dir)),
+    }

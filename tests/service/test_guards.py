@@ -1,0 +1,296 @@
+"""Guards at the service's edges: a per-client connection cap (one address cannot hold every connection),
+the Host allow-list without API keys (DNS rebinding), forwarded addresses trusted only from configured
+proxies, readable answers to unparsable bodies, the 405 `Allow` header, /metrics route labels of refused
+requests, and `nemsim serve` exiting 3 on a checkpoint that can never load."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+
+from service.protocol import free_port
+
+KEY = "k" * 20
+OTHER_CLIENT = "127.0.0.2"  # another loopback address (Linux routes all of 127/8 to lo)
+
+
+@pytest.fixture
+def real_server(served, serve_in_thread):
+    """real_server(**settings) -> (host, port) of a uvicorn server (as `nemsim serve` configures it) over
+    the shared served model."""
+    from service.config import Settings
+    from service.main import create_app
+
+    with contextlib.ExitStack() as stack:
+
+        def start(**overrides):
+            settings = Settings(**{"warmup_steps": 0, "allowed_hosts": "", **overrides})
+            app = create_app(settings, served=served)
+            return stack.enter_context(serve_in_thread(app, settings))
+
+        yield start
+
+
+def _get(addr, path: str = "/health", source: str = "127.0.0.1", wait_s: float = 5.0) -> bytes:
+    """One GET from `source` (connection: close); b"" if the server dropped the connection."""
+    with socket.create_connection(addr, timeout=wait_s, source_address=(source, 0)) as s:
+        try:
+            s.sendall(f"GET {path} HTTP/1.1\r\nhost: localhost\r\nconnection: close\r\n\r\n".encode())
+            chunks = []
+            while data := s.recv(65536):
+                chunks.append(data)
+        except (ConnectionResetError, BrokenPipeError):
+            return b""
+    return b"".join(chunks)
+
+
+# --- per-client connection cap ---------------------------------------------------------------------------
+
+
+def test_one_address_cannot_take_every_connection(real_server, monkeypatch):
+    from service.protocol import GuardedH11Protocol
+
+    monkeypatch.setattr(GuardedH11Protocol, "_drops", {"count": 0, "logged_at": -math.inf})
+    addr = real_server(max_connections=64, max_connections_per_client=4, head_timeout_s=5.0)
+    warnings: list[str] = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: warnings.append(record.getMessage())  # type: ignore[method-assign]
+    logging.getLogger("uvicorn.error").addHandler(handler)
+    held = [socket.create_connection(addr, timeout=5, source_address=("127.0.0.1", 0)) for _ in range(10)]
+    try:
+        time.sleep(0.2)
+        assert _get(addr, source=OTHER_CLIENT).startswith(b"HTTP/1.1 200")  # another client: served
+        assert _get(addr, source="127.0.0.1") == b""  # this one is at its cap: dropped at once
+    finally:
+        logging.getLogger("uvicorn.error").removeHandler(handler)
+        for s in held:
+            s.close()
+    assert len([w for w in warnings if "per-client cap" in w]) == 1, warnings  # 7 drops, one warning
+    time.sleep(0.3)
+    assert _get(addr, source="127.0.0.1").startswith(b"HTTP/1.1 200")  # below the cap again
+
+
+def test_trusted_proxy_not_capped_per_client(real_server):
+    addr = real_server(max_connections=64, max_connections_per_client=2, trusted_proxies="127.0.0.1")
+    held = [socket.create_connection(addr, timeout=5) for _ in range(4)]
+    try:
+        time.sleep(0.2)
+        assert _get(addr, source="127.0.0.1").startswith(b"HTTP/1.1 200")
+    finally:
+        for s in held:
+            s.close()
+
+
+# --- Host allow-list without API keys -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "host",
+    ["localhost", "LocalHost:8000", "127.0.0.1", "127.0.0.1:8000", "[::1]", "[::1]:8000", "localhost."],
+)
+def test_loopback_host_names_served(make_client, host):
+    assert make_client(allowed_hosts="").get("/model", headers={"host": host}).status_code == 200
+
+
+@pytest.mark.parametrize(
+    "host", ["evil.example", "evil.example:8000", "localhost.evil.example", "127.0.0.1.nip.io", "10.0.0.5:80"]
+)
+def test_foreign_host_refused_without_keys(make_client, default_controls, host):
+    c = make_client(allowed_hosts="")
+    r = c.post("/rollout", json={"controls": default_controls, "steps": 1}, headers={"host": host})
+    assert r.status_code == 400, r.text
+    assert "Host" in r.json()["message"] and "NEMSIM_ALLOWED_HOSTS" in r.json()["message"]
+    assert c.get("/health", headers={"host": host}).status_code == 200  # probes stay open
+
+
+def test_allowed_hosts_setting(make_client):
+    c = make_client(allowed_hosts="nemsim.lab, API.example")
+    assert c.get("/model", headers={"host": "nemsim.lab:8000"}).status_code == 200
+    assert c.get("/model", headers={"host": "api.example"}).status_code == 200
+    assert c.get("/model", headers={"host": "other.lab"}).status_code == 400
+    assert make_client(allowed_hosts="*").get("/model", headers={"host": "x.example"}).status_code == 200
+
+
+def test_host_not_checked_with_api_keys(make_client):
+    c = make_client(allowed_hosts="", api_keys=KEY)  # a rebound page cannot send the key
+    assert c.get("/model", headers={"host": "evil.example", "x-api-key": KEY}).status_code == 200
+
+
+# --- forwarded client addresses -------------------------------------------------------------------------
+
+
+def test_rotating_forwarded_for_from_loopback_is_rate_limited(real_server):
+    host, port = real_server(rate_limit_per_minute=60, rate_limit_burst=5)
+    with httpx.Client(base_url=f"http://{host}:{port}", timeout=10) as http:
+        codes = [
+            http.get("/model", headers={"x-forwarded-for": f"127.0.0.{i + 2}"}).status_code for i in range(12)
+        ]
+        codes += [http.get("/model", headers={"forwarded": f"for=127.0.1.{i}"}).status_code for i in range(4)]
+    assert codes[:5] == [200] * 5 and set(codes[5:]) == {429}, codes
+
+
+def test_forwarded_for_trusted_from_configured_proxy(real_server):
+    host, port = real_server(rate_limit_per_minute=60, rate_limit_burst=2, trusted_proxies="127.0.0.0/8")
+    with httpx.Client(base_url=f"http://{host}:{port}", timeout=10) as http:
+        codes = [
+            http.get("/model", headers={"x-forwarded-for": f"127.0.0.{i + 2}"}).status_code for i in range(6)
+        ]
+        assert codes == [200] * 6  # one client each
+        assert http.get("/model", headers={"x-forwarded-for": "203.0.113.9"}).status_code == 403  # remote
+
+
+@pytest.mark.parametrize(
+    ("peer", "header", "value", "expected"),
+    [
+        ("127.0.0.1", b"x-forwarded-for", b"203.0.113.9", "127.0.0.1"),  # untrusted peer: header ignored
+        ("10.0.0.2", b"x-forwarded-for", b"203.0.113.9", "203.0.113.9"),
+        ("10.0.0.2", b"x-forwarded-for", b"198.51.100.1, 203.0.113.9", "203.0.113.9"),  # rightmost
+        ("10.0.0.2", b"x-forwarded-for", b"198.51.100.1, 10.0.0.3", "198.51.100.1"),  # skip trusted hops
+        ("10.0.0.2", b"x-forwarded-for", b"garbage", "10.0.0.2"),
+        ("10.0.0.2", b"forwarded", b'for=192.0.2.60;proto=http, for="[2001:db8::1]:4711"', "10.0.0.2"),
+    ],
+)
+def test_client_address(peer, header, value, expected):
+    from service.access import client_address
+    from service.config import parse_networks
+
+    trusted = parse_networks("10.0.0.0/24")
+    assert client_address(peer, {header: value}, trusted, "x-forwarded-for") == expected
+
+
+def test_forwarded_header_when_configured():
+    from service.access import client_address
+    from service.config import parse_networks
+
+    trusted = parse_networks("10.0.0.2")
+    headers = {
+        b"forwarded": b'for=192.0.2.60;proto=http, for="[2001:db8::1]:4711"',
+        b"x-forwarded-for": b"1.2.3.4",
+    }
+    assert client_address("10.0.0.2", headers, trusted, "forwarded") == "2001:db8::1"
+
+
+def test_bad_trusted_proxy_setting():
+    from service.config import Settings
+
+    with pytest.raises(ValueError, match="NEMSIM_TRUSTED_PROXIES"):
+        Settings(trusted_proxies="10.0.0.0/8, not-an-address")
+
+
+# --- messages -------------------------------------------------------------------------------------------
+
+
+def _post_json(client, body: bytes):
+    return client.post("/rollout", content=body, headers={"content-type": "application/json"})
+
+
+def test_huge_integer_named(make_client):
+    r = _post_json(make_client(), b'{"steps": ' + b"7" * 5000 + b"}")
+    assert r.status_code == 400
+    assert "digits" in r.json()["message"] and "UTF-8" not in r.json()["message"]
+
+
+def test_deep_nesting_named(make_client):
+    r = _post_json(make_client(), b"[" * 200_000 + b"]" * 200_000)
+    assert r.status_code == 400
+    assert "deep" in r.json()["message"] and "UTF-8" not in r.json()["message"]
+
+
+def test_undecodable_body_named(make_client):
+    r = _post_json(make_client(), b'{"steps": "\xff\xfe"}')
+    assert r.status_code == 400 and "UTF-8" in r.json()["message"]
+
+
+def test_405_allow_lists_every_method_of_the_path(make_client):
+    r = make_client().put("/jobs/0123456789abcdef")
+    assert r.status_code == 405
+    assert {"GET", "DELETE"} <= {m.strip() for m in r.headers["allow"].split(",")}
+
+
+def test_refused_requests_keep_their_route_label(make_client):
+    c = make_client(rate_limit_per_minute=60, rate_limit_burst=1)
+    assert [c.get("/model").status_code for _ in range(2)] == [200, 429]
+    assert c.get("/jobs/0123456789abcdef").status_code == 429
+    assert c.get("/no-such-route").status_code == 429
+    text = c.get("/metrics").text
+    assert 'route="/model",status="429"' in text
+    assert 'route="/jobs/{job_id}",status="429"' in text
+    assert 'route="unmatched",status="429"} 1.0' in text  # only the path no route matches
+
+
+# --- nemsim serve as a process ----------------------------------------------------------------------------
+
+
+def _serve(checkpoint, port: int, **env: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "nemsim.cli", "serve", "--checkpoint", str(checkpoint), "--port", str(port)],
+        env={**os.environ, "OMP_NUM_THREADS": "1", "NEMSIM_WARMUP_STEPS": "1", **env},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+@pytest.mark.slow
+def test_serve_exits_3_on_a_missing_weight(tiny_checkpoint, tmp_path):
+    from nemsim.inference.checkpoint import read_checkpoint, weights_digest, write_checkpoint_dict
+
+    ckpt = read_checkpoint(tiny_checkpoint)
+    state = ckpt["model_state"]
+    del state[sorted(state)[0]]
+    ckpt["weights_sha256"] = weights_digest(state)  # consistent file, one weight short
+    bad = write_checkpoint_dict(tmp_path / "one-short.pt", ckpt)
+    proc = _serve(bad, free_port())
+    _, err = proc.communicate(timeout=180)
+    reasons = [line for line in err.splitlines() if line.startswith("nemsim serve:")]
+    assert proc.returncode == 3, err
+    assert len(reasons) == 1 and "one-short.pt" in reasons[0], err
+    assert str(tmp_path) not in reasons[0]
+
+
+@pytest.mark.slow
+def test_another_client_served_while_one_holds_600_sockets(tiny_checkpoint, default_controls):
+    port = free_port()
+    proc = _serve(tiny_checkpoint, port, NEMSIM_ACCESS_LOG="0")
+    base = f"http://127.0.0.1:{port}"
+    other = httpx.Client(  # a new connection per request: a new client has to get one
+        base_url=base, timeout=30, transport=httpx.HTTPTransport(local_address=OTHER_CLIENT),
+        headers={"connection": "close"},
+    )
+    held: list[socket.socket] = []
+    try:
+        deadline = time.monotonic() + 180
+        while True:
+            assert proc.poll() is None, proc.communicate()[1]
+            with contextlib.suppress(httpx.TransportError):
+                if other.get("/ready").status_code == 200:
+                    break
+            assert time.monotonic() < deadline, "server never became ready"
+            time.sleep(0.2)
+        for _ in range(600):  # silent sockets: they never send a request
+            with contextlib.suppress(OSError):
+                held.append(socket.create_connection(("127.0.0.1", port), timeout=5))
+        time.sleep(0.5)
+        health = [other.get("/health").status_code for _ in range(20)]
+        rollouts = [
+            other.post(
+                "/rollout", json={"controls": {**default_controls, "flux_cl": 1.0 + 0.1 * i}, "steps": 2}
+            ).status_code
+            for i in range(3)
+        ]
+        assert health == [200] * 20 and rollouts == [200] * 3, (health, rollouts)
+    finally:
+        for s in held:
+            s.close()
+        other.close()
+        proc.terminate()
+        proc.communicate(timeout=60)
