@@ -2,7 +2,8 @@
 controls -- what the service, the CLI and the bench use to run a trained model.
 
   ``checkpoint``   save / read / load checkpoints (weights-only, weights verified; ``CheckpointError``);
-  ``runtime``      the step network compiled for PyTorch eager or OpenVINO (``compile_model``);
+  ``eager``        the runtime interface and its PyTorch reference (``TorchRuntime``);
+  ``runtime``      ``compile_model``: PyTorch eager, OpenVINO, or CUDA graphs (``cuda_graph``);
   ``predictor``    ``Predictor``: physical controls -> normalized once -> rollout -> profile metrics;
   ``range_check``  controls outside the training box (how far; allow, clip or refuse).
 
