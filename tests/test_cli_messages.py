@@ -8,21 +8,9 @@ import json
 import h5py
 import numpy as np
 import pytest
+from test_cli import _fails_cleanly as _fails  # tests/ is on sys.path (rootdir-relative)
 
 from nemsim.cli import main
-
-
-def _fails(capsys, argv: list) -> str:
-    """Run the CLI; assert exit 2, one stderr line, no traceback; return that line."""
-    capsys.readouterr()
-    try:
-        rc = main([str(a) for a in argv])
-    except SystemExit as exc:  # argparse's usage errors exit from parse_args
-        rc = exc.code
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err and "a bug" not in err, err
-    return err.strip()
 
 
 def test_design_size_has_a_clear_limit(tmp_path, capsys):

@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Annotated
-
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from nemsim.analysis.inverse import REFINE_WITH_VERIFY, check_targets, refine_config_from_dict, spec_from_dict
 from service.deps import ServedModelDep, SettingsDep, reject
 from service.inverse import design_work
 from service.inverse_schemas import DesignRequest
-from service.jobs import JobQueue
-from service.routes.jobs import JOB_LIMIT_RESPONSES, get_jobs, submit_job
+from service.routes.jobs import JOB_LIMIT_RESPONSES, JobsDep, submit_job
 from service.schemas import JobCreated
 
 router = APIRouter(tags=["design"])
@@ -29,7 +26,7 @@ async def post_design(
     body: DesignRequest,
     served: ServedModelDep,
     settings: SettingsDep,
-    jobs: Annotated[JobQueue, Depends(get_jobs)],
+    jobs: JobsDep,
 ) -> JSONResponse:
     """Find recipes whose predicted profile meets the targets (a job: poll its Location).
 

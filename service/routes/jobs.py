@@ -28,6 +28,9 @@ async def get_jobs(request: Request) -> JobQueue:
     return request.app.state.jobs
 
 
+JobsDep = Annotated[JobQueue, Depends(get_jobs)]
+
+
 JOB_LIMIT_RESPONSES: dict[int | str, dict[str, Any]] = {
     429: {"model": ErrorBody, "description": "this client already has its limit of jobs (Retry-After)"},
     503: {"model": ErrorBody, "description": "the job queue is full (Retry-After)"},
@@ -69,7 +72,7 @@ async def post_simulation(
     body: SimulationRequest,
     served: ServedModelDep,
     settings: SettingsDep,
-    jobs: Annotated[JobQueue, Depends(get_jobs)],
+    jobs: JobsDep,
 ) -> JSONResponse:
     """Run the simulator on the checkpoint's scene for these controls and compare the surrogate with it."""
     assert body.steps is not None  # resolved by the validator
@@ -100,13 +103,13 @@ async def post_simulation(
 
 
 @router.get("/jobs/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
-async def get_job(job_id: JobId, jobs: Annotated[JobQueue, Depends(get_jobs)]) -> JobStatus:
+async def get_job(job_id: JobId, jobs: JobsDep) -> JobStatus:
     """Status, progress in [0, 1] and, when done, the result."""
     return JobStatus(**_job(jobs, job_id).as_dict())
 
 
 @router.delete("/jobs/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
-async def delete_job(job_id: JobId, jobs: Annotated[JobQueue, Depends(get_jobs)]) -> JobStatus:
+async def delete_job(job_id: JobId, jobs: JobsDep) -> JobStatus:
     """Cancel a pending or running job (its status becomes `cancelled` once it stopped)."""
     _job(jobs, job_id)
     return JobStatus(**jobs.cancel(job_id).as_dict())
@@ -125,7 +128,7 @@ async def delete_job(job_id: JobId, jobs: Annotated[JobQueue, Depends(get_jobs)]
 )
 async def get_job_mesh(
     job_id: JobId,
-    jobs: Annotated[JobQueue, Depends(get_jobs)],
+    jobs: JobsDep,
     served: ServedModelDep,
     step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
     channel: Annotated[Channel, Query(description="mask or si")] = "si",

@@ -17,12 +17,13 @@ import threading
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
+from test_jobs import _blocking_work as _blocking  # tests/service is on sys.path (rootdir-relative)
 
+from bench.live_server import LiveServer, client
 from service.job_processes import SimulatorChildren, remove_orphaned_dirs
-from service.jobs import Job, JobCancelled, JobQueue, TooManyJobs, run_simulator
+from service.jobs import Job, JobQueue, TooManyJobs, run_simulator
 
 LINUX = sys.platform.startswith("linux")
 needs_proc = pytest.mark.skipif(not LINUX, reason="reads /proc; the parent-death signal is Linux's")
@@ -75,39 +76,17 @@ def wait_for(what: str, check, timeout_s: float = 30.0, every_s: float = 0.05):
 # --- a real server ------------------------------------------------------------------------------------
 
 
-class Server:
-    """`nemsim serve` on a free loopback port, its job folders under `jobs_dir`."""
+class Server(LiveServer):
+    """`nemsim serve` on a free loopback port (``bench.live_server``), its job folders under `jobs_dir`."""
 
     def __init__(self, checkpoint: Path, jobs_dir: Path, log: Path) -> None:
-        from service.protocol import free_port
+        env = {"NEMSIM_SIM_MAX_WORK": "1000", "NEMSIM_WARMUP_STEPS": "1", "NEMSIM_RATE_LIMIT_PER_MINUTE": "0",
+               "NEMSIM_ACCESS_LOG": "0", "OMP_NUM_THREADS": "1"}  # fmt: skip
+        super().__init__(checkpoint, jobs_dir, log, env=env)
+        self.http = client(self, timeout_s=30)
 
-        port = free_port()
-        self.jobs_dir = jobs_dir
-        env = {
-            **os.environ,
-            "NEMSIM_JOBS_DIR": str(jobs_dir),
-            "NEMSIM_SIM_MAX_WORK": "1000",
-            "NEMSIM_WARMUP_STEPS": "1",
-            "NEMSIM_RATE_LIMIT_PER_MINUTE": "0",
-            "NEMSIM_ACCESS_LOG": "0",
-            "OMP_NUM_THREADS": "1",
-        }
-        self.log = log.open("ab")
-        argv = ["serve", "--checkpoint", str(checkpoint), "--port", str(port)]
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "nemsim.cli", *argv], env=env, stdout=self.log, stderr=subprocess.STDOUT
-        )
-        self.http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30)
-
-    def wait_ready(self) -> None:
-        def ready() -> bool:
-            assert self.proc.poll() is None, "the server exited while starting"
-            try:
-                return self.http.get("/ready").status_code == 200
-            except httpx.TransportError:
-                return False
-
-        wait_for("the server to be ready", ready, timeout_s=180, every_s=0.2)
+    def wait_ready(self, timeout_s: float = 180.0) -> float:
+        return super().wait_ready(timeout_s)
 
     def start_job(self, body: dict) -> int:
         """POST /simulations; the pid of the job's child once it simulates (at nice 19, in its own group)."""
@@ -125,20 +104,14 @@ class Server:
         assert stat is not None and int(stat[2]) == pid and int(stat[3]) == pid  # own group and session
         return pid
 
-    def stop(self, sig: int) -> None:
-        self.proc.send_signal(sig)
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 60.0) -> tuple[int | None, float]:
         try:
-            self.proc.wait(60)
+            return super().stop(sig, timeout_s)
         finally:
             self.http.close()
-            self.log.close()
 
     def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
-        self.http.close()
-        self.log.close()
+        self.stop(signal.SIGKILL, timeout_s=10)
 
 
 def job_dirs(jobs_dir: Path) -> list[Path]:
@@ -215,16 +188,6 @@ def test_only_the_folders_of_dead_owners_are_removed(tmp_path):
     assert set(remove_orphaned_dirs(tmp_path)) == expected
     assert mine.is_dir() and creating.is_dir() and unrelated.is_dir()
     assert not any(p.exists() for p in expected)
-
-
-def _blocking(started: threading.Event):
-    def work(job):
-        started.set()
-        while not job.cancelled:
-            time.sleep(0.01)
-        raise JobCancelled
-
-    return work
 
 
 def test_a_client_at_its_job_limit_is_refused_until_one_finishes():
