@@ -1,11 +1,16 @@
-"""Simulator jobs on a live server: their cost to interactive rollouts, and what is left of them on every
-exit path of the server.
+"""Jobs on a live server: a simulator job's cost to interactive rollouts, where an inverse design computes,
+and what is left of the jobs on every exit path of the server.
 
 `probe_job_beside_rollouts`: uncached rollouts timed (sequential, distinct controls) just before and then
 while a simulator job runs; only the rollouts that began and ended with the job's child alive count. The
 job (`job_controls`): the design centre with every flux times JOB_FLUX_SCALE, over the model's horizon, so
 that it runs long enough (about 15-20 s on `small`) for the rollouts to meet the simulation itself rather
 than the child's start and the job's end.
+
+`probe_design_job`: one inverse-design job (`POST /design`, the default search; the targets are the
+design centre's predicted depth and bottom width after the probes' rollout steps, reachable on any scene)
+to its end: the job children it ran in, their nice and peak resident size, and the server's resident size
+just before, at most while it ran (sampled every DESIGN_POLL_S) and after.
 
 `probe_sigterm`: with a job's child running, SIGTERM the server: its exit status and time, whether it
 logged the end of its shutdown, and the children and job folders left under its jobs folder.
@@ -32,6 +37,7 @@ from bench.live_server import (
     client,
     job_children,
     job_dirs,
+    memory_mib,
     nice_of,
     percentiles_ms,
     random_controls,
@@ -40,6 +46,7 @@ from bench.live_server import (
 
 JOB_SOURCE = "127.0.0.3"  # the job's client (the per-client job cap is its own)
 JOB_FLUX_SCALE = 4.0  # the work grows with the total flux: 4x a design-centre run, every flux in the box
+DESIGN_POLL_S = 0.2  # how often `probe_design_job` reads the job and the memory of the server and child
 
 
 def job_controls() -> dict[str, float]:
@@ -113,6 +120,56 @@ def probe_job_beside_rollouts(
         "server_autogroup": autogroup(server.pid),
         "job_child_autogroup": groups,
         "p50_ratio_to_just_before": d["p50_ms"] / b["p50_ms"] if d.get("n") and b.get("n") else None,
+    }
+
+
+def probe_design_job(server: LiveServer, *, steps: int, cap_s: float) -> dict[str, Any]:
+    """One design job for targets at state `steps` to its end, cancelled after `cap_s` (module
+    docstring)."""
+    with client(server, source=JOB_SOURCE) as http:
+        r = http.post("/rollout", json={"controls": centre_controls(), "steps": steps})
+        r.raise_for_status()
+        metrics = r.json()["metrics"]
+        targets = {m: round(float(metrics[m][-1]), 1) for m in ("etch_depth", "bottom_width")}
+        wait_until(lambda: not job_children(server.jobs_dir), 60.0)  # the previous probe's jobs are gone
+        before = memory_mib(server.pid)
+        t0 = time.monotonic()
+        r = http.post("/design", json={"targets": targets, "step": steps, "k": 3})
+        if r.status_code != 202:
+            raise RuntimeError(f"POST /design answered {r.status_code}: {r.text[:300]}")
+        location = r.headers["location"]
+        rss_max, children, nices, child_peak = before["rss"], set(), set(), 0.0
+        while True:
+            body = http.get(location).json()
+            rss_max = max(rss_max, memory_mib(server.pid)["rss"])
+            for pid in job_children(server.jobs_dir):
+                children.add(pid)
+                nices.add(nice_of(pid))
+                try:
+                    child_peak = max(child_peak, memory_mib(pid)["peak"])
+                except OSError:  # gone meanwhile
+                    pass
+            if body["status"] in ("done", "failed", "cancelled"):
+                break
+            if time.monotonic() - t0 > cap_s:
+                http.delete(location)
+            time.sleep(DESIGN_POLL_S)
+        wall_s = time.monotonic() - t0
+        children_gone_s = wait_until(lambda: not job_children(server.jobs_dir), 15.0)
+        after = memory_mib(server.pid)
+    return {
+        "targets": targets,
+        "step": steps,
+        "status": body["status"],
+        "message": body["message"],
+        "wall_s": wall_s,
+        "recipes": len((body.get("result") or {}).get("recipes") or []),
+        "job_children": len(children),
+        "job_child_nice": sorted(n for n in nices if n is not None),
+        "job_child_peak_rss_mib": child_peak,
+        "children_gone_after_s": children_gone_s,
+        "server_rss_mib": {"before": before["rss"], "max_while_running": rss_max, "after": after["rss"]},
+        "server_peak_rss_mib": {"before": before["peak"], "after": after["peak"]},
     }
 
 

@@ -1,12 +1,13 @@
 """`nemsim bench service --probes`: a real `nemsim serve` (default settings, loopback) under the probes
 of a serving system that must hold up: quiet latency, mixed load, bursts, slow and silent sockets, a
-simulator job beside interactive rollouts, every exit path of the job children, a fuzz of the request
-bodies, and the peak resident memory against the documented budget.
+fuzz of the request bodies, an inverse-design job, a simulator job beside interactive rollouts, every
+exit path of the job children, and the peak resident memory against the documented budget.
 
 One server (`LiveServer`) takes the probes in this order: quiet, load, burst, slowloris, silent sockets
-(`bench.service_sockets`), fuzz (`bench.service_fuzz`), a simulator job beside timed rollouts, then
-SIGTERM while the job runs. Two more servers, on one jobs folder, take the kill -9 path: a job starts,
-the server is killed with SIGKILL, and a new server must find the child gone and remove its folder.
+(`bench.service_sockets`), fuzz (`bench.service_fuzz`), an inverse-design job to its end, a simulator job
+beside timed rollouts (`bench.service_lifecycle`), then SIGTERM while the job runs. Two more servers, on
+one jobs folder, take the kill -9 path: a job starts, the server is killed with SIGKILL, and a new server
+must find the child gone and remove its folder.
 
 Uncached rollouts use distinct controls drawn uniformly in the design box (seeded); cached ones repeat a
 body already answered. Load and burst clients each use their own loopback address (127.0.0.x), as
@@ -63,6 +64,7 @@ class ProbeConfig:
     fuzz_cap_s: float = 480.0
     job_rollouts: int = 20
     job_cap_s: float = 240.0
+    design_cap_s: float = 300.0  # the design job is cancelled after this
     seed: int = 0
 
 
@@ -294,7 +296,12 @@ def run_probes(
     `server_env`: NEMSIM_* settings instead of the defaults (tests: shorter timeouts), named in the report."""
     from bench.machine import cpu_name
     from bench.service_fuzz import fuzz
-    from bench.service_lifecycle import probe_job_beside_rollouts, probe_kill9, probe_sigterm
+    from bench.service_lifecycle import (
+        probe_design_job,
+        probe_job_beside_rollouts,
+        probe_kill9,
+        probe_sigterm,
+    )
     from bench.service_report import targets
     from bench.service_sockets import silent_sockets, slowloris
     from nemsim.inference.checkpoint import checkpoint_id
@@ -334,31 +341,14 @@ def run_probes(
         _probe(
             report, "slowloris", progress, slowloris, server, sockets=cfg.slow_sockets, cap_s=cfg.slow_cap_s
         )
-        _probe(
-            report,
-            "silent_sockets",
-            progress,
-            silent_sockets,
-            server,
-            sockets=cfg.silent_sockets,
-            seconds=cfg.silent_seconds,
-            steps=cfg.steps,
-            seed=cfg.seed + 5,
-        )
-        _probe(
-            report,
-            "fuzz",
-            progress,
-            fuzz,
-            server,
-            calls=cfg.fuzz_calls,
-            seed=cfg.seed,
-            scene=scene,
-            max_steps=int(model["max_steps"]),
-            horizon=horizon,
-            time_cap_s=cfg.fuzz_cap_s,
-        )
+        _probe(report, "silent_sockets", progress, silent_sockets, server, sockets=cfg.silent_sockets,
+               seconds=cfg.silent_seconds, steps=cfg.steps, seed=cfg.seed + 5)
+        _probe(report, "fuzz", progress, fuzz, server, calls=cfg.fuzz_calls, seed=cfg.seed, scene=scene,
+               max_steps=int(model["max_steps"]), horizon=horizon, time_cap_s=cfg.fuzz_cap_s)
         wait_until(lambda: not job_children(server.jobs_dir), 60.0)  # the fuzz's cancelled jobs are gone
+        _probe(
+            report, "design_job", progress, probe_design_job, server, steps=cfg.steps, cap_s=cfg.design_cap_s
+        )
         _probe(
             report,
             "job_beside_rollouts",

@@ -116,6 +116,18 @@ def probes_markdown(report: dict[str, Any]) -> str:
 def _job_lines(report: dict[str, Any]) -> list[str]:
     """The figures of the job, memory, SIGTERM and kill -9 probes."""
     p, out = report["probes"], []
+    d = p.get("design_job", {})
+    if "status" in d:
+        rss = d["server_rss_mib"]
+        out.append(
+            f"- **design job** (targets {d['targets']} at step {d['step']}, the default search): "
+            f"{d['status']} after {d['wall_s']:.0f} s ({d['recipes']} recipes); job child processes "
+            f"{d['job_children']}, nice {d['job_child_nice']}, peak RSS {d['job_child_peak_rss_mib']:.0f} "
+            f"MiB; the server's RSS {rss['before']:.0f} MiB just before, at most "
+            f"{rss['max_while_running']:.0f} MiB while it ran, {rss['after']:.0f} MiB after; its peak "
+            f"{d['server_peak_rss_mib']['before']:.0f} MiB before, {d['server_peak_rss_mib']['after']:.0f} "
+            "MiB after."
+        )
     j = p.get("job_beside_rollouts", {})
     if "rollouts_during_job" in j:
         out.append(

@@ -9,21 +9,30 @@ that records none is refused). Methods:
   * the simulator at particle budgets 1, 1/2, ..., 1/16 (``SimConfig.particle_budget``, seeds
     ``[seed, case_id, k]``). At budget 1 the compared trajectory is the data file's own, so that row **is
     the noise floor**: two equally good simulator runs differ by this much;
+  * the **quarter-domain** simulator (``SimConfig.domain`` = "quarter": the scene's lower quadrant between
+    mirror walls, the states mirrored to full size) at the same budgets, seeds ``[seed, case_id, k, 1]``
+    (another stream: a trailing 0 would not change it), rows "simulator quarter, budget b". The full
+    domain is the simulator that made the data and always runs; the quarter is skipped, with the reason in
+    ``sim_domains_skipped`` and a note under the table, on a scene it refuses (odd nx or ny: ``tiny``);
   * every surrogate **variant**: each checkpoint under each runtime ``<backend>-<precision>``
     (``nemsim.inference.runtime.compile_model``; ``torch-f32``, PyTorch eager, is the reference), rolled out
     from the case's x_0 with the file's controls.
 
 Errors (``nemsim.evaluation.metrics``): Avg / Final RMSE over t = 1..H and the final-step Chamfer distance;
-the error against the data file is kept as ``avg_rmse_vs_data``. Speed, on wall and CPU seconds:
-  (a) ``speedup``: the full-budget simulator's time per trajectory over the variant's (batch 1);
-  (b) ``equal_accuracy``: the simulator's time at the variant's Avg RMSE, interpolated in (log error,
-      log time) between the budgets (``equal_accuracy_time``), over the variant's time; outside the
-      simulator's errors the nearest row bounds it (reported as ">=" or "<=").
+the error against the data file is kept as ``avg_rmse_vs_data``. Speed, on wall and CPU seconds, against
+each simulator side by side (``add_speedups``): the full domain (``speedup``, ``speedup_cpu``,
+``batch_speedup``, ``equal_accuracy``) and the quarter domain (the same keys + ``_quarter``; None when it
+was not measured):
+  (a) ``speedup``: that simulator's full-budget time per trajectory over the variant's (batch 1);
+  (b) ``equal_accuracy``: that simulator's time at the variant's Avg RMSE, interpolated in (log error,
+      log time) between its budgets (``equal_accuracy_time``), over the variant's time; outside the
+      simulator's errors (or with one budget, off its one point) the nearest row bounds it (">=" / "<=").
 
 Timing: batch 1 on ``threads`` threads, methods side by side case by case after one warm-up, so load from
 other jobs hits them alike; the median over cases. Throughput: each variant then rolls out
 ``throughput_batch`` trajectories in one batch (the simulator does not batch). A variant "keeps the error"
-within ``keep_error_rel`` of its checkpoint's ``torch-f32``; the fastest such is ``speed.nemsim_*``.
+within ``keep_error_rel`` of its checkpoint's ``torch-f32``; the fastest such is ``speed.nemsim_*``, with its
+speed-ups against both domains (``speed.speedup``, ``speed.equal_accuracy``, ``speed.*_quarter``).
 """
 
 from __future__ import annotations
@@ -51,6 +60,8 @@ PRECISIONS = ("f32", "bf16")
 RUNTIMES = tuple(f"{b}-{p}" for b in BACKENDS for p in PRECISIONS)
 REFERENCE_RUNTIME = "torch-f32"
 NOISE_FLOOR_NOTE = "noise floor (two full-budget seeds)"
+SIM_DOMAINS = ("full", "quarter")  # SimConfig.domain; "full" made the data sets and is the reference
+_DOMAIN_SUFFIX = {"full": "", "quarter": "_quarter"}  # report keys of the speed-ups against each domain
 
 
 @dataclass(frozen=True)
@@ -60,9 +71,10 @@ class SpeedErrorConfig:
     runtimes: tuple[str, ...] = RUNTIMES  # "<backend>-<precision>"; "torch-f32" (the reference) always runs
     threads: int = 1  # torch / OpenVINO threads per rollout
     throughput_batch: int = 16  # batch of the throughput run (0: none)
-    seed: int = 1  # entropy of the reference / reruns: default_rng([seed, case_id, k])
+    seed: int = 1  # entropy of the reference / reruns: default_rng(rerun_seed(seed, case_id, domain, k))
     steps: int | None = None  # transitions per trajectory (default: the scene's horizon, 100)
     keep_error_rel: float = 0.05  # a variant keeps the error if Avg RMSE <= torch-f32 * (1 + this)
+    sim_domains: tuple[str, ...] = SIM_DOMAINS  # "full" always runs; "quarter" where the scene allows it
 
 
 def budget_label(b: float) -> str:
@@ -77,6 +89,18 @@ def parse_runtime(name: str) -> tuple[str, str]:
         raise ValueError(f"unknown runtime {name!r}; expected one of {RUNTIMES}")
     backend, precision = name.split("-")
     return backend, precision
+
+
+def rerun_seed(seed: int, case_id: int, domain: str, k: int) -> list[int]:
+    """``default_rng`` entropy of the simulator run of budget index k (0: budget 1) on ``domain``: [seed,
+    case_id, k] on the full domain (k = 0: the reference), [seed, case_id, k, 1] on the quarter (a trailing
+    0 would give the full domain's stream: ``SeedSequence`` pads the entropy with zeros)."""
+    return [seed, case_id, k] if domain == "full" else [seed, case_id, k, 1]
+
+
+def sim_label(domain: str, b: float) -> str:
+    """('full', 0.25) -> 'simulator, budget 1/4'; ('quarter', 1.0) -> 'simulator quarter, budget 1'."""
+    return f"simulator{'' if domain == 'full' else ' ' + domain}, budget {budget_label(b)}"
 
 
 def equal_accuracy_time(points: Sequence[tuple[float, float]], error: float) -> tuple[float | None, str]:
@@ -146,7 +170,7 @@ class _Bench:
     scene: Any
     rules: Any
     tables: Any  # the simulator's event tables
-    sim_cfgs: dict[float, Any]  # particle budget -> resolved SimConfig (budget 1 first)
+    sim_cfgs: dict[tuple[str, float], Any]  # (domain, particle budget) -> resolved SimConfig (full, 1 first)
     steps: int
     variants: dict[tuple[str, str], Any]  # (model label, runtime) -> predictor
     seed: int
@@ -154,7 +178,7 @@ class _Bench:
     cd_cache: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        keys = [("sim", b) for b in self.sim_cfgs] + list(self.variants)
+        keys = [("sim", d, b) for d, b in self.sim_cfgs] + list(self.variants)
         self.scores = {k: _Scores() for k in keys}
 
     def controls_of(self, row: int) -> tuple[np.ndarray, Any]:
@@ -166,12 +190,13 @@ class _Bench:
         u = self.tf.controls_normalized_schedule(row)[: self.steps]
         return np.asarray(raw), torch.as_tensor(u, dtype=torch.float32)[None]
 
-    def simulate(self, raw: np.ndarray, budget: float, rng_key: int | list[int], n: int | None = None) -> Any:
-        """A simulator trajectory of ``steps`` (or ``n``) transitions at particle ``budget``."""
+    def simulate(self, raw: np.ndarray, sim: tuple[str, float], rng_key: int | list[int],
+                 n: int | None = None) -> Any:
+        """A simulator trajectory of ``steps`` (or ``n``) transitions; ``sim``: (domain, particle budget)."""
         from nemsim.sim import run_trajectory
 
         rng = np.random.default_rng(rng_key)
-        return run_trajectory(self.scene, self.rules, raw, rng, self.sim_cfgs[budget], tables=self.tables,
+        return run_trajectory(self.scene, self.rules, raw, rng, self.sim_cfgs[sim], tables=self.tables,
                               n_transitions=self.steps if n is None else n)  # fmt: skip
 
     def warm_up(self, row: int, nb: int) -> None:
@@ -182,8 +207,8 @@ class _Bench:
 
         raw0, u0 = self.controls_of(row)
         x00 = torch.as_tensor(np.asarray(self.tf.states[row, 0], dtype=np.float32))[None]
-        for b in self.sim_cfgs:
-            self.simulate(raw0, b, 0, n=1)
+        for sim in self.sim_cfgs:
+            self.simulate(raw0, sim, 0, n=1)
         for pred in self.variants.values():
             rollout(pred, x00, u0, min(2, self.steps))
             if nb:
@@ -198,18 +223,21 @@ class _Bench:
         scene, steps, cd_cache = self.scene, self.steps, self.cd_cache
         raw, u = self.controls_of(row)
         data_states = np.asarray(self.tf.states[row, : steps + 1], dtype=np.float32)  # (T+1, 2, D, H, W)
-        ref_res, wall, cpu = _timed(lambda: self.simulate(raw, 1.0, [self.seed, case_id, 0]))
+        ref_key = rerun_seed(self.seed, case_id, "full", 0)
+        ref_res, wall, cpu = _timed(lambda: self.simulate(raw, ("full", 1.0), ref_key))
         ref = ref_res.states
         if np.array_equal(ref, data_states):
             raise ValueError(f"case {case_id}: the reference rerun equals the data file's trajectory; "
                              "choose another --seed")  # fmt: skip
         # budget 1: the data file's trajectory is the second full-budget seed (noise floor)
-        self.scores[("sim", 1.0)].add(data_states, ref, data_states, scene, case_id, steps, wall, cpu,
-                                      cd_cache)  # fmt: skip
-        for k, b in enumerate(list(self.sim_cfgs)[1:], start=1):
-            res, wall, cpu = _timed(lambda k=k, b=b: self.simulate(raw, b, [self.seed, case_id, k]))
-            self.scores[("sim", b)].add(res.states, ref, data_states, scene, case_id, steps, wall, cpu,
-                                        cd_cache)  # fmt: skip
+        self.scores[("sim", "full", 1.0)].add(data_states, ref, data_states, scene, case_id, steps, wall, cpu,
+                                              cd_cache)  # fmt: skip
+        budgets = list(dict.fromkeys(b for _, b in self.sim_cfgs))  # budget index k: the seeds' third word
+        for domain, b in list(self.sim_cfgs)[1:]:
+            entropy = rerun_seed(self.seed, case_id, domain, budgets.index(b))
+            res, wall, cpu = _timed(lambda d=domain, b=b, e=entropy: self.simulate(raw, (d, b), e))
+            self.scores[("sim", domain, b)].add(res.states, ref, data_states, scene, case_id, steps, wall,
+                                                cpu, cd_cache)  # fmt: skip
         x0 = torch.as_tensor(data_states[0])[None]  # (1, 2, D, H, W)
         for key, pred in self.variants.items():
             out, wall, cpu = _timed(lambda pred=pred: rollout(pred, x0, u, steps))
@@ -219,18 +247,43 @@ class _Bench:
         return x0, u
 
 
-def _check_config(config: SpeedErrorConfig) -> tuple[list[str], list[float]]:
-    """(runtimes, budgets) to measure, the references first; ValueError on a bad config."""
+def _check_config(config: SpeedErrorConfig) -> tuple[list[str], list[float], list[str]]:
+    """(runtimes, budgets, simulator domains) to measure, the references first; ValueError on a bad config."""
     runtimes = [REFERENCE_RUNTIME] + [r for r in dict.fromkeys(config.runtimes) if r != REFERENCE_RUNTIME]
     for r in runtimes:
         parse_runtime(r)  # validates the name
     budgets = [1.0] + [float(b) for b in dict.fromkeys(config.budgets) if float(b) != 1.0]
+    domains = ["full"] + [d for d in dict.fromkeys(config.sim_domains) if d != "full"]
+    for d in domains:
+        if d not in SIM_DOMAINS:
+            raise ValueError(f"unknown simulator domain {d!r}; expected one of {SIM_DOMAINS}")
     if config.cases < 1:
         raise ValueError(f"cases must be >= 1, got {config.cases}")
     if config.threads < 1 or config.throughput_batch < 0:
         raise ValueError(f"threads must be >= 1 and throughput_batch >= 0, got {config.threads}, "
                          f"{config.throughput_batch}")  # fmt: skip
-    return runtimes, budgets
+    return runtimes, budgets, domains
+
+
+def _sim_configs(base_cfg: Any, scene: Any, budgets: list[float], domains: list[str],
+                 data: str | Path) -> tuple[dict[tuple[str, float], Any], dict[str, str]]:
+    """({(domain, budget): resolved SimConfig}, {skipped domain: why}): the file's configuration on each
+    domain the scene allows at each budget, the full domain (the file's) first."""
+    if base_cfg.domain != "full":
+        raise ValueError(f"{data} was made on the {base_cfg.domain!r} domain; the bench compares against the "
+                         "full-domain simulator the data sets are made with")  # fmt: skip
+    skipped: dict[str, str] = {}
+    kept = []
+    for d in domains:
+        try:
+            replace(base_cfg, domain=d).check_scene(scene)
+        except ValueError as exc:
+            skipped[d] = str(exc)
+            log.warning("simulator domain %r skipped: %s", d, exc)
+            continue
+        kept.append(d)
+    return {(d, b): replace(base_cfg, domain=d, particle_budget=b).resolved(scene)
+            for d in kept for b in budgets}, skipped  # fmt: skip
 
 
 def _test_rows(tf: Any, manifest: dict, cases: int,
@@ -288,10 +341,12 @@ def run_speed_error(
         checkpoints: ``.pt`` files (any registered model); their scene must be the data file's.
         manifest: split manifest of the setting (``{"setting", "test": [case ids], ...}``).
     Returns:
-        JSON-able report: ``rows`` (one per method: label, kind, budget / runtime, backend, precision, wall_s,
-        cpu_s, avg_rmse, final_rmse, cd, avg_rmse_vs_data, speedup, speedup_cpu, equal_accuracy {...},
+        JSON-able report: ``rows`` (one per method: label, kind, domain (simulator rows), budget / runtime,
+        backend, precision, wall_s, cpu_s, avg_rmse, final_rmse, cd, avg_rmse_vs_data, speedup, speedup_cpu,
+        batch_speedup, equal_accuracy {...} and the same four + ``_quarter`` against the quarter domain,
         batch_wall_s / batch_cpu_s per trajectory at the throughput batch, noise_floor, keeps_error, fastest),
-        plus ``noise_floor`` {avg_rmse, final_rmse, cd} and ``speed`` (simulator and fastest NEMSim figures).
+        plus ``sim_domains`` (measured), ``sim_domains_skipped`` {domain: why}, ``noise_floor`` {avg_rmse,
+        final_rmse, cd} and ``speed`` (simulators and fastest NEMSim figures).
     """
     import torch
 
@@ -302,7 +357,7 @@ def run_speed_error(
     from nemsim.sim import SimConfig
     from nemsim.sim.events import build_event_tables
 
-    runtimes, budgets = _check_config(config)
+    runtimes, budgets, domains = _check_config(config)
 
     tf = open_trajectories(data)
     try:
@@ -320,7 +375,7 @@ def run_speed_error(
         if base_cfg is None:
             raise ValueError(f"{data} records no simulator configuration (its `generator` attribute): the "
                              "reference and budget reruns must use the configuration the file was made with")
-        sim_cfgs = {b: replace(base_cfg, particle_budget=b).resolved(scene) for b in budgets}
+        sim_cfgs, domains_skipped = _sim_configs(base_cfg, scene, budgets, domains, data)
         tables = build_event_tables(rules, base_cfg.resolved(scene))
 
         models, variants = _load_models(checkpoints, scene, runtimes, config.threads)
@@ -342,8 +397,9 @@ def run_speed_error(
             _, wall, cpu = _timed(lambda pred=pred: rollout(pred, xb, ub, steps, keep=False))
             batch_times[key] = (wall / nb, cpu / nb)
 
-    report_rows, fastest, sim_full = _report_rows(budgets, models, runtimes, variants, scores, batch_times,
-                                                  config)
+    report_rows, fastest = _report_rows(list(sim_cfgs), models, runtimes, variants, scores, batch_times,
+                                        config)  # fmt: skip
+    sim_full = report_rows[0]
     nemsim_rows = [r for r in report_rows if r["kind"] == "model" and r["fastest"]
                    and r["model"].split(" (")[0] == "nemsim"]  # fmt: skip
     best = nemsim_rows[0] if nemsim_rows else None
@@ -358,36 +414,39 @@ def run_speed_error(
         "torch_threads": torch.get_num_threads(),
         "throughput_batch": nb,
         "config": asdict(config),
+        "sim_domains": list(dict.fromkeys(d for d, _ in sim_cfgs)),
+        "sim_domains_skipped": domains_skipped,
         "reference": {
             "what": "independent full-budget simulator run per case",
-            "rng": f"numpy default_rng([{config.seed}, case_id, 0]); budget-b reruns [seed, case_id, k]",
+            "rng": f"numpy default_rng([{config.seed}, case_id, 0]); budget-b reruns [seed, case_id, k] "
+                   "(k: the budget's index), on the quarter domain [seed, case_id, k, 1]",
             "data_seeds": data_seeds,
-            "sim_config": sim_cfgs[1.0].to_meta(scene),
+            "sim_config": sim_cfgs[("full", 1.0)].to_meta(scene),
         },
         "rows": report_rows,
         "fastest_keeping_error": fastest,
         "noise_floor": {k: sim_full[k] for k in ("avg_rmse", "final_rmse", "cd")},
-        "speed": _speed(sim_full, best),
+        "speed": _speed(report_rows, best),
     }
 
 
-def _report_rows(budgets: list[float], models: list[tuple[str, Any, Path]], runtimes: list[str],
+def _report_rows(sims: list[tuple[str, float]], models: list[tuple[str, Any, Path]], runtimes: list[str],
                  variants: dict[tuple[str, str], Any], scores: dict[Any, _Scores],
                  batch_times: dict[tuple[str, str], tuple[float, float]],
-                 config: SpeedErrorConfig) -> tuple[list[dict[str, Any]], dict[str, str], dict[str, Any]]:
-    """(rows of the report, fastest runtime keeping the error per model, full-budget simulator's scores)."""
+                 config: SpeedErrorConfig) -> tuple[list[dict[str, Any]], dict[str, str]]:
+    """(rows of the report, the full-budget full-domain simulator first; fastest runtime keeping the error
+    per model)."""
     nb = config.throughput_batch
-    sim_full = scores[("sim", 1.0)].summary()
     report_rows: list[dict[str, Any]] = []
-    for b in budgets:
-        s = scores[("sim", b)].summary()
+    for domain, b in sims:
+        s = scores[("sim", domain, b)].summary()
+        floor = domain == "full" and b == 1.0
         report_rows.append({
-            "label": f"simulator, budget {budget_label(b)}", "kind": "simulator", "model": "simulator",
+            "label": sim_label(domain, b), "kind": "simulator", "model": "simulator", "domain": domain,
             "budget": b, "runtime": None, "backend": None, "precision": None, "params": None,
-            "noise_floor": b == 1.0, "note": NOISE_FLOOR_NOTE if b == 1.0 else "", **s,
+            "noise_floor": floor, "note": NOISE_FLOOR_NOTE if floor else "", **s,
             "batch_wall_s": s["wall_s"] if nb else None, "batch_cpu_s": s["cpu_s"] if nb else None,
         })  # fmt: skip
-    sims = list(report_rows)
     fastest: dict[str, str] = {}
     for label, loaded, path in models:
         group = []
@@ -398,10 +457,10 @@ def _report_rows(budgets: list[float], models: list[tuple[str, Any, Path]], runt
             note = f"ran on torch: {pred.fallback_reason}" if pred.backend != backend else ""
             bw, bc = batch_times.get((label, rt), (None, None))
             group.append({"label": f"{label} {rt}", "kind": "model", "model": label, "checkpoint": str(path),
-                          "budget": None, "runtime": rt, "backend": pred.backend, "precision": precision,
-                          "threads": config.threads, "params": int(count_params(loaded.model)),
-                          "noise_floor": False, "note": note, **s, "batch_wall_s": bw,
-                          "batch_cpu_s": bc})  # fmt: skip
+                          "domain": None, "budget": None, "runtime": rt, "backend": pred.backend,
+                          "precision": precision, "threads": config.threads,
+                          "params": int(count_params(loaded.model)), "noise_floor": False, "note": note, **s,
+                          "batch_wall_s": bw, "batch_cpu_s": bc})  # fmt: skip
         ref_err = group[0]["avg_rmse"]
         for r in group:
             r["keeps_error"] = bool(r["avg_rmse"] <= ref_err * (1.0 + config.keep_error_rel))
@@ -412,21 +471,57 @@ def _report_rows(budgets: list[float], models: list[tuple[str, Any, Path]], runt
     for r in report_rows:
         r.setdefault("keeps_error", None)
         r.setdefault("fastest", False)
-        r["speedup"] = sim_full["wall_s"] / max(r["wall_s"], 1e-12)
-        r["speedup_cpu"] = sim_full["cpu_s"] / max(r["cpu_s"], 1e-12)
-        r["batch_speedup"] = sim_full["wall_s"] / r["batch_wall_s"] if r.get("batch_wall_s") else None
-        eq: dict[str, Any] = {}
-        for clock in ("wall", "cpu"):
-            t, bound = equal_accuracy_time([(s["avg_rmse"], s[f"{clock}_s"]) for s in sims], r["avg_rmse"])
-            eq[f"simulator_{clock}_s"] = t
-            eq[f"speedup_{clock}"] = t / max(r[f"{clock}_s"], 1e-12) if t is not None else None
-            eq["bound"] = bound
-        r["equal_accuracy"] = eq
-    return report_rows, fastest, sim_full
+    add_speedups(report_rows)
+    return report_rows, fastest
 
 
-def _speed(sim_full: dict[str, Any], best: dict[str, Any] | None) -> dict[str, Any]:
-    """The report's ``speed`` block: the simulator against the fastest NEMSim runtime keeping the error."""
+def _equal_accuracy(curve: list[dict[str, Any]], r: dict[str, Any]) -> dict[str, Any]:
+    """``equal_accuracy`` of row ``r`` against the simulator rows ``curve`` (one domain, its budgets)."""
+    eq: dict[str, Any] = {}
+    for clock in ("wall", "cpu"):
+        t, bound = equal_accuracy_time([(s["avg_rmse"], s[f"{clock}_s"]) for s in curve], r["avg_rmse"])
+        eq[f"simulator_{clock}_s"] = t
+        eq[f"speedup_{clock}"] = t / max(r[f"{clock}_s"], 1e-12) if t is not None else None
+        eq["bound"] = bound
+    return eq
+
+
+def add_speedups(rows: list[dict[str, Any]]) -> None:
+    """Fill in every row's speed-ups against each simulator domain (module docstring), in place.
+
+    Per domain (key suffix ``_DOMAIN_SUFFIX``: "" for the full domain, "_quarter"), from the simulator rows
+    of that ``domain`` (a row without one is the full domain's): ``speedup`` / ``speedup_cpu`` (its budget-1
+    row's wall / CPU seconds over the row's), ``batch_speedup`` (over the row's ``batch_wall_s``) and
+    ``equal_accuracy`` {simulator_wall_s, speedup_wall, simulator_cpu_s, speedup_cpu, bound} against its
+    budgets' (Avg RMSE, seconds) curve; None throughout for a domain without rows.
+    """
+    for domain, suffix in _DOMAIN_SUFFIX.items():
+        curve = [r for r in rows if r["kind"] == "simulator" and (r.get("domain") or "full") == domain]
+        base = next((r for r in curve if r["budget"] == 1.0), None)
+        for r in rows:
+            if base is None:
+                r.update({f"speedup{suffix}": None, f"speedup_cpu{suffix}": None,
+                          f"batch_speedup{suffix}": None, f"equal_accuracy{suffix}": None})  # fmt: skip
+                continue
+            r[f"speedup{suffix}"] = base["wall_s"] / max(r["wall_s"], 1e-12)
+            r[f"speedup_cpu{suffix}"] = base["cpu_s"] / max(r["cpu_s"], 1e-12)
+            bw = r.get("batch_wall_s")
+            r[f"batch_speedup{suffix}"] = base["wall_s"] / bw if bw else None
+            r[f"equal_accuracy{suffix}"] = _equal_accuracy(curve, r)
+
+
+def _speed(rows: list[dict[str, Any]], best: dict[str, Any] | None) -> dict[str, Any]:
+    """The report's ``speed`` block: the simulators (full domain; quarter, None if not measured) against the
+    fastest NEMSim runtime keeping the error."""
+    sim_full = rows[0]
+    sim_q = next((r for r in rows if r.get("domain") == "quarter" and r["budget"] == 1.0), None)
+
+    def eq(key: str) -> dict[str, Any] | None:
+        e = best.get(key) if best else None
+        if not e:
+            return None
+        return {"simulator_s": e["simulator_wall_s"], "speedup": e["speedup_wall"], "bound": e["bound"]}
+
     return {
         "simulator_s": sim_full["wall_s"],
         "simulator_cpu_s": sim_full["cpu_s"],
@@ -439,11 +534,12 @@ def _speed(sim_full: dict[str, Any], best: dict[str, Any] | None) -> dict[str, A
         "speedup": best["speedup"] if best else None,
         "nemsim_batch_s": best["batch_wall_s"] if best else None,
         "batch_speedup": best["batch_speedup"] if best else None,
-        "equal_accuracy": (
-            {"simulator_s": best["equal_accuracy"]["simulator_wall_s"],
-             "speedup": best["equal_accuracy"]["speedup_wall"],
-             "bound": best["equal_accuracy"]["bound"]} if best else None
-        ),  # fmt: skip
+        "equal_accuracy": eq("equal_accuracy"),
+        "simulator_quarter_s": sim_q["wall_s"] if sim_q else None,
+        "simulator_quarter_cpu_s": sim_q["cpu_s"] if sim_q else None,
+        "speedup_quarter": best["speedup_quarter"] if best else None,
+        "batch_speedup_quarter": best["batch_speedup_quarter"] if best else None,
+        "equal_accuracy_quarter": eq("equal_accuracy_quarter"),
     }
 
 
@@ -456,8 +552,8 @@ def _fmt(v: Any, spec: str) -> str:
 _BOUND_MARK = {"interpolated": "", "lower": ">=", "upper": "<=", "none": ""}
 
 
-def _eq_cell(r: dict[str, Any], clock: str) -> str:
-    eq = r.get("equal_accuracy") or {}
+def _eq_cell(r: dict[str, Any], clock: str, key: str = "equal_accuracy") -> str:
+    eq = r.get(key) or {}
     v = eq.get(f"speedup_{clock}")
     if v is None:
         return "-"
@@ -465,7 +561,8 @@ def _eq_cell(r: dict[str, Any], clock: str) -> str:
 
 
 def format_markdown(report: dict[str, Any]) -> str:
-    """The report as a Markdown table (one row per method; the noise floor and fastest variants marked)."""
+    """The report as a Markdown table (one row per method; the noise floor and fastest variants marked),
+    then, with the quarter domain measured, the surrogates' speed-ups against both simulators side by side."""
     nb = report.get("throughput_batch") or 0
     lines = [
         f"## Speed against error: {report['scene']}, {report['setting']}, {len(report['case_ids'])} test "
@@ -473,11 +570,14 @@ def format_markdown(report: dict[str, Any]) -> str:
         "",
         "Errors are against an independent full-budget simulator run of each case (not the data file). "
         f"Times: median over cases, one trajectory, batch 1, {report.get('threads', 1)} thread(s); "
-        "speed-ups against the full-budget simulator (wall; CPU in brackets), and at equal accuracy: the "
-        "simulator's time interpolated log-log at the method's Avg RMSE (>= / <=: the error lies outside "
-        "the simulator's measured range, the figure is a bound)."
+        "speed-ups against the full-budget, full-domain simulator (the one that made the data; wall, CPU in "
+        "brackets), and at equal accuracy: its time interpolated log-log at the method's Avg RMSE between "
+        "its budgets (>= / <=: the error lies outside the simulator's measured range, the figure is a bound)."
         + (f" Batch {nb}: wall seconds per trajectory of one batch-{nb} rollout (the simulator does not "
-           "batch: its batch-1 time)." if nb else ""),
+           "batch: its batch-1 time)." if nb else "")
+        + (" \"simulator quarter\": the quarter-domain simulator (the lower quadrant between mirror walls, "
+           "states mirrored to full size), scored against the same reference."
+           if _has_quarter(report) else ""),  # fmt: skip
         "",
         "| method | s / traj | CPU s | speed-up | speed-up at equal accuracy | "
         + (f"s / traj at batch {nb} | speed-up at batch {nb} | " if nb else "")
@@ -500,28 +600,82 @@ def format_markdown(report: dict[str, Any]) -> str:
             f"{_fmt(r['avg_rmse'], '.4f')} | {_fmt(r['final_rmse'], '.4f')} | {_fmt(r['cd'], '.3f')} | "
             f"{_fmt(r['avg_rmse_vs_data'], '.4f')} | {note} |"
         )
+    lines += _side_by_side(report)
     if report.get("skipped_case_ids"):
         lines += ["", f"Test cases {report['skipped_case_ids']} are not complete in the data file and were "
                   "passed over."]  # fmt: skip
+    for domain, why in (report.get("sim_domains_skipped") or {}).items():
+        lines += ["", f"The {domain}-domain simulator was not measured (skipped): {why}"]
     nf = report["noise_floor"]
     lines += ["", f"Noise floor (simulator vs itself, two seeds): Avg RMSE {nf['avg_rmse']:.4f}, "
               f"CD {nf['cd']:.3f} vox."]  # fmt: skip
+    q = _quarter_full_budget(report)
+    if q is not None:
+        lines[-1] += (f" Quarter-domain simulator at budget 1 against the same reference: Avg RMSE "
+                      f"{q['avg_rmse']:.4f}, CD {q['cd']:.3f} vox, {_fmt(q['speedup'], '.3g')}x the full "
+                      f"domain's speed ({_fmt(q.get('speedup_cpu'), '.3g')}x CPU).")  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
+def _has_quarter(report: dict[str, Any]) -> bool:
+    return any(r.get("domain") == "quarter" for r in report["rows"])
+
+
+def _quarter_full_budget(report: dict[str, Any]) -> dict[str, Any] | None:
+    return next((r for r in report["rows"] if r.get("domain") == "quarter" and r["budget"] == 1.0), None)
+
+
+def _side_by_side(report: dict[str, Any]) -> list[str]:
+    """Table lines: each surrogate variant's speed-ups against the full- and the quarter-domain simulator
+    (budget 1; at equal accuracy: along each one's budgets), side by side; none without quarter rows."""
+    models = [r for r in report["rows"] if r["kind"] == "model"]
+    if not models or _quarter_full_budget(report) is None:
+        return []
+    nb = report.get("throughput_batch") or 0
+    eq_q = "equal_accuracy_quarter"
+    lines = [
+        "",
+        "### Speed-ups against the full-domain and the quarter-domain simulator",
+        "",
+        "Against each simulator at budget 1 (wall; CPU in brackets), at equal accuracy along each one's "
+        "budgets" + (f", and per trajectory at batch {nb}" if nb else "") + ".",
+        "",
+        "| method | Avg RMSE | speed-up vs full | vs quarter | at equal accuracy vs full | vs quarter | "
+        + (f"at batch {nb} vs full | vs quarter |" if nb else ""),
+        "|---|---:|---:|---:|---:|---:|" + ("---:|---:|" if nb else ""),
+    ]
+    for r in models:
+        batch = (f" {_fmt(r.get('batch_speedup'), '.3g')}x | {_fmt(r.get('batch_speedup_quarter'), '.3g')}x |"
+                 if nb else "")  # fmt: skip
+        lines.append(
+            f"| {r['label']} | {_fmt(r['avg_rmse'], '.4f')} | "
+            f"{_fmt(r['speedup'], '.3g')}x ({_fmt(r.get('speedup_cpu'), '.3g')}x) | "
+            f"{_fmt(r.get('speedup_quarter'), '.3g')}x ({_fmt(r.get('speedup_cpu_quarter'), '.3g')}x) | "
+            f"{_eq_cell(r, 'wall')} ({_eq_cell(r, 'cpu')}) | "
+            f"{_eq_cell(r, 'wall', eq_q)} ({_eq_cell(r, 'cpu', eq_q)}) |" + batch
+        )
+    return lines
+
+
 def plot_speed_error(report: dict[str, Any], path: str | Path) -> Path:
-    """Log-log PNG: wall seconds per trajectory (x) against Avg RMSE (y); the noise floor marked; hollow
-    markers: the same variant's per-trajectory time at the throughput batch."""
+    """Log-log PNG: wall seconds per trajectory (x) against Avg RMSE (y), one line per simulator domain
+    along its budgets; the noise floor marked; hollow markers: the same variant's per-trajectory time at the
+    throughput batch."""
     plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
     tiny = 1e-12
     sim = [r for r in report["rows"] if r["kind"] == "simulator"]
-    ax.plot([max(r["wall_s"], tiny) for r in sim], [max(r["avg_rmse"], tiny) for r in sim], "o-", color="k",
-            label="simulator (particle budget)")  # fmt: skip
-    for r in sim:
-        ax.annotate(f"budget {budget_label(r['budget'])}", (max(r["wall_s"], tiny), max(r["avg_rmse"], tiny)),
-                    textcoords="offset points", xytext=(6, 4), fontsize=8)  # fmt: skip
+    for domain, style, color in (("full", "o-", "k"), ("quarter", "s--", "tab:gray")):
+        curve = [r for r in sim if (r.get("domain") or "full") == domain]
+        if not curve:
+            continue
+        ax.plot([max(r["wall_s"], tiny) for r in curve], [max(r["avg_rmse"], tiny) for r in curve], style,
+                color=color, label=f"simulator, {domain} domain (particle budget)")  # fmt: skip
+        for r in curve:
+            ax.annotate(f"{'budget' if domain == 'full' else domain} {budget_label(r['budget'])}",
+                        (max(r["wall_s"], tiny), max(r["avg_rmse"], tiny)), textcoords="offset points",
+                        xytext=(6, 4) if domain == "full" else (6, -10), fontsize=8, color=color)  # fmt: skip
     markers = {"torch-f32": "s", "torch-bf16": "D", "openvino-f32": "^", "openvino-bf16": "v"}
     models = sorted({r["model"] for r in report["rows"] if r["kind"] == "model"})
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]

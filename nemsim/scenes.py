@@ -9,6 +9,9 @@ Choices where the paper is silent:
   * ``small`` halves the paper's resolution (4 nm voxels) so a trajectory simulates in seconds on a CPU;
     all physical extents (substrate 160 nm, resist 80 nm, opening radius 20 nm, d_max 30 nm) are kept.
   * ``tiny`` (tests only) uses 8 nm voxels with the same physical extents: 13 x 13 x 33 = 5,577 voxels.
+  * ``symmetry``: every shipped scene is a centred circular opening on a square grid and declares the
+    square's 8-fold symmetry about the hole axis ("d4"; ``nemsim.symmetry`` has its mirror planes and
+    fundamental domain); a layout without it declares "none" and keeps the full domain.
   * CD crops scale with the scene: the paper's mask crop is depth 80..121 and the Si crop depth 0..80
     (both inclusive) for Si below z=80 and resist up to z=120, i.e. mask = [si_top, resist_top + 1] and
     Si = [0, si_top] in depth index.
@@ -18,6 +21,20 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
+
+SYMMETRIES = ("d4", "none")  # what a scene may declare (nemsim.symmetry)
+
+
+def check_symmetry(name: str) -> str:
+    if name not in SYMMETRIES:
+        raise ValueError(f"unknown scene symmetry {name!r}; expected one of {SYMMETRIES}")
+    return name
+
+
+def quadrant_size(n: int) -> int:
+    """Size c = ceil(n / 2) of the fundamental domain (``nemsim.symmetry.fold``) along a lateral axis of
+    padded size n."""
+    return (int(n) + 1) // 2
 
 
 @dataclass(frozen=True)
@@ -34,6 +51,9 @@ class Scene:
     horizon_s: float = 10.0  # macro time simulated, s
     snapshot_dt_s: float = 0.1  # one saved state every snapshot_dt_s
     macro_dt_s: float = 0.02  # simulator morphology/level-set step, s
+    # the group the mean evolution is invariant under (``nemsim.symmetry``): "d4", the square's 8 symmetries
+    # about the hole axis (a centred opening on a square grid), or "none" (the full domain everywhere)
+    symmetry: str = "d4"
 
     def __post_init__(self) -> None:
         if not (0 < self.si_top < self.resist_top < self.nz):
@@ -41,6 +61,10 @@ class Scene:
                 f"scene {self.name!r}: need 0 < si_top ({self.si_top}) < resist_top ({self.resist_top}) "
                 f"< nz ({self.nz})"
             )
+        check_symmetry(self.symmetry)
+        if self.symmetry == "d4" and self.nx != self.ny:
+            raise ValueError(f"scene {self.name!r}: the square's symmetry needs nx == ny, "
+                             f"got {self.nx}, {self.ny}")
         ratio = self.snapshot_dt_s / self.macro_dt_s
         if abs(ratio - round(ratio)) > 1e-9:
             raise ValueError(f"scene {self.name!r}: snapshot_dt_s must be a multiple of macro_dt_s")
@@ -94,6 +118,14 @@ class Scene:
     def opening_centre(self) -> tuple[float, float]:
         """(x, y) of the opening axis in voxel-centre coordinates."""
         return ((self.nx - 1) / 2.0, (self.ny - 1) / 2.0)
+
+    @property
+    def quarter_state_shape(self) -> tuple[int, int, int, int]:
+        """(C, D, c, c) of a state on the fundamental domain (``nemsim.symmetry.fold``); needs symmetry d4."""
+        if self.symmetry != "d4":
+            raise ValueError(f"scene {self.name!r} declares no symmetry: it has no quarter domain")
+        c = quadrant_size(self.field_shape[-1])
+        return (2, self.field_shape[0], c, c)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)

@@ -111,8 +111,8 @@ class Settings(BaseSettings):
         description="memory budget of the rollout cache in MB (meshes: a quarter more); the states are "
         "stored losslessly in a fraction of their float16 size, so `cache_size` 100-step `small` rollouts of "
         "the design box fit in the default (the id guarantee above holds while they fit; far larger "
-        "rollouts leave room for fewer), and the loaded `small` server stays under 1 GB resident while no "
-        "inverse-design job runs",
+        "rollouts leave room for fewer), and the loaded `small` server stays under 1 GB resident (simulator "
+        "and inverse-design jobs compute in child processes)",
     )
     max_meshes: int = Field(default=8, ge=0, description="meshes one POST /rollout may ask for inline")
     warmup_steps: int = Field(
@@ -135,7 +135,7 @@ class Settings(BaseSettings):
         ge=0,
         le=19,
         description="rollouts compute on threads this much nicer than the server (Linux; 0: the same "
-        "priority). Interactive rollouts should stay above background work: simulator jobs run at nice 19",
+        "priority). Interactive rollouts should stay above background work: jobs run at nice 19",
     )
     runtime_threads: int = Field(
         default=1, ge=1, description="OpenVINO threads per rollout; keep threads x max_concurrency <= cores"
@@ -229,8 +229,9 @@ class Settings(BaseSettings):
     )
     jobs_dir: Path | None = Field(
         default=None,
-        description="where simulator jobs keep their files (a nemsim-job-* folder each, removed when the job "
-        "ends; the folders of a server that died are removed at start-up); default: the system temp dir",
+        description="where simulator and design jobs keep their files (a nemsim-job-* folder per child "
+        "process, removed when it ends; the folders of a server that died are removed at start-up); default: "
+        "the system temp dir",
     )
 
     @field_validator("trusted_proxies")

@@ -1,4 +1,5 @@
-"""The simulator jobs' child processes, server side (the child's side: `service.sim_child`).
+"""The jobs' child processes, server side (the child's side: `service.sim_child`): simulator runs and
+inverse designs alike.
 
 Nothing outlives the server: each child runs in a session (process group) of its own and is killed, group
 and all, with its folder removed, when its job ends or is cancelled (`SimulatorChildren.finish`) or the
@@ -25,13 +26,13 @@ import weakref
 from pathlib import Path
 from typing import Any
 
-JOB_DIR_PREFIX = "nemsim-job-"  # one folder per simulator child under the queue's work_dir
+JOB_DIR_PREFIX = "nemsim-job-"  # one folder per job child under the queue's work_dir
 OWNER_FILE = "owner"  # in each job folder: "<server pid> <its start time>"
 ORPHAN_GRACE_S = 60.0  # a job folder without an owner file this old was left by a crash while created
 
 
 class ChildrenStopped(Exception):
-    """The server is stopping: no new simulator child is started."""
+    """The server is stopping: no new job child is started."""
 
 
 def process_start(pid: int) -> str:
@@ -80,7 +81,8 @@ def remove_orphaned_dirs(root: Path) -> list[Path]:
 
 
 class SimulatorChildren:
-    """The running simulator children of one job queue and the folder (`root`) their files go in.
+    """The running job children (simulator runs, designs) of one job queue and the folder (`root`) their
+    files go in.
 
     `start` runs a child in a new session (its own process group); `finish` kills the group if it still
     runs and removes the job's folder; `kill_all` does that for every child and refuses new ones
@@ -100,14 +102,14 @@ class SimulatorChildren:
         (path / OWNER_FILE).write_text(f"{os.getpid()} {process_start(os.getpid())}")
         return path
 
-    def start(self, job_dir: Path) -> subprocess.Popen[bytes]:
-        """Run `service.sim_child` on `job_dir` (ChildrenStopped once `kill_all` ran)."""
+    def start(self, job_dir: Path, task: str = "simulate") -> subprocess.Popen[bytes]:
+        """Run `task` of `service.sim_child` on `job_dir` (ChildrenStopped once `kill_all` ran)."""
         env = dict(os.environ)
         for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
             env.setdefault(var, "1")  # one core per job
         package_root = str(Path(__file__).resolve().parents[1])  # `service` importable from any cwd
         env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
-        argv = [sys.executable, "-m", "service.sim_child", str(job_dir), str(os.getpid())]
+        argv = [sys.executable, "-m", "service.sim_child", str(job_dir), str(os.getpid()), task]
         with self._lock:
             if self.stopped:
                 raise ChildrenStopped
@@ -160,7 +162,7 @@ def _track(children: SimulatorChildren) -> None:
 
 
 def kill_all_children() -> None:
-    """Kill every simulator child of this process and remove their folders."""
+    """Kill every job child of this process and remove their folders."""
     for children in list(_ALL_CHILDREN):
         children.kill_all()
 

@@ -1,16 +1,20 @@
-"""Background jobs (simulator runs) with progress, cancellation, a bounded queue and bounded retention.
+"""Background jobs (simulator runs, inverse designs) with progress, cancellation, a bounded queue and
+bounded retention.
 
-`JobQueue` runs submitted work on `workers` threads (default one: a simulation takes a core), keeps at
-most `max_queue` jobs waiting (more: `ServiceBusy`, answered 503 + Retry-After) and forgets finished jobs
-after `keep_s` seconds or beyond the newest `keep_max`. A job's work is a function `work(job)` that
-reports `job.progress` and checks `job.cancelled`; it returns the JSON result.
+`JobQueue` runs submitted work on `workers` threads (default one: a job takes a core), keeps at most
+`max_queue` jobs waiting (more: `ServiceBusy`, answered 503 + Retry-After) and forgets finished jobs after
+`keep_s` seconds or beyond the newest `keep_max`. A job's work is a function `work(job)` that reports
+`job.progress` and checks `job.cancelled`; it returns the JSON result.
 
-The simulator job (`simulate_and_compare`) runs the Monte Carlo simulator in a child process
-(`service.sim_child`, a fresh interpreter: the server holds threads and torch), so cancelling stops it at
-once and a crash of the numerical code cannot take the server down. The child and the queue's worker
-threads run at nice 19: jobs never take the CPU from interactive rollouts. Nothing outlives the server
-(`service.job_processes`): `JobQueue.open` (server start) removes the job folders under `work_dir` that
-dead servers left and kills the children on SIGTERM / SIGINT; `JobQueue.close` (shutdown) kills them.
+A job's heavy work runs in a child process (`run_child`; `service.sim_child`, a fresh interpreter: the
+server holds threads and torch): the simulator of a simulator job (`simulate_and_compare`), the whole
+search of a design job (`service.inverse`). So cancelling stops it at once, a crash of the numerical code
+cannot take the server down, and the server's memory does not grow with a job (a design search's
+gradients take hundreds of MB). The worker thread waits for the child, passes its progress on and reads
+its result. The child and the queue's worker threads run at nice 19: jobs never take the CPU from
+interactive rollouts. Nothing outlives the server (`service.job_processes`): `JobQueue.open` (server
+start) removes the job folders under `work_dir` that dead servers left and kills the children on
+SIGTERM / SIGINT; `JobQueue.close` (shutdown) kills them.
 
 A client may have at most `per_client` jobs running or waiting (`TooManyJobs`, answered 429 +
 Retry-After). The comparison uses the helpers of `nemsim.evaluation.truth` (per-step RMSE in normalized
@@ -26,6 +30,7 @@ outside, red inside, white on it.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
 import pickle
@@ -36,10 +41,11 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
+from service.compact_states import CompactStates
 from service.job_processes import (
     ChildrenStopped,
     SimulatorChildren,
@@ -49,13 +55,16 @@ from service.job_processes import (
 from service.memory import release_free_memory
 from service.scheduler import ServiceBusy, lower_thread_priority
 from service.schemas import jsonable
+from service.sim_child import ERROR_FILE, INPUT_FILE, PROGRESS_FILE
 
+T = TypeVar("T")
 log = logging.getLogger(__name__)
 
 STATUSES = ("pending", "running", "done", "failed", "cancelled")
 KINDS = ("simulation", "design")  # simulator runs (routes/jobs.py), inverse design (routes/inverse.py)
 KEEP_ARTIFACTS = 4  # finished jobs whose trajectories are kept for GET /jobs/{id}/mesh
-JOB_NICE = 19  # the lowest CPU priority: job workers and simulator children
+COMPARE_BLOCK = 8  # states compared at a time (`compare`)
+JOB_NICE = 19  # the lowest CPU priority: job workers and job children
 RETRY_AFTER_S = (1, 300)  # bounds of the Retry-After of a client at its job limit
 
 
@@ -91,7 +100,7 @@ class Job:
     artifacts: dict[str, Any] = field(default_factory=dict, repr=False)  # e.g. trajectories for meshes
     client: str | None = field(default=None, repr=False)  # who submitted it (None: not counted per client)
     started: float | None = None
-    children: SimulatorChildren | None = field(default=None, repr=False)  # its queue's simulator children
+    children: SimulatorChildren | None = field(default=None, repr=False)  # its queue's job children
 
     @property
     def cancelled(self) -> bool:
@@ -195,7 +204,7 @@ class JobQueue:
             return job
 
     def close(self) -> None:
-        """Cancel everything, kill the simulator children (their files removed) and stop the workers
+        """Cancel everything, kill the job children (their files removed) and stop the workers
         (tests, shutdown)."""
         with self._lock:
             self._closed = True
@@ -257,7 +266,7 @@ class JobQueue:
                     else:
                         job.result, job.progress = result, 1.0
                         self._finish(job, "done")
-            release_free_memory()  # a design search's gradients leave hundreds of MB freed but resident
+            release_free_memory()  # what a job parsed and dropped (trajectories, result files) goes back
 
     def _finish(self, job: Job, status: str, message: str | None = None) -> None:
         job.status, job.message, job.finished = status, message, time.time()
@@ -273,11 +282,76 @@ class JobQueue:
         done = [j for j in self._jobs.values() if j.finished is not None]
         for j in done[: max(0, len(done) - self.keep_max)]:  # oldest first (insertion order)
             del self._jobs[j.id]
-        # trajectories are big (two float16 trajectories: ~40 MB per 100-step job on `small`): only the
-        # newest KEEP_ARTIFACTS finished jobs keep them (for their meshes); results stay
+        # trajectories are big (two compact float16 trajectories: several MB per 100-step job on `small`):
+        # only the newest KEEP_ARTIFACTS finished jobs keep them (for their meshes); results stay
         done = [j for j in self._jobs.values() if j.finished is not None]
         for j in done[: max(0, len(done) - KEEP_ARTIFACTS)]:
             j.artifacts.clear()
+
+
+# --- the job children -----------------------------------------------------------------------------------
+
+
+class ChildFailed(RuntimeError):
+    """A job's child process failed: the class name (`kind`) and text (`detail`) of its exception, or
+    neither when it ended without saying why (killed: `returncode`)."""
+
+    def __init__(self, what: str, kind: str | None, detail: str | None, returncode: int | None) -> None:
+        why = f"{kind}: {detail}" if kind else f"exit code {returncode}"
+        super().__init__(f"{what} failed: {why}")
+        self.kind, self.detail, self.returncode = kind, detail, returncode
+
+
+def run_child(
+    job: Job,
+    task: str,
+    inputs: Any,
+    read: Callable[[Path], T],
+    *,
+    what: str,
+    share: float = 1.0,
+    write: Callable[[Path], None] | None = None,
+    poll_s: float = 0.05,
+) -> T:
+    """Run `task` of `service.sim_child` on `inputs` in a child process of the job's queue and return
+    `read(job folder)` of its output. `write(job folder)` adds input files (beside `input.pkl`). The
+    child's progress (0..1) becomes the job's, times `share` (never going back); cancelling the job kills
+    the child. `what` names the work in messages ("the simulator"). Raises JobCancelled, ChildFailed, and
+    RuntimeError (no folder, no process; naming no path). The child's folder is removed on every path."""
+    children = job.children if job.children is not None else SimulatorChildren()
+    try:
+        job_dir = children.make_dir()
+    except OSError as exc:  # the job's message names no path
+        raise RuntimeError(f"cannot create the job's folder (NEMSIM_JOBS_DIR): {exc.strerror}") from exc
+    child = None
+    try:
+        (job_dir / INPUT_FILE).write_bytes(pickle.dumps(inputs))
+        if write is not None:
+            write(job_dir)
+        try:
+            child = children.start(job_dir, task)
+        except ChildrenStopped:
+            raise JobCancelled from None
+        except OSError as exc:
+            raise RuntimeError(f"cannot start {what}: {exc.strerror or type(exc).__name__}") from exc
+        while child.poll() is None:
+            if job.cancelled:
+                raise JobCancelled
+            with contextlib.suppress(OSError, ValueError):  # not written yet
+                job.progress = max(job.progress, share * float((job_dir / PROGRESS_FILE).read_text()))
+            time.sleep(poll_s)
+        if job.cancelled or children.stopped:
+            raise JobCancelled
+        if child.returncode != 0:
+            try:
+                error = json.loads((job_dir / ERROR_FILE).read_text())
+                kind, detail = str(error["type"]), str(error["message"])
+            except (OSError, ValueError, TypeError, KeyError):  # killed, or died before it could say
+                kind, detail = None, None
+            raise ChildFailed(what, kind, detail, child.returncode)
+        return read(job_dir)
+    finally:
+        children.finish(child, job_dir)
 
 
 # --- the simulator job ---------------------------------------------------------------------------------
@@ -292,49 +366,39 @@ def run_simulator(
     share: float = 0.9,
     poll_s: float = 0.05,
 ) -> np.ndarray:
-    """Simulate `schedule` (T, 14) in a child process (`service.sim_child`); progress 0..`share`.
+    """Simulate `schedule` (T, 14) in a child process (`run_child`); progress 0..`share`.
     Returns (T+1, 2, D, H, W) f16."""
-    children = job.children if job.children is not None else SimulatorChildren()
-    steps = len(schedule)
-    try:
-        job_dir = children.make_dir()
-    except OSError as exc:  # the job's message names no path
-        raise RuntimeError(f"cannot create the job's folder (NEMSIM_JOBS_DIR): {exc.strerror}") from exc
-    child = None
-    try:
-        (job_dir / "input.pkl").write_bytes(pickle.dumps((scene, config, np.asarray(schedule), int(seed))))
-        try:
-            child = children.start(job_dir)
-        except ChildrenStopped:
-            raise JobCancelled from None
-        except OSError as exc:
-            raise RuntimeError(f"cannot start the simulator: {exc.strerror or type(exc).__name__}") from exc
-        while child.poll() is None:
-            if job.cancelled:
-                raise JobCancelled
-            with contextlib.suppress(OSError, ValueError):  # not written yet, or being written
-                job.progress = share * int((job_dir / "progress").read_text()) / steps
-            time.sleep(poll_s)
-        if job.cancelled or children.stopped:
-            raise JobCancelled
-        if child.returncode != 0:
-            err = job_dir / "error"
-            why = err.read_text() if err.is_file() else f"exit code {child.returncode}"
-            raise RuntimeError(f"the simulator failed: {why}")
-        return np.load(job_dir / "states.npy")
-    finally:
-        children.finish(child, job_dir)
+    inputs = (scene, config, np.asarray(schedule), int(seed))
+    return run_child(
+        job,
+        "simulate",
+        inputs,
+        lambda job_dir: np.load(job_dir / "states.npy"),
+        what="the simulator",
+        share=share,
+        poll_s=poll_s,
+    )
 
 
-def compare(sim: np.ndarray, pred: np.ndarray, predictor: Any) -> dict[str, Any]:
-    """Surrogate trajectory `pred` against the simulator's `sim` (both (T+1, 2, D, H, W)), profile metrics
-    by the predictor's `metrics`; JSON-ready."""
+def compare(sim: CompactStates, pred: CompactStates, predictor: Any) -> dict[str, Any]:
+    """Surrogate trajectory `pred` against the simulator's `sim` (both (T+1, 2, D, H, W) float16, compact),
+    profile metrics by the predictor's `metrics`; JSON-ready. Works through COMPARE_BLOCK states at a time
+    (every figure is per state): float32 copies of both whole trajectories and the float64 difference
+    would take about 160 MB of the server's memory on `small`."""
     from nemsim.evaluation.truth import step_rmse
 
-    sim32, pred32 = sim.astype(np.float32), pred.astype(np.float32)
-    rmse = step_rmse(pred32, sim32)  # (T+1,)
-    m_sim = predictor.metrics(sim32)
-    m_pred = predictor.metrics(pred32)
+    rmse_parts: list[np.ndarray] = []
+    sim_parts: list[dict[str, np.ndarray]] = []
+    pred_parts: list[dict[str, np.ndarray]] = []
+    blocks = zip(sim.blocks(COMPARE_BLOCK), pred.blocks(COMPARE_BLOCK), strict=True)
+    for sim_block, pred_block in blocks:
+        sim32, pred32 = sim_block.astype(np.float32), pred_block.astype(np.float32)
+        rmse_parts.append(step_rmse(pred32, sim32))
+        sim_parts.append(predictor.metrics(sim32))
+        pred_parts.append(predictor.metrics(pred32))
+    rmse = np.concatenate(rmse_parts)  # (T+1,)
+    m_sim = {k: np.concatenate([m[k] for m in sim_parts]) for k in sim_parts[0]}
+    m_pred = {k: np.concatenate([m[k] for m in pred_parts]) for k in pred_parts[0]}
 
     def clean(values: Any) -> list[float | None]:
         return jsonable(np.asarray(values, dtype=np.float64))  # non-finite -> None
@@ -379,18 +443,17 @@ def error_mesh(sim_field: np.ndarray, pred_field: np.ndarray, scene: Any, fmt: s
 
 def simulate_and_compare(job: Job, served: Any, schedule: Any, seed: int) -> dict[str, Any]:
     """The work of a simulator job: simulate `schedule` (a `ControlSchedule`), roll the served model out
-    on it, compare."""
+    on it, compare. The job keeps both trajectories compact (`CompactStates`) for its meshes."""
     predictor = served.predictor
     t0 = time.perf_counter()
-    sim = run_simulator(job, predictor.scene, predictor.sim_config, schedule.raw, seed)
+    sim = CompactStates.encode(run_simulator(job, predictor.scene, predictor.sim_config, schedule.raw, seed))
     sim_s = time.perf_counter() - t0
     result, _ = served.rollout(schedule)
     if job.cancelled:
         raise JobCancelled
     job.progress = 0.95
-    pred = result.states.decode()  # (T+1, 2, D, H, W) float16
-    out = compare(sim, pred, predictor)
-    job.artifacts.update(sim=sim, pred=pred)
+    out = compare(sim, result.states, predictor)
+    job.artifacts.update(sim=sim, pred=result.states)
     steps = schedule.steps
     out.update(
         model_id=served.model_id,

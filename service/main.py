@@ -136,7 +136,7 @@ def load_model(state: ServiceState, settings: Settings, on_failure: Callable[[],
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
-    app.state.jobs.open()  # remove what dead servers' jobs left; stop the simulator children on signals
+    app.state.jobs.open()  # remove what dead servers' jobs left; stop the job children on signals
     if state.served is None:
         threading.Thread(
             target=load_model,

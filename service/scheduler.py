@@ -25,7 +25,8 @@ turned cheap mesh requests into 503s, and requests whose client had already disc
 * `run_gated`: wait for a slot, run the blocking function in a worker thread, and give up as soon as
   the client disconnects. A request still waiting is dropped at once (its slot goes to the next one);
   one already computing finishes (a thread cannot be interrupted mid forward pass) and its result is
-  cached, so a retry is free.
+  cached, so a retry is free. The worker thread then hands the heap's free pages back to the kernel
+  (`service.memory.trim_heap`): the computation's temporaries do not stay resident.
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ from typing import Any, TypeVar
 
 import anyio.to_thread
 from starlette.requests import Request
+
+from service.memory import trim_heap
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -237,9 +240,16 @@ async def run_gated(request: Request, gate: FairGate, client: str, fn: Callable[
 
     async def work() -> T:
         async with gate.slot(client):
-            return await in_thread(gate.executor, fn, *args)
+            return await in_thread(gate.executor, _then_trim, fn, *args)
 
     return await until_disconnect(request, work())
+
+
+def _then_trim(fn: Callable[..., T], *args: Any) -> T:
+    try:
+        return fn(*args)
+    finally:
+        trim_heap()
 
 
 async def in_thread(executor: Executor | None, fn: Callable[..., T], *args: Any) -> T:

@@ -1,7 +1,10 @@
-"""The simulator job's child process: ``python -m service.sim_child <job folder> <server pid>``.
+"""The job children's process: ``python -m service.sim_child <job folder> <server pid> [<task>]``.
 
-`service.jobs.run_simulator` writes the inputs (`input.pkl`: scene, simulator config, (T, 14) schedule,
-seed) into the job's folder and starts this in a session (process group) of its own. The child
+Every job's heavy work runs here, never in the server process: a simulator run (task `simulate`, the
+default: `service.jobs.run_simulator`) or an inverse design (task `design`: `service.inverse.design_work`
+on the server's side, `design_in_child` here). `service.jobs.run_child` writes the task's
+inputs (`input.pkl`, and whatever else the task reads) into the job's folder and starts this in a session
+(process group) of its own. The child
 
 * dies with the server: on Linux the kernel sends it SIGKILL when the server thread that started it
   ends, `kill -9` of the server included (`prctl(PR_SET_PDEATHSIG)`); where that is not available, a
@@ -9,27 +12,40 @@ seed) into the job's folder and starts this in a session (process group) of its 
   is no longer the given pid) means exit at once;
 * runs at the lowest CPU priority (nice 19, its scheduler autogroup too): interactive rollouts get the
   cores first;
-* writes the transitions done to `progress`, then the states (float16) to `states.npy`, or one line
-  naming the failure to `error` (exit status 1).
+* writes the share of its work done (a number in [0, 1]) to `progress`, its output into the folder (the
+  simulator: `states.npy`; a design: `result.json`), or its failure to `error` (exit status 1): JSON
+  ``{"type": exception class name, "message": its text}``.
+
+Choices: one entry point for every kind of job (the process management, the exits and the orphan checks
+are the same for all, and the server finds its children by this module's name); a design's own simulator
+runs (verification, simulator-corrected rounds) run inside its child, as `nemsim inverse` runs them in
+its one process: cancelling the job kills them with it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import json
 import os
 import pickle
 import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
-EXIT_ORPHANED = 3  # the server was gone before the simulation started
+EXIT_ORPHANED = 3  # the server was gone before the work started
 WATCHDOG_S = 1.0  # how often the portable watchdog checks the parent
+INPUT_FILE, PROGRESS_FILE, ERROR_FILE = "input.pkl", "progress", "error"
+TASKS = ("simulate", "design")
+SEARCH_SHARE = 0.6  # progress share of a design's search when the job also verifies
+MODEL_FILE, RESULT_FILE = "model.pt", "result.json"  # in a design job's folder
 
 
 def die_with_parent(server_pid: int) -> None:
@@ -69,39 +85,192 @@ def lowest_priority() -> None:
             autogroup.write_text("19")
 
 
-def simulate(job_dir: Path) -> None:
-    """Run the simulation described by `job_dir/input.pkl`; progress and states into `job_dir`."""
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
+def write_atomically(path: Path, data: bytes) -> None:
+    """Write `path` so that a reader sees the old content or the new, never a part of it."""
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def progress_writer(job_dir: Path) -> Callable[[float], None]:
+    """report(share) for a task: the share of its work done, written to `progress` when it moved."""
+    last = [-1.0]
+
+    def report(share: float) -> None:
+        share = round(min(max(float(share), 0.0), 1.0), 4)
+        if share != last[0]:
+            last[0] = share
+            write_atomically(job_dir / PROGRESS_FILE, str(share).encode())
+
+    return report
+
+
+_RULES: list[Any] = []  # the compiled default rules library, once per process
+
+
+def simulate_schedule(
+    scene: Any, config: Any, schedule: np.ndarray, seed: int, report: Callable[[float], None]
+) -> np.ndarray:
+    """The simulator on (T, 14) `schedule`: (T+1, 2, D, H, W) float16 states; report(share of T done)."""
     from nemsim.sim import run_trajectory
 
-    # written by the server that started this process, into a folder only its user can write
-    scene, config, schedule, seed = pickle.loads((job_dir / "input.pkl").read_bytes())
-    progress = job_dir / "progress"
+    if not _RULES:
+        from nemsim.rules.compile import compile_rules
+        from nemsim.rules.schema import load_rules
 
-    def report(k: int, _total: int) -> None:
-        progress.write_text(str(k))
-
-    rules = compile_rules(load_rules())
+        _RULES.append(compile_rules(load_rules()))
+    steps = len(schedule)
     # the simulator takes a full-horizon recipe; transitions past `steps` are never run
-    full = np.concatenate([schedule, np.repeat(schedule[-1:], scene.n_transitions - len(schedule), 0)])
+    full = np.concatenate([schedule, np.repeat(schedule[-1:], scene.n_transitions - steps, 0)])
     res = run_trajectory(
-        scene, rules, full, np.random.default_rng(seed), config,
-        n_transitions=len(schedule), on_transition=report,
+        scene, _RULES[0], full, np.random.default_rng(seed), config,
+        n_transitions=steps, on_transition=lambda k, _total: report(k / steps),
     )  # fmt: skip
+    return res.states.astype(np.float16)
+
+
+def simulate_task(job_dir: Path, inputs: Any, report: Callable[[float], None]) -> None:
+    """Task `simulate`: inputs (scene, simulator config, (T, 14) schedule, seed); states to `states.npy`."""
+    scene, config, schedule, seed = inputs
+    states = simulate_schedule(scene, config, schedule, seed, report)
     tmp = job_dir / "states.partial.npy"
-    np.save(tmp, res.states.astype(np.float16))
+    np.save(tmp, states)
     os.replace(tmp, job_dir / "states.npy")
+
+
+def design_in_child(job_dir: Path, inputs: dict[str, Any], report: Callable[[float], None]) -> None:
+    """Task `design`: load the weights `service.inverse.design_work` wrote, run the design, write
+    `result.json`. The design's simulator runs are this process's (`simulate_schedule`, what a simulator
+    job's child runs)."""
+    import torch
+
+    from nemsim.analysis.intervals import Support
+    from nemsim.analysis.inverse import InverseContext
+    from nemsim.inference.checkpoint import load_checkpoint
+
+    torch.set_num_threads(int(inputs["threads"]))
+    loaded = load_checkpoint(job_dir / MODEL_FILE)
+    cal = inputs["calibration"]
+    ctx = InverseContext(
+        model=loaded.model,
+        scene=loaded.scene,
+        x0=torch.from_numpy(inputs["x0"]),
+        calibration=cal,
+        support=Support.from_record(cal.support if cal else None),
+        model_id=inputs["model_id"],
+        loaded=loaded,
+    )
+    result = _design(ctx, inputs, report)
+    write_atomically(job_dir / RESULT_FILE, json.dumps(result, default=_plain).encode())
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and arrays as Python numbers and lists (json.dumps' `default`)."""
+    if isinstance(value, np.generic | np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
+def _design(ctx: Any, o: dict[str, Any], report: Callable[[float], None]) -> dict[str, Any]:
+    """The design of `service.inverse.design_work` (its options in `o`); report(share of the job done)."""
+    from nemsim.analysis.inverse import (
+        SimulationSkipped,
+        refine_with_simulator,
+        search,
+        simulated_metrics,
+        verify_recipes,
+    )
+    from nemsim.controls import CONTROL_NAMES
+    from nemsim.evaluation.truth import particle_work
+
+    spec = o["spec"]
+    sim_max_work = o["sim_max_work"]
+
+    def simulated(raw: np.ndarray, steps: int, progress: Callable[[float], None]) -> np.ndarray:
+        schedule = np.repeat(raw[None], steps, axis=0)  # (T, 14)
+        try:
+            states = simulate_schedule(ctx.scene, o["sim_config"], schedule, o["sim_seed"], progress)
+        except Exception as exc:  # noqa: BLE001 -- named as a simulator job's failure is
+            raise RuntimeError(f"the simulator failed: {type(exc).__name__}: {exc}") from exc
+        return states.astype(np.float32)  # float16 states, as a simulator job's
+
+    if o["refine"] is not None:
+
+        def simulate(raw: np.ndarray, steps: int) -> np.ndarray:
+            work = particle_work([(raw, 0)])
+            if work > sim_max_work:
+                raise SimulationSkipped(
+                    f"{work:.3g}x the work of a design-centre run (server limit {sim_max_work:g}x)"
+                )
+            return simulated(raw, steps, lambda _f: None)  # the progress stands still while it simulates
+
+        return refine_with_simulator(
+            ctx,
+            spec,
+            simulated_metrics(simulate, ctx.scene),
+            refine=o["refine"],
+            seed=o["seed"],
+            sim_seed=o["sim_seed"],
+            on_progress=lambda f, _msg: report(0.98 * f),
+        )
+    share = SEARCH_SHARE if o["verify"] else 0.98
+    result = search(ctx, spec, seed=o["seed"], on_progress=lambda f, _msg: report(share * f))
+    if o["verify"]:
+        top = min(o["verify_top"], len(result["recipes"]))
+        span = (0.98 - share) / max(top, 1)
+        skipped = []
+        for i, rec in enumerate(result["recipes"][:top]):
+            raw = np.array([rec["controls"][n] for n in CONTROL_NAMES], dtype=np.float64)
+            work = particle_work([(raw, 0)])
+            if work > sim_max_work:
+                skipped.append(
+                    f"recipe {i + 1}: {work:.3g}x the work of a design-centre run (server limit "
+                    f"{sim_max_work:g}x)"
+                )
+        counter = {"i": 0}
+
+        def simulate_top(raw: np.ndarray, steps: int) -> np.ndarray:
+            base = share + span * counter["i"]
+            counter["i"] += 1
+            return simulated(raw, steps, lambda f: report(base + span * f))
+
+        if skipped:
+            result["verification"] = {"seed": o["sim_seed"], "recipes": [], "skipped": skipped}
+        else:
+            result["verification"] = {
+                "seed": o["sim_seed"],
+                "recipes": verify_recipes(result, spec, ctx.scene, simulate_top, top),
+            }
+    return result
+
+
+def task_function(task: str) -> Callable[[Path, Any, Callable[[float], None]], None]:
+    """The function of `task` (TASKS): fn(job folder, inputs, report(share of the work done, 0..1))."""
+    if task == "simulate":
+        return simulate_task
+    if task == "design":
+        return design_in_child
+    raise ValueError(f"unknown task {task!r}; expected one of {TASKS}")
+
+
+def run_task(job_dir: Path, task: str) -> None:
+    """Run `task` on `job_dir`'s inputs."""
+    fn = task_function(task)
+    # written by the server that started this process, into a folder only its user can write
+    inputs = pickle.loads((job_dir / INPUT_FILE).read_bytes())
+    fn(job_dir, inputs, progress_writer(job_dir))
 
 
 def main(argv: list[str]) -> int:
     job_dir, server_pid = Path(argv[0]), int(argv[1])
+    task = argv[2] if len(argv) > 2 else "simulate"
     die_with_parent(server_pid)
     lowest_priority()
     try:
-        simulate(job_dir)
+        run_task(job_dir, task)
     except Exception as exc:  # noqa: BLE001 -- the server reports it on the job
-        (job_dir / "error").write_text(f"{type(exc).__name__}: {exc}")
+        error = {"type": type(exc).__name__, "message": str(exc)}
+        (job_dir / ERROR_FILE).write_text(json.dumps(error))
         return 1
     return 0
 

@@ -7,7 +7,7 @@ with its subparsers, and it adds the `bench` group (one module per family of ben
 
 from __future__ import annotations
 
-from bench.cli import inverse, physics, results, serving, sim, stress
+from bench.cli import inverse, noise, physics, results, serving, sim, stress
 from nemsim.cli.common import Subparsers
 
 
@@ -25,6 +25,7 @@ def register(sub: Subparsers) -> None:
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH")
     bench_sub.required = True
     sim.register(bench_sub)
+    noise.register(bench_sub)
     serving.register(bench_sub)
     stress.register_rollout(bench_sub)
     physics.register(bench_sub)

@@ -11,17 +11,21 @@ from nemsim.cli.common import EXIT_BUG, Subparsers, UserError, setting_manifest
 
 def register(bench_sub: Subparsers) -> None:
     from bench.speed_error import RUNTIMES as SPEED_ERROR_RUNTIMES
+    from bench.speed_error import SIM_DOMAINS
 
     p = bench_sub.add_parser(
         "speed-error",
-        help="speed against error: simulator budgets 1..1/16 and surrogate variants, incl. equal accuracy",
+        help="speed against error: simulator budgets 1..1/16 (full and quarter domain) and surrogate "
+        "variants, incl. equal accuracy",
         description=(
             "On the setting's first N test cases, time one trajectory of the simulator at particle budgets "
-            "1, 1/2, 1/4, 1/8, 1/16 and of every checkpoint under every runtime (backend-precision), score "
-            "each against an independent full-budget simulator run (the file's own trajectory vs that run "
-            "is the noise floor), and report the speed-up against the full-budget simulator and at equal "
-            "accuracy (the simulator's time interpolated log-log at the variant's Avg RMSE), at batch 1 and "
-            "per trajectory at the throughput batch; wall and CPU seconds. Prints the Markdown table and "
+            "1, 1/2, 1/4, 1/8, 1/16, on the full domain (the data's) and on the quarter domain (where the "
+            "scene allows it; else skipped, noted), and of every checkpoint under every runtime "
+            "(backend-precision), score each against an independent full-budget full-domain simulator run "
+            "(the file's own trajectory vs that run is the noise floor), and report, against each simulator "
+            "domain side by side, the speed-up over its budget-1 time and at equal accuracy (its time "
+            "interpolated log-log at the variant's Avg RMSE between its budgets), at batch 1 and per "
+            "trajectory at the throughput batch; wall and CPU seconds. Prints the Markdown tables and "
             "writes speed_error.{json,md,png} to --out (default runs/speed_error: committed results under "
             "benchmarks/ are only written when named with --out). "
             "Example: nemsim bench speed-error --data data/small.h5 "
@@ -38,6 +42,10 @@ def register(bench_sub: Subparsers) -> None:
     p.add_argument("--budgets", default="1,0.5,0.25,0.125,0.0625",
                    help="simulator particle budgets, fractions in (0, 1] of the full budget "
                    "(default 1,0.5,0.25,0.125,0.0625)")  # fmt: skip
+    p.add_argument("--sim-domains", default=",".join(SIM_DOMAINS),
+                   help="simulated domains (SimConfig.domain) timed and scored at every budget, from "
+                   f"{', '.join(SIM_DOMAINS)} (default: both; full, the data's simulator, always runs; "
+                   "quarter is skipped, noted in the report, on a scene it refuses, e.g. tiny)")  # fmt: skip
     p.add_argument("--runtimes", default=",".join(SPEED_ERROR_RUNTIMES),
                    help="surrogate runtimes <backend>-<precision>, from "
                    f"{', '.join(SPEED_ERROR_RUNTIMES)} (default: all; torch-f32, the reference, always runs; "
@@ -151,6 +159,7 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
     import torch
 
     from bench.speed_error import (
+        SIM_DOMAINS,
         SpeedErrorConfig,
         format_markdown,
         parse_runtime,
@@ -177,10 +186,16 @@ def _cmd_bench_speed_error(args: argparse.Namespace) -> int:
             parse_runtime(r)
     except ValueError as exc:
         raise UserError(f"--runtimes: {exc}") from None
+    domains = tuple(d.strip() for d in args.sim_domains.split(",") if d.strip())
+    unknown = [d for d in domains if d not in SIM_DOMAINS]
+    if unknown:
+        raise UserError(f"--sim-domains: unknown domain {unknown[0]!r}; expected some of "
+                        f"{', '.join(SIM_DOMAINS)}")  # fmt: skip
     torch.set_num_threads(args.threads)
     manifest = setting_manifest(args.data, args.setting, args.splits)
     cfg = SpeedErrorConfig(cases=args.cases, budgets=budgets, runtimes=runtimes, threads=args.threads,
-                           throughput_batch=args.batch, seed=args.seed, steps=args.steps)  # fmt: skip
+                           throughput_batch=args.batch, seed=args.seed, steps=args.steps,
+                           sim_domains=domains)  # fmt: skip
     try:
         report = run_speed_error(args.data, args.checkpoints, manifest, cfg)
     except (KeyError, ValueError) as exc:

@@ -17,7 +17,7 @@ from nemsim.data.splits import SETTINGS
 
 # the runtimes of nemsim.inference.runtime, "<backend>-<precision>" (BACKENDS x PRECISIONS), spelled out here
 # so that building the parser does not import torch
-RUNTIMES = ("torch-f32", "torch-bf16", "openvino-f32", "openvino-bf16")
+RUNTIMES = ("torch-f32", "torch-bf16", "openvino-f32", "openvino-bf16", "cuda-f32", "cuda-bf16")
 
 
 def register(sub: Subparsers) -> None:
@@ -55,7 +55,8 @@ def register(sub: Subparsers) -> None:
     p.add_argument("--runtime", default="torch-f32", choices=RUNTIMES,
                    help="what runs the rollouts: torch-f32 (PyTorch, the reference; default), torch-bf16 "
                    "(CPU autocast), openvino-f32 or openvino-bf16 (the exported step graph the service runs; "
-                   "falls back to torch, named in the output, when OpenVINO is missing); CPU only")
+                   "falls back to torch, named in the output, when OpenVINO is missing; CPU), cuda-f32 or "
+                   "cuda-bf16 (CUDA graphs, no launch overhead; with --device cuda)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch and OpenVINO threads (default 1, as the benchmarks and the service)")
     add_monotone_option(p)
@@ -116,8 +117,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise UserError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.threads < 1:
         raise UserError(f"--threads must be >= 1, got {args.threads}")
-    if args.runtime != "torch-f32" and args.device != "cpu":
+    on_gpu = args.runtime.startswith("cuda-")
+    if args.runtime != "torch-f32" and not on_gpu and args.device != "cpu":
         raise UserError(f"--runtime {args.runtime} runs on the CPU only; drop --device {args.device}")
+    if on_gpu and not args.device.startswith("cuda"):
+        raise UserError(f"--runtime {args.runtime} runs on a CUDA device; give --device cuda")
     loaded, tf, manifest = load_for_eval(args)
     apply_monotone(args, loaded.model)
     horizon = loaded.scene.n_transitions

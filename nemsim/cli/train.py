@@ -35,7 +35,8 @@ CONFIG_FLAGS: dict[str, tuple[str, str]] = {
                         "100)"),
 }
 JOB_FLAGS = ("--model", "--data", "--setting", "--out")  # required without --recipe
-RECIPE_FLAGS = ("--out", "--recipe", "--device", "--no-progress")  # what --recipe may be given beside it
+# what --recipe may be given beside it
+RECIPE_FLAGS = ("--out", "--recipe", "--device", "--no-progress", "--data-workers")
 
 
 def _add_config_flags(p: argparse.ArgumentParser, flags: tuple[str, ...]) -> None:
@@ -66,7 +67,10 @@ def add_train_arguments(p: argparse.ArgumentParser, *, recipe: bool = False) -> 
         p.add_argument("--recipe", type=Path, metavar="FILE.yaml",
                        help="run the stages of this recipe in order into OUT/<stage name>, each warm-started "
                             "from the previous stage's best.pt and resumable (see the description); beside "
-                            "it only --out, --device and --no-progress")
+                            "it only --out, --device, --no-progress and --data-workers")
+        p.add_argument("--data-workers", type=int, metavar="N",
+                       help="with --recipe: simulate the recipe's data on N cores (generate --workers N; "
+                            "default 1)")
     p.add_argument("--config", type=Path,
                    help="YAML/JSON: TrainConfig fields (lr, batch_size, ...); model overrides under `model:` "
                         "(default: the paper's values)")
@@ -211,7 +215,7 @@ def _stage_jobs(args: argparse.Namespace, recipe: typing.Any) -> dict[str, typin
         warm: list[str] = ["--init-from", str(prev)] if prev is not None else []
         stage_args = parser.parse_args([*stage.args, "--out", str(args.out / stage.name), "--resume", *warm,
                                         *forwarded])
-        job = jobs[stage.name] = _job(stage_args)
+        job = jobs[stage.name] = dataclasses.replace(_job(stage_args), recipe=str(args.recipe))
         if not Path(job.data).is_file():
             raise UserError(f"{args.recipe}: stage {stage.name}: data file {job.data} does not exist")
         with open_trajectories(job.data) as tf:
@@ -222,18 +226,33 @@ def _stage_jobs(args: argparse.Namespace, recipe: typing.Any) -> dict[str, typin
     return jobs
 
 
+def _run_nemsim(words: list[str]) -> int:
+    """Run one `nemsim` command line in its own process (a recipe's data command); its exit code."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "nemsim.cli", *words], check=False).returncode
+
+
 def _cmd_recipe(args: argparse.Namespace) -> int:
     import yaml
 
-    from nemsim.training.recipe import recipe_from_dict, run_recipe
+    from nemsim.training.recipe import recipe_from_dict, run_recipe, run_recipe_data
     from nemsim.training.run import run_training
 
     try:
         recipe = recipe_from_dict(yaml.safe_load(Path(args.recipe).read_text()))
     except ValueError as exc:
         raise UserError(f"{args.recipe}: {exc}") from None
+    echo = lambda line: print(f"nemsim train: {line}", flush=True)  # noqa: E731, T201
+    workers = ["--workers", str(args.data_workers)] if args.data_workers else []
+    if args.data_workers is not None and args.data_workers < 1:
+        raise UserError(f"--data-workers must be >= 1, got {args.data_workers}")
+    try:
+        run_recipe_data(recipe, lambda w: _run_nemsim(w + workers if w[0] == "generate" else w), echo)
+    except RuntimeError as exc:
+        raise UserError(f"{args.recipe}: {exc}") from None
     jobs = _stage_jobs(args, recipe)
-    bests = run_recipe(recipe, args.out, lambda stage, out, prev: run_training(jobs[stage.name]),
-                       echo=lambda line: print(f"nemsim train: {line}", flush=True))  # noqa: T201
+    bests = run_recipe(recipe, args.out, lambda stage, out, prev: run_training(jobs[stage.name]), echo=echo)
     print(f"nemsim train: recipe {args.recipe} done: {bests[-1]}")  # noqa: T201
     return 0

@@ -15,6 +15,16 @@ otherwise u_t is the case's constant control (the benchmark). Controls are norma
 
 Choices where the paper is silent: items are ordered case-major (case, t) in manifest order; cases without
 their completion flag are refused (ValueError naming them) rather than silently skipped.
+
+Scene symmetry ("model only what a scene needs", ``nemsim.symmetry``): a ``TransitionDataset`` can average
+every state it yields over the scene's symmetries (``symmetrize``: the mean of a Monte Carlo state's 8
+images, a quieter target of the same mean evolution) and yield the fundamental domain's quadrant
+(``quarter``: what a quarter-domain model trains on).
+
+``MemoryTransitions`` holds the training items of one or more such datasets in memory instead (the input
+pipeline that keeps up with a GPU): each trajectory is read and decoded once, symmetrized and folded as
+asked, and kept as float16 (on the training device when it fits); a batch is a gather of whole windows by
+index, no per-sample Python work (``__getitems__``).
 """
 
 from __future__ import annotations
@@ -27,6 +37,7 @@ import torch
 from torch.utils.data import ConcatDataset, Dataset
 
 from nemsim.data.hdf5 import open_trajectories
+from nemsim.symmetry import fold, symmetrize
 
 SPLITS = ("train", "val", "test", "unused")
 
@@ -122,8 +133,14 @@ class TransitionDataset(_H5Backed):
         split: str = "train",
         visible_transitions: int | None = None,
         unroll: int = 1,
+        symmetrize: bool = False,
+        quarter: bool = False,
     ) -> None:
         super().__init__(path, manifest, split)
+        if (symmetrize or quarter) and self.scene.symmetry == "none":
+            raise ValueError(f"{self.path}: scene {self.scene.name!r} declares no symmetry, so its states "
+                             "cannot be symmetrized or folded to a quarter domain")
+        self.symmetrize, self.quarter = bool(symmetrize), bool(quarter)
         n_trans = self.n_states - 1
         v = n_trans if visible_transitions is None else int(visible_transitions)
         if not 1 <= v <= n_trans:
@@ -149,10 +166,17 @@ class TransitionDataset(_H5Backed):
         k, t = divmod(i, self._starts)
         n = self.unroll
         run = self._dataset()[int(self.rows[k]), t : t + n + 1]  # (n+1, C, D, H, W): x_t .. x_{t+n}
-        run = torch.from_numpy(np.ascontiguousarray(run, dtype=np.float32))
+        run = self.transform(torch.from_numpy(np.ascontiguousarray(run, dtype=np.float32)))
         if n == 1:
             return run[0], torch.from_numpy(np.array(self.u[k, t])), run[1]
         return run[0], torch.from_numpy(np.array(self.u[k, t : t + n])), run[1:]
+
+
+    def transform(self, states: torch.Tensor) -> torch.Tensor:
+        """States (..., C, D, H, W) as the items carry them: symmetrized and/or folded (module docstring)."""
+        if self.symmetrize:
+            states = symmetrize(states)
+        return fold(states).contiguous() if self.quarter else states
 
 
 class TransitionSets(ConcatDataset):
@@ -231,3 +255,80 @@ class PairDataset(Dataset):
 
     def close(self) -> None:
         self.base.close()
+
+
+class MemoryTransitions(Dataset):
+    """The items of ``TransitionDataset`` s (in order, as ``TransitionSets`` has them) held in memory
+    (module docstring): states (N, T, C, D, H', W') float16 and controls (N, T-1, 14) float32 on ``device``.
+
+    ``dataset[i]`` is one item as the streamed sets give it; ``dataset.__getitems__(indices)`` the batch
+    (x (B, C, D, H', W'), u (B, n, 14) or (B, 14), y (B, n, C, D, H', W') or (B, C, D, H', W')), float32,
+    which a ``DataLoader`` hands on unchanged with ``collate_fn=as_batch``.
+    """
+
+    batched = True  # __getitems__ returns a whole batch (the training loader's collate is ``as_batch``)
+
+    def __init__(self, sets: list[TransitionDataset], device: torch.device | str = "cpu",
+                 progress: bool = False) -> None:
+        if not sets:
+            raise ValueError("no transition datasets to hold in memory")
+        first = sets[0]
+        if any(s.unroll != first.unroll or s._starts != first._starts for s in sets):
+            raise ValueError("the sets held in memory must have the same unroll and visible transitions")
+        self.unroll, self._starts = first.unroll, first._starts
+        self.n_states = first.n_states
+        n_cases = sum(len(s.rows) for s in sets)
+        shape = first.transform(torch.zeros(1, *first.scene.state_shape)).shape[1:]  # (C, D, H', W')
+        self.device = torch.device(device)
+        self.states = torch.empty((n_cases, self.n_states, *shape), dtype=torch.float16, device=self.device)
+        self.u = torch.empty((n_cases, self.n_states - 1, first.u.shape[-1]), dtype=torch.float32,
+                             device=self.device)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=n_cases, desc="decode training set", unit="case", leave=False)
+        g = 0
+        for s in sets:
+            data = s._dataset()
+            for k, row in enumerate(s.rows):
+                traj = torch.from_numpy(np.asarray(data[int(row)], dtype=np.float32))  # (T, C, D, H, W)
+                self.states[g].copy_(s.transform(traj))
+                self.u[g].copy_(torch.from_numpy(np.array(s.u[k], dtype=np.float32)))
+                g += 1
+                if bar is not None:
+                    bar.update()
+            s.close()
+        if bar is not None:
+            bar.close()
+        self._offsets = torch.arange(self.unroll + 1, device=self.device)  # (n+1,)
+
+    @staticmethod
+    def nbytes_of(sets: list[TransitionDataset]) -> int:
+        """Bytes the states of ``sets`` take in memory (float16, after their transform)."""
+        shape = sets[0].transform(torch.zeros(1, *sets[0].scene.state_shape)).shape[1:]
+        return sum(len(s.rows) for s in sets) * sets[0].n_states * int(np.prod(shape)) * 2
+
+    def __len__(self) -> int:
+        return int(self.states.shape[0]) * self._starts
+
+    def __getitem__(self, i: int):
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} transitions")
+        x, u, y = self.__getitems__([int(i) % len(self)])
+        return x[0], u[0], y[0]
+
+    def __getitems__(self, indices) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        idx = torch.as_tensor(indices, dtype=torch.long, device=self.device)  # (B,)
+        case, t = idx // self._starts, idx % self._starts
+        times = t[:, None] + self._offsets  # (B, n+1)
+        run = self.states[case[:, None], times].float()  # (B, n+1, C, D, H', W')
+        u = self.u[case[:, None], times[:, :-1]]  # (B, n, 14)
+        if self.unroll == 1:
+            return run[:, 0], u[:, 0], run[:, 1]
+        return run[:, 0], u, run[:, 1:]
+
+
+def as_batch(batch):
+    """The collate of a ``MemoryTransitions`` loader: its ``__getitems__`` already made the batch."""
+    return batch

@@ -193,8 +193,10 @@ def evaluate(
     """
     device = torch.device(device)
     model = model.to(device).eval()
-    if predictor is not None and device.type != "cpu":
-        raise ValueError(f"a compiled runtime runs on the CPU only, not on {device}")
+    on_gpu = getattr(predictor, "backend", None) == "cuda"  # the CUDA-graph runtime holds its own model copy
+    if predictor is not None and (device.type != "cpu") != on_gpu:
+        where = "a CUDA device" if on_gpu else "the CPU only"
+        raise ValueError(f"the {getattr(predictor, 'backend', '?')} runtime runs on {where}, not on {device}")
     stepper = model if predictor is None else predictor
     n_total = len(trajectories)
     if n_total == 0:

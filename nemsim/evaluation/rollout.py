@@ -12,6 +12,12 @@ Fast path ("model only what a scene needs"): a model with ``precompute(u) -> cac
 signature) computed once per distinct control vector instead of once per step; the prediction is the same
 as ``model(x, u_t)`` (same operations). Other models are called as ``model(x, u_t)``.
 
+Quarter-domain models (``model.config.domain == "quarter"``, ``nemsim.symmetry``): the rollout runs on the
+lower quadrant of x_0 (every call, the monotone projection and the buffers a quarter of the size) and returns
+the full fields rebuilt by reflection, exactly symmetric (the quadrant starts from the symmetric mean of x_0
+and each call's states are averaged with their transpose, the diagonal mirror); ``on_step`` sees full
+fields.
+
 Multi-step models (``model.config.steps_per_call`` = k > 1, with ``predict(x, cache) -> (B, k, 2, D, H, W)``):
 one call yields the next k states, and every state is still returned (and passed to ``on_step``). A call
 ("chunk") predicts its states under one control vector, so a chunk never spans a control change: it covers
@@ -30,6 +36,7 @@ import torch
 from torch import nn
 
 from nemsim.model.monotone import projection_of
+from nemsim.symmetry import fold, quarter_model_size, symmetrize, unfold
 
 StepCallback = Callable[[int, torch.Tensor], None]
 
@@ -81,6 +88,13 @@ def rollout(
     """
     if x0.ndim != 5:
         raise ValueError(f"x0 must be (B, 2, D, H, W), got shape {tuple(x0.shape)}")
+    n = quarter_model_size(model)
+    if n is not None and x0.shape[-1] == n:  # a quarter-domain model: roll the quadrant (docstring)
+        size = n
+        on_q = None if on_step is None else (lambda t, xq: on_step(t, unfold(xq, size)))
+        return on_quadrant(x0, n, lambda xq: rollout(model, xq, u, steps, keep=keep, on_step=on_q,
+                                                     window=window, stats=stats, monotone=monotone),
+                           keep, out)
     B = x0.shape[0]
     if u.ndim == 2:
         if steps is None:
@@ -103,8 +117,12 @@ def rollout(
         if not fast:
             raise ValueError(f"window=True needs a NEMSim model (precompute/predict); "
                              f"got {type(model).__name__}")
+        if quarter_model_size(model) is not None:
+            raise ValueError("window=True is not available for a quarter-domain model (its depth window "
+                             "records full-width statistics); roll it out without the window")
         depth_window = DepthWindow(model)
     project = projection_of(model, x0, monotone)
+    quarter = n is not None  # x0 is a quarter-domain model's quadrant
     traj = _trajectory_buffer(x0, T, keep, out)  # (B, T+1, 2, D, H, W) or None
     # keep=False: two buffers of one call's states, alternating, so the previous call's states stay valid
     # while this call's are predicted (the next input, and on_step's contract)
@@ -130,10 +148,12 @@ def rollout(
                 dst[:, 0] = model.step(x, cache)  # type: ignore[operator]
             else:
                 dst.copy_(model.predict(x, cache)[:, :n])  # type: ignore[operator]
+        if quarter and (into is not None or not fast):  # predict symmetrizes itself; the rest here
+            dst.copy_(symmetrize(dst, "diagonal"))
+        if project is not None:
+            project.project_chunk_(dst)
         for j in range(n):
             x = dst[:, j]  # (B, 2, D, H, W)
-            if project is not None:
-                project.project_(x)
             t += 1
             if on_step is not None:
                 on_step(t, x)
@@ -142,6 +162,21 @@ def rollout(
     if traj is not None:
         return traj
     return x
+
+
+def on_quadrant(x0: torch.Tensor, n: int, roll: Callable[[torch.Tensor], torch.Tensor], keep: bool = True,
+                out: torch.Tensor | None = None) -> torch.Tensor:
+    """A quarter-domain rollout from full fields x0 (B, 2, D, n, n): ``roll`` runs on the quadrant of x0's
+    symmetric mean and returns (B, T+1, 2, D, c, c) (or the last state with ``keep`` False); the result is
+    unfolded to full fields (into ``out`` when given), x0 itself first (module docstring)."""
+    res = roll(fold(symmetrize(x0)).contiguous())
+    if not keep:
+        return unfold(res, n)
+    if out is not None and out.shape[1] < res.shape[1]:
+        raise ValueError(f"out must hold {res.shape[1]} states, got {tuple(out.shape)}")
+    full = unfold(res, n, None if out is None else out[:, : res.shape[1]])
+    full[:, 0] = x0  # x̂_0 is the given x_0 (the quadrant holds its symmetric mean)
+    return full
 
 
 def _trajectory_buffer(x0: torch.Tensor, T: int, keep: bool, out: torch.Tensor | None) -> torch.Tensor | None:

@@ -74,10 +74,15 @@ def _interp_at(field: np.ndarray, axis: int, at: float) -> np.ndarray:
     """field sampled at a (possibly half-integer) index along ``axis`` by linear interpolation."""
     lo = int(math.floor(at))
     w = at - lo
-    a = np.take(field, lo, axis=axis).astype(np.float64)
+    axis = axis % field.ndim
+
+    def plane(i: int) -> np.ndarray:  # a view (np.take would copy the whole, possibly strided, field first)
+        return field[(slice(None),) * axis + (i,)]
+
+    a = plane(lo).astype(np.float64)
     if w < 1e-9:
         return a
-    return (1.0 - w) * a + w * np.take(field, lo + 1, axis=axis)
+    return (1.0 - w) * a + w * plane(lo + 1)
 
 
 def _half_widths(lines: np.ndarray, a: float, n: int) -> np.ndarray:

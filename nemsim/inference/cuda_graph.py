@@ -56,6 +56,7 @@ from nemsim.inference.eager import (
     model_precompute,
     model_predict,
 )
+from nemsim.symmetry import quarter_model_size
 
 log = logging.getLogger(__name__)
 
@@ -323,6 +324,12 @@ class CUDAGraphRuntime(Runtime):
                              f"{tuple(x0.shape)} and {tuple(u.shape)}")
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
+        n = quarter_model_size(self)
+        if n is not None and x0.shape[-1] == n:  # a quarter-domain model: the graph runs on the quadrant
+            from nemsim.evaluation.rollout import on_quadrant
+
+            return on_quadrant(x0.to(self.device, torch.float32), n,
+                               lambda xq: self.rollout(xq, u, steps, monotone=monotone, copy=copy))
         cache = self.precompute(u)
         with self._on_device():
             key = (int(x0.shape[0]), int(steps), tuple(int(d) for d in x0.shape[1:]), monotone)
@@ -363,10 +370,9 @@ class CUDAGraphRuntime(Runtime):
                     states = model_predict(self.model, x, tree)  # (B, k, 2, D, H, W)
                 dst = traj[:, t + 1 : t + 1 + n]
                 dst.copy_(states[:, :n])
-                for j in range(n):
-                    x = dst[:, j]  # (B, 2, D, H, W)
-                    if project is not None:
-                        project.project_(x)
+                if project is not None:
+                    project.project_chunk_(dst)
+                x = dst[:, n - 1]  # (B, 2, D, H, W)
                 t += n
             return traj
 

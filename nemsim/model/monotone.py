@@ -36,6 +36,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from nemsim.symmetry import quarter_model_size
+
 # (mask, Si) in normalized SDF units: how they were chosen, module docstring
 MONOTONE_EPS: tuple[float, float] = (0.005, 0.034)
 # Si slack on the hole-axis columns (the etch depth's readout): 0 makes the depth non-decreasing exactly
@@ -43,23 +45,26 @@ MONOTONE_AXIS_EPS: float = 0.0
 SI_CHANNEL = 1
 
 
-def axis_columns(h: int, w: int) -> tuple[list[int], list[int]]:
+def axis_columns(h: int, w: int, full_size: int | None = None) -> tuple[list[int], list[int]]:
     """(y indices, x indices) of the padded voxel columns the hole-axis readout interpolates between, for a
     state of padded size (H, W) = (h, w): the axis sits at index (n - 1) / 2 of an axis of padded size n
-    (native centre (n_native - 1) / 2, plus the one-voxel pad), so one column when n is odd, two when even."""
-    def cols(n: int) -> list[int]:
+    (native centre (n_native - 1) / 2, plus the one-voxel pad), so one column when n is odd, two when even.
+    ``full_size``: the state is the lower quadrant (``nemsim.symmetry.fold``) of a field of that lateral
+    size; the columns are those of the full field that lie in the quadrant."""
+    def cols(n: int, m: int) -> list[int]:
         a = (n - 1) / 2.0
-        return sorted({math.floor(a), math.ceil(a)})
+        return [i for i in sorted({math.floor(a), math.ceil(a)}) if i < m]
 
-    return cols(h), cols(w)
+    return cols(full_size or h, h), cols(full_size or w, w)
 
 
 def eps_field(shape: Sequence[int], eps: Sequence[float], axis_eps: float | None,
-              dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
+              dtype: torch.dtype = torch.float32, device: torch.device | str | None = None,
+              full_size: int | None = None) -> torch.Tensor:
     """The per-voxel slack of the projection, (1, C, 1, H, W) (broadcast over batch and depth): ``eps`` per
     channel, and ``axis_eps`` on the Si channel's hole-axis columns (None: no separate axis slack).
 
-    shape: a state's (..., C, D, H, W) shape."""
+    shape: a state's (..., C, D, H, W) shape; ``full_size``: as in ``axis_columns`` (a quadrant's state)."""
     c, h, w = int(shape[-4]), int(shape[-2]), int(shape[-1])
     if len(eps) != c or any(not float(e) >= 0.0 for e in eps):
         raise ValueError(f"eps must be {c} values >= 0 (one per channel), got {tuple(eps)}")
@@ -68,7 +73,7 @@ def eps_field(shape: Sequence[int], eps: Sequence[float], axis_eps: float | None
     if axis_eps is not None:
         if not float(axis_eps) >= 0.0 or c <= SI_CHANNEL:
             raise ValueError(f"axis_eps must be >= 0 on a state with a Si channel, got {axis_eps!r}")
-        ys, xs = axis_columns(h, w)
+        ys, xs = axis_columns(h, w, full_size)
         for y in ys:
             field[0, SI_CHANNEL, 0, y, xs] = float(axis_eps)
     return field
@@ -81,10 +86,12 @@ class MonotoneProjection:
         x0: (B, 2, D, H, W) the initial states (the first running maximum; not modified).
         eps: per-channel slack (C values, C = x0.shape[1]).
         axis_eps: the Si slack on the hole-axis columns (``eps_field``); None: ``eps`` there too.
+        full_size: x0 is the lower quadrant of fields of this lateral size (``axis_columns``).
     """
 
-    def __init__(self, x0: torch.Tensor, eps: Sequence[float], axis_eps: float | None = None) -> None:
-        self.eps = eps_field(x0.shape, eps, axis_eps, x0.dtype, x0.device)  # (1, 2, 1, H, W)
+    def __init__(self, x0: torch.Tensor, eps: Sequence[float], axis_eps: float | None = None,
+                 full_size: int | None = None) -> None:
+        self.eps = eps_field(x0.shape, eps, axis_eps, x0.dtype, x0.device, full_size)  # (1, 2, 1, H, W)
         self.running_max = x0.clone()  # (B, 2, D, H, W)
         self._floor: torch.Tensor | None = None  # (B, 2, D, H, W) scratch of project_
 
@@ -103,6 +110,27 @@ class MonotoneProjection:
         torch.maximum(x, self._floor, out=x)
         torch.maximum(self.running_max, x, out=self.running_max)
         return x
+
+
+    def project_chunk_(self, states: torch.Tensor) -> torch.Tensor:
+        """``project_`` of the n consecutive states (B, n, 2, D, H, W) of one call, in order, in place. On a
+        GPU in a fixed number of kernels (the running maximum after state j is the maximum of the previous
+        one and the unprojected x_j, a cumulative maximum; the same values exactly), so a rollout's projection
+        costs a few launches per call instead of three per state; on the CPU state by state (faster there)."""
+        if states.device.type == "cpu" or states.shape[1] == 1:
+            for j in range(states.shape[1]):
+                self.project_(states[:, j])
+            return states
+        return self._project_chunk_vectorized_(states)
+
+    def _project_chunk_vectorized_(self, states: torch.Tensor) -> torch.Tensor:
+        """``project_chunk_``'s GPU form on any device (tests compare it with the state-by-state form)."""
+        M = self.running_max  # (B, 2, D, H, W)
+        cm = torch.cummax(states, dim=1).values  # (B, n, ...) running max of the unprojected states
+        prev = torch.cat([M[:, None], torch.maximum(M[:, None], cm[:, :-1])], dim=1)  # M_{j-1}
+        torch.maximum(states, prev.sub_(self.eps[:, None]), out=states)
+        torch.maximum(M, cm[:, -1], out=M)
+        return states
 
 
 def project(x: torch.Tensor, running_max: torch.Tensor,
@@ -139,7 +167,9 @@ def projection_of(model: object, x0: torch.Tensor, monotone: bool | None) -> Mon
     """The monotone projection of a rollout of ``model`` from x0 (B, 2, D, H, W), or None (``monotone``
     as in ``monotone_eps_of``)."""
     eps = monotone_eps_of(model, monotone)
-    return None if eps is None else MonotoneProjection(x0, eps, axis_eps_of(model))
+    n = quarter_model_size(model)  # x0 may be the quadrant of a quarter-domain model's field
+    return None if eps is None else MonotoneProjection(x0, eps, axis_eps_of(model),
+                                                       n if n and x0.shape[-1] != n else None)
 
 
 def running_max_drop(states: np.ndarray) -> np.ndarray:

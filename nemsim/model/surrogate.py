@@ -24,6 +24,15 @@ kinetics, EIC's control modulation, α^anc, S, A, K, the MRC head products) and 
 rest; ``forward(x, u)`` is ``step(x, precompute(u, fused=False))``, so a constant-control rollout pays for
 the rule side once.
 
+Quarter domain (``domain = "quarter"``, not in the paper; "model only what a scene needs"): on a scene with
+the square's symmetry (``nemsim.symmetry``) the network runs on the lower quadrant of the field, whose high
+lateral faces lie on the hole axis; ``_pad`` gives them the mirror halo of the full field, so a convolution
+near the axis sees what it would see on the whole field. The GroupNorm statistics and the context pooling
+over the quadrant equal those over a symmetric full field up to the halo. The predicted quadrant is
+averaged with its transpose (the diagonal mirror), so a prediction has all 8 symmetries exactly. Rollouts
+run on the quadrant (``nemsim.evaluation.rollout`` folds x_0 and unfolds the trajectory); ``predict`` also
+accepts a full field.
+
 Multi-step prediction (``steps_per_call`` = k, not in the paper; k = 1 is the paper's model): one call
 predicts x̂_{t+j} = clamp(x_t + r_j, -1, 1), j = 1..k, with cumulative residuals r_j from the decoder's
 extra-step head, so a rollout makes ~1/k of the network calls. ``predict(x, cache)`` returns the k states
@@ -54,6 +63,7 @@ from nemsim.model.rule_buffers import RuleBuffers
 from nemsim.model.saturation import CONTROL_SATURATION, check_saturation, saturate_controls
 from nemsim.model.transport import TransportConfig, species_weights, transport_field
 from nemsim.model.window import WindowRun, splice_latent
+from nemsim.symmetry import fold, mirror_pad, symmetrize, unfold
 
 
 @dataclass(frozen=True)
@@ -87,6 +97,9 @@ class NEMSimConfig:
     transport: TransportConfig = field(default_factory=TransportConfig)
     # the learned parts read the angular spread of the four angular species too (nemsim.model.angle_features)
     angle_features: bool = False
+    # "quarter": the network runs on the fundamental domain of the scene's square symmetry (module docstring)
+    domain: Literal["full", "quarter"] = "full"
+    full_size: int = 0  # lateral size n of the full padded field (set from the scene for a quarter model)
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -137,6 +150,11 @@ class NEMSim(nn.Module):
         if int(cfg.steps_per_call) != cfg.steps_per_call or cfg.steps_per_call < 1:
             raise ValueError(f"steps_per_call must be an integer >= 1, got {cfg.steps_per_call!r}")
         check_saturation(cfg.control_saturation)
+        if cfg.domain not in ("full", "quarter"):
+            raise ValueError(f"domain is 'full' or 'quarter', got {cfg.domain!r}")
+        if cfg.domain == "quarter" and cfg.full_size < 3:
+            raise ValueError(f"a quarter-domain model needs full_size (the scene's lateral size), "
+                             f"got {cfg.full_size!r}")
         self.config = cfg
         self.rules = RuleBuffers(rules)  # fixed buffers, never parameters
         E = self.rules.n_events
@@ -185,13 +203,23 @@ class NEMSim(nn.Module):
         return self.rules.sha256
 
     def _pad(self, x: torch.Tensor) -> torch.Tensor:
-        """Edge-pad (B, C, D, H, W) on the high side of each axis up to a multiple of 4."""
+        """Edge-pad (B, C, D, H, W) on the high side of each axis up to a multiple of 4. On the quarter domain
+        the lateral high sides lie on the hole axis: they get the mirror halo of the full field there
+        (``nemsim.symmetry.mirror_pad``), at least one voxel, so the convolutions see across the axis what the
+        full field has (a quadrant already a multiple of 4 gets 4 more)."""
         D, H, W = x.shape[2:]
         m = self.multiple
+        if self.config.domain == "quarter":
+            x = mirror_pad(x, (-H) % m or m, self.config.full_size)
+            H = W = x.shape[-1]
         pd, ph, pw = (-D) % m, (-H) % m, (-W) % m
         if pd == ph == pw == 0:
             return x
         return F.pad(x, (0, pw, 0, ph, 0, pd), mode="replicate")
+
+    def _full_input(self, x: torch.Tensor) -> bool:
+        """True when a quarter-domain model is handed a full field (folded in, unfolded out)."""
+        return self.config.domain == "quarter" and x.dim() == 5 and x.shape[-1] == self.config.full_size
 
     def precompute(self, u: torch.Tensor, fused: bool = True) -> dict[str, Any]:
         """Everything of one transition that depends only on the controls u (B, 14) (and the fixed rules):
@@ -230,7 +258,12 @@ class NEMSim(nn.Module):
         """The next k = ``config.steps_per_call`` states from x (B, 2, D, H, W) under the controls of
         ``cache = precompute(u)``: (B, k, 2, D, H, W), x̂_{t+1..t+k} [, aux]. For k = 1 this is
         ``step(x, cache)[:, None]``. ``window``: the run of a depth-windowed call (``DepthWindow`` calls
-        this; x is then the window's slab)."""
+        this; x is then the window's slab). A quarter-domain model takes and returns its quadrant, or a full
+        field (folded on the way in, the k states unfolded on the way out: exactly symmetric)."""
+        if self._full_input(x):
+            out = self.predict(fold(x), cache, return_aux, window)
+            n = self.config.full_size
+            return (unfold(out[0], n), out[1]) if return_aux else unfold(out, n)
         D, H, W = x.shape[2:]
         z_next, b, xp, parts = self._latent_update(x, cache, window)
         # cumulative residuals from x_t, cropped back; k = 1: the paper's Dec(z̃, b, x)
@@ -240,6 +273,8 @@ class NEMSim(nn.Module):
         x_next = x[:, None] + residual  # eq:supp_mrc_state_update (B, k, 2, D, H, W)
         if self.config.clamp_output:
             x_next = x_next.clamp_(-1.0, 1.0)  # in place: x_next is a fresh tensor (one pass fewer)
+        if self.config.domain == "quarter":  # the quadrant's diagonal mirror, exactly (nemsim.symmetry)
+            x_next = symmetrize(x_next, "diagonal")
         if not return_aux:
             return x_next
         lam, eic, alpha, T, amp = parts
@@ -256,7 +291,8 @@ class NEMSim(nn.Module):
         states in one fused pass (``nemsim.model.unpack``: the same states, several full-size passes
         fewer); otherwise it is a copy of ``predict``."""
         fused = (not torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu")
-                 and x.device.type == "cpu" and x.dtype == out.dtype == torch.float32)
+                 and x.device.type == "cpu" and x.dtype == out.dtype == torch.float32
+                 and not self._full_input(x))
         if not fused:
             return out.copy_(self.predict(x, cache)[:, : out.shape[1]])
         from nemsim.model.unpack import write_states

@@ -11,6 +11,11 @@ Initial geometry (every scene): Si fills 0 <= z < si_top; resist fills si_top <=
 centred cylindrical opening of radius ``opening_radius_vox``; the layers above are empty. Choice where the
 paper is silent: voxels cut by the cylinder wall get the resist amount of their covered area fraction
 (estimated on a 16 x 16 sub-grid), so the initial opening is sub-voxel accurate instead of a staircase.
+
+Quarter domain (``SimConfig.domain`` = "quarter", ``config`` module docstring): ``lower_quadrant`` is the
+voxel state of columns [0, nx/2) x [0, ny/2), the box the particles fly in between mirror walls, and
+``unfold_quadrant`` rebuilds a full (nx, ny, ...) field from a quadrant field by the two mirrors through
+the opening's axis: full[i] = q[i] for i < nx/2 and q[nx - 1 - i] beyond (likewise in y), exactly symmetric.
 """
 
 from __future__ import annotations
@@ -82,3 +87,23 @@ def initial_domain(scene: Scene, capacity: int, resist_capacity: int) -> Domain:
     resist_col = np.rint(opening_coverage(scene) * resist_capacity).astype(np.int32)  # (nx, ny)
     mat[:, :, scene.si_top : scene.resist_top, RESIST] = resist_col[:, :, None]
     return Domain(mat, compute_fill(mat, capacity, resist_capacity), capacity, resist_capacity)
+
+
+def lower_quadrant(dom: Domain) -> Domain:
+    """The voxel state of columns [0, nx/2) x [0, ny/2) of ``dom`` (a copy; nx, ny even)."""
+    nx, ny = dom.fill.shape[:2]
+    if nx % 2 or ny % 2:
+        raise ValueError(f"the quadrant needs even nx and ny, got {nx} x {ny}")
+    hx, hy = nx // 2, ny // 2
+    return Domain(dom.mat[:hx, :hy].copy(), dom.fill[:hx, :hy].copy(), dom.capacity, dom.resist_capacity)
+
+
+def unfold_quadrant(q: np.ndarray) -> np.ndarray:
+    """(2 qx, 2 qy, ...) full field from a lower-quadrant field q (qx, qy, ...) (module docstring)."""
+    half = np.concatenate([q, q[::-1]], axis=0)
+    return np.ascontiguousarray(np.concatenate([half, half[:, ::-1]], axis=1))
+
+
+def unfold_domain(dom: Domain) -> Domain:
+    """The full-box ``Domain`` of a lower-quadrant one (amounts and fill mirrored, ``unfold_quadrant``)."""
+    return Domain(unfold_quadrant(dom.mat), unfold_quadrant(dom.fill), dom.capacity, dom.resist_capacity)

@@ -262,6 +262,7 @@ def generate_dataset(
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     config = (config or SimConfig()).resolved(scene)
+    config.check_scene(scene)  # e.g. the quarter domain on an odd grid, before any file is touched
     controls_raw = np.asarray(controls_raw, dtype=np.float64)
     case_ids = [int(c) for c in case_ids]
     seed_of = case_ids if seed_ids is None else [int(c) for c in seed_ids]

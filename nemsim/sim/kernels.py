@@ -22,14 +22,24 @@ Random numbers (``SimConfig.rng_mode``, ``TransportParams.counter_rng``):
 
 Coordinates are voxel units: voxel (i, j, k) covers [i, i+1) x [j, j+1) x [k, k+1); z grows upward.
 
+Walls (``TransportParams.mirror_walls``, ``SimConfig.domain`` = "quarter"): the lateral faces x = 0, nx and
+y = 0, ny are periodic (default) or specular mirrors. A mirror box is traversed unfolded: the straight
+flight crosses the mirror images of the box (period 2n along each axis), and a voxel is looked up at its
+reflection into the box (``wall_index``: column -1 is column 0, column n is column n - 1). At a surface hit
+the restart point is folded back (``wall_fold``): in an odd image its coordinate, the direction component
+and the entry face are reflected, which is a specular reflection at every wall crossed (|v| unchanged).
+The surface normal's 26-neighbourhood and a product's deposition voxel use the same reflection instead of
+the periodic wrap. The surface events themselves are those of the periodic box. Default (periodic): the
+code path of the data sets, bit for bit.
+
 Per primary particle ([supp_simulator], "Particle Injection and Transport"):
   * species k with probability R_k / sum R (``src_cum``); launched at (U nx, U ny, nz - eps);
     polar angle with p(Omega) ~ cos^m theta [eq:supp_particle_angular_distribution], i.e.
     cos theta = U^(1/(m+1)), uniform azimuth; energy max(N(mu, sigma^2), 0) for ions
     [eq:supp_particle_energy_sampling], ``neutral_energy_ev`` (0.2 eV) for neutrals.
-  * transport: exact voxel traversal (Amanatides-Woo) in continuous coordinates, periodic in x and y,
-    terminated when leaving through z < 0 or z >= nz or after ``max_steps`` steps (voxel crossings plus
-    surface hits) [supp_simulator].
+  * transport: exact voxel traversal (Amanatides-Woo) in continuous coordinates, periodic in x and y
+    (or between mirror walls, below), terminated when leaving through z < 0 or z >= nz or after
+    ``max_steps`` steps (voxel crossings plus surface hits) [supp_simulator].
   * at the first solid voxel (fill > 0; it is surface-exposed by construction since the particle arrives
     through a vacuum face neighbour): surface normal from the local material configuration (the
     fill-weighted unit offsets of the 26 neighbours, n = -sum f(o) o/|o|, normalized; the entry face normal
@@ -146,6 +156,7 @@ class TransportParams(NamedTuple):
     wing_fraction: float = 0.0  # fraction of ions launched from cos^wing_m instead of the control's cos^m
     wing_m: float = 5.0
     counter_rng: bool = False  # counter-based random numbers ("Random numbers" in the module docstring)
+    mirror_walls: bool = False  # lateral walls: mirrors instead of periodic wrap (module docstring, "Walls")
 
 
 def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportParams:
@@ -157,7 +168,8 @@ def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportPar
                            float(config.particle_weight), float(cos_full), float(cos_zero),
                            bool(config.excess_probability_yield), float(config.ion_reflect_diffuse),
                            float(lobe_k), float(config.ion_reflect_energy), float(config.ion_wing_fraction),
-                           float(config.ion_wing_m), config.rng_mode == "counter")  # fmt: skip
+                           float(config.ion_wing_m), config.rng_mode == "counter",
+                           config.domain == "quarter")  # fmt: skip
 
 
 class WorkBuffers(NamedTuple):
@@ -370,18 +382,48 @@ def diffuse_direction(
 
 
 @numba.njit(cache=True)
-def _fill_at(fill: np.ndarray, i: int, j: int, k: int) -> float:
+def wall_index(i: int, n: int, mirror: bool) -> int:
+    """The box column (0 <= . < n) that holds unfolded column ``i``: i mod n (periodic), or between mirror
+    walls at 0 and n the reflection of i (column -1 is column 0, column n is column n - 1; period 2n)."""
+    if not mirror:
+        return i % n
+    m = i % (2 * n)
+    if m >= n:
+        m = 2 * n - 1 - m
+    return m
+
+
+@numba.njit(cache=True)
+def wall_fold(x: float, d: float, f: float, n: int) -> tuple[float, float, float]:
+    """Fold an unfolded coordinate ``x`` into the box [0, n] between mirror walls at 0 and n: a position in
+    an odd image is reflected, and so are the velocity component ``d`` and the face-normal component ``f``
+    along that axis (a specular wall: |velocity| and the other components unchanged)."""
+    p = 2.0 * n
+    x -= p * math.floor(x / p)
+    if x > n:
+        return p - x, -d, -f
+    return x, d, f
+
+
+@numba.njit(cache=True)
+def _fill_at(fill: np.ndarray, i: int, j: int, k: int, mirror: bool = False) -> float:
     nx, ny, nz = fill.shape
     if k >= nz:
         return 0.0
     if k < 0:
         k = 0
+    if mirror:
+        return fill[wall_index(i, nx, True), wall_index(j, ny, True), k]
     return fill[i % nx, j % ny, k]
 
 
 @numba.njit(cache=True)
-def surface_normal(fill: np.ndarray, i: int, j: int, k: int) -> tuple[float, float, float]:
-    """Outward normal at voxel (i, j, k) from its 26 neighbours' fill (module docstring); may be 0."""
+def surface_normal(
+    fill: np.ndarray, i: int, j: int, k: int, mirror: bool = False
+) -> tuple[float, float, float]:
+    """Outward normal at voxel (i, j, k) from its 26 neighbours' fill (module docstring); may be 0. Neighbours
+    beyond the lateral faces: periodic images, or with ``mirror`` the mirror images (module docstring,
+    "Walls")."""
     gx = 0.0
     gy = 0.0
     gz = 0.0
@@ -391,7 +433,7 @@ def surface_normal(fill: np.ndarray, i: int, j: int, k: int) -> tuple[float, flo
                 r2 = a * a + b * b + c * c
                 if r2 == 0:
                     continue
-                f = _fill_at(fill, i + a, j + b, k + c)
+                f = _fill_at(fill, i + a, j + b, k + c, mirror)
                 if f == 0.0:
                     continue
                 w = f / math.sqrt(r2)
@@ -492,6 +534,7 @@ def fly(
     max_steps = prm.max_steps
     queue, pbuf, counters, event_counts = buf.queue, buf.pbuf, buf.counters, buf.event_counts
     nx, ny, nz = fill.shape
+    mirror = prm.mirror_walls
     n_t = mat.shape[3]
     steps = 0
     hits = 0  # surface hits so far (counter mode: hit h draws from sub-stream h)
@@ -532,8 +575,12 @@ def fly(
         axis = -1
         t = 0.0
         hit = False
-        wx = ix % nx
-        wy = iy % ny
+        if mirror:
+            wx = wall_index(ix, nx, True)
+            wy = wall_index(iy, ny, True)
+        else:
+            wx = ix % nx
+            wy = iy % ny
         if fill[wx, wy, iz] > 0.0:
             # started inside material (e.g. a product deposited where this particle waits): hit it at once
             hit = True
@@ -571,8 +618,12 @@ def fly(
                 counters[C_STEPS] += steps
                 counters[C_ESC_TOP] += 1
                 return tail
-            wx = ix % nx
-            wy = iy % ny
+            if mirror:
+                wx = wall_index(ix, nx, True)
+                wy = wall_index(iy, ny, True)
+            else:
+                wx = ix % nx
+                wy = iy % ny
             if fill[wx, wy, iz] > 0.0:
                 hit = True
         if not hit:
@@ -599,10 +650,16 @@ def fly(
         else:
             fnz = -float(sz)
             z = (iz if sz > 0 else iz + 1) - sz * _FACE_EPS
-        x -= nx * math.floor(x / nx)
-        y -= ny * math.floor(y / ny)
+        if mirror:
+            # back from the unfolded traversal into the box: in an odd mirror image the position, the
+            # direction and the entry face are reflected (module docstring, "Walls")
+            x, dx, fnx = wall_fold(x, dx, fnx, nx)
+            y, dy, fny = wall_fold(y, dy, fny, ny)
+        else:
+            x -= nx * math.floor(x / nx)
+            y -= ny * math.floor(y / ny)
         # ---------------- surface normal and incidence ----------------
-        nnx, nny, nnz = surface_normal(fill, wx, wy, iz)
+        nnx, nny, nnz = surface_normal(fill, wx, wy, iz, mirror)
         ddotn = dx * nnx + dy * nny + dz * nnz
         if ddotn > -1e-3 or nnx * fnx + nny * fny + nnz * fnz <= 0.0:
             nnx = fnx
@@ -674,8 +731,8 @@ def fly(
                     counters[C_STUCK] += 1
                     counters[C_DEPOSITED + add] += 1
                     return tail
-                px = int(math.floor(x)) % nx
-                py = int(math.floor(y)) % ny
+                px = wall_index(int(math.floor(x)), nx, mirror)
+                py = wall_index(int(math.floor(y)), ny, mirror)
                 pz = int(math.floor(z))
                 if 0 <= pz < nz:
                     mat[px, py, pz, add] += n_add

@@ -79,6 +79,10 @@ class TrainConfig:
     # --- reproducibility / data ---
     seed: int = 0
     num_workers: int = 0  # DataLoader workers per rank
+    # average every training state over the scene's symmetries (nemsim.symmetry): quieter targets
+    symmetrize_targets: bool = False
+    # decode the training set once and hold it in memory (float16; on the GPU when it fits): MemoryTransitions
+    in_memory: bool = False
     # --- precision and device ---
     channels_last: bool = DEFAULT_CHANNELS_LAST  # torch.channels_last_3d for model and inputs
     bf16: bool = DEFAULT_BF16  # bfloat16 autocast for the training forward pass (rollouts stay fp32)

@@ -45,6 +45,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, Sampler
 from torch.utils.data.distributed import DistributedSampler
 
+from nemsim.data.dataset import as_batch
 from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
 from nemsim.evaluation.rollout import steps_per_call
 from nemsim.inference.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
@@ -89,6 +90,9 @@ class ModelMeta:
     rules: Any  # RuleTensors
     rules_perturbation: dict[str, Any] | None = None
     sim_config: dict[str, Any] | None = None  # the data file's simulator configuration (``generator``)
+    # where the weights came from, written into every summary: ``init_from`` (None: random weights),
+    # ``recipe`` (its path, under `nemsim train --recipe`), ``data`` (each file, its cases, a digest)
+    provenance: dict[str, Any] = field(default_factory=dict)
 
 
 def total_steps(steps_per_epoch: int, cfg: TrainConfig) -> int:
@@ -330,13 +334,16 @@ def _train_loader(train_set: Dataset, cfg: TrainConfig, rank: int, world: int,
     cap = None if cfg.batches_per_epoch is None else cfg.batches_per_epoch * per_rank_batch
     sampler = _ResumableSampler(
         DistributedSampler(train_set, num_replicas=world, rank=rank, shuffle=True, seed=cfg.seed), cap)
+    batched = getattr(train_set, "batched", False)  # MemoryTransitions: whole batches by index, in memory
+    on_device = batched and getattr(train_set, "device", torch.device("cpu")).type != "cpu"
     loader = DataLoader(
         train_set,
         batch_size=per_rank_batch,
         sampler=sampler,
-        num_workers=cfg.num_workers,
-        pin_memory=device.type == "cuda",
-        persistent_workers=cfg.num_workers > 0,
+        num_workers=0 if batched else cfg.num_workers,
+        pin_memory=device.type == "cuda" and not on_device,
+        persistent_workers=cfg.num_workers > 0 and not batched,
+        collate_fn=as_batch if batched else None,
     )
     return loader, sampler, per_rank_batch
 
@@ -665,6 +672,7 @@ class _Run:
             "train_config": asdict(cfg),
             "final_train_loss": final,
             "final_loss_steps": len(recent),
+            **self.meta.provenance,
         }
 
 

@@ -12,6 +12,17 @@ A recipe (YAML, read by `nemsim train --recipe FILE --out DIR`)::
 Stage i > 1 starts from stage i-1's ``best.pt`` (``--init-from``); every stage runs with ``--resume``, so a
 stage interrupted part-way continues from its ``last.pt`` and a rerun of the recipe skips the stages that
 finished (their ``STAGE_RECORD`` file is written last). The scene is the grid of every stage's data.
+
+An optional ``data`` list names the commands that make the stages' data, run in order before the first
+stage (``nemsim design``, ``generate`` or ``splits`` command lines, without the leading ``nemsim``)::
+
+    data:
+      - [design, --n, "500", --seed, "42", --out, data/design.csv]
+      - [generate, --scene, small, --n, "500", --seed, "0", --out, data/small.h5]
+
+A ``design`` or ``splits`` command whose ``--out`` exists is skipped (both are deterministic); ``generate``
+always runs, and resumes: the cases a file holds complete are not simulated again. So one command builds
+the model from nothing, and a rerun continues wherever it stopped.
 """
 
 from __future__ import annotations
@@ -37,10 +48,14 @@ class Stage:
     args: tuple[str, ...]  # `nemsim train` arguments
 
 
+DATA_COMMANDS = ("design", "generate", "splits")  # what a recipe's ``data`` list may run
+
+
 @dataclass(frozen=True)
 class Recipe:
     scene: str  # the grid of every stage's data (nemsim.scenes)
     stages: tuple[Stage, ...]
+    data: tuple[tuple[str, ...], ...] = ()  # `nemsim` command lines that make the data, in order
 
 
 def _flag(arg: str) -> str:
@@ -71,9 +86,10 @@ def recipe_from_dict(raw: Any) -> Recipe:
     """A Recipe from its YAML mapping; ValueError naming the stage and field when it is malformed."""
     from nemsim.scenes import get_scene
 
-    if not isinstance(raw, dict) or set(raw) != {"scene", "stages"}:
+    if not isinstance(raw, dict) or not {"scene", "stages"} <= set(raw) <= {"scene", "stages", "data"}:
         got = sorted(raw) if isinstance(raw, dict) else type(raw).__name__
-        raise ValueError(f"a recipe is a mapping with the keys `scene` and `stages`, got {got}")
+        raise ValueError(f"a recipe is a mapping with the keys `scene`, `stages` and optionally `data`, "
+                         f"got {got}")
     scene = get_scene(str(raw["scene"])).name  # ValueError naming the scenes
     if not isinstance(raw["stages"], list) or not raw["stages"]:
         raise ValueError("`stages` must be a non-empty list")
@@ -81,7 +97,38 @@ def recipe_from_dict(raw: Any) -> Recipe:
     names = [s.name for s in stages]
     if len(set(names)) != len(names):
         raise ValueError(f"stage names must be unique, got {names}")
-    return Recipe(scene=scene, stages=stages)
+    return Recipe(scene=scene, stages=stages, data=tuple(_data_command(i, c)
+                                                        for i, c in enumerate(raw.get("data") or [])))
+
+
+def _data_command(i: int, raw: Any) -> tuple[str, ...]:
+    if not isinstance(raw, list) or not raw or any(isinstance(a, (dict, list)) or a is None for a in raw):
+        raise ValueError(f"data command {i + 1}: expected a list of command-line words, got {raw!r}")
+    words = tuple(str(a) for a in raw)
+    if words[0] not in DATA_COMMANDS:
+        raise ValueError(f"data command {i + 1}: `{words[0]}` is not one of {', '.join(DATA_COMMANDS)}")
+    if "--out" not in words:
+        raise ValueError(f"data command {i + 1} ({words[0]}): needs --out")
+    return words
+
+
+def run_recipe_data(recipe: Recipe, run_command: Callable[[list[str]], int],
+                    echo: Callable[[str], None]) -> None:
+    """Run the recipe's data commands in order (module docstring): ``run_command(words)`` runs one `nemsim`
+    command line and returns its exit code; a non-zero code stops the recipe (RuntimeError)."""
+    n = len(recipe.data)
+    for i, words in enumerate(recipe.data):
+        out = Path(words[words.index("--out") + 1])
+        head = f"data {i + 1}/{n} {words[0]} -> {out}"
+        if words[0] != "generate" and out.exists():
+            echo(f"{head}: exists, skipped")
+            continue
+        echo(f"{head}: running")
+        t0 = time.monotonic()
+        code = run_command(list(words))
+        if code != 0:
+            raise RuntimeError(f"{head}: `nemsim {' '.join(words)}` exited with {code}")
+        echo(f"{head}: done in {(time.monotonic() - t0) / 60:.1f} min")
 
 
 def stage_state(out: Path) -> StageState:

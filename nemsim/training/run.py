@@ -20,6 +20,7 @@ What the model trains on is decided in one function, ``_load_data``.
 from __future__ import annotations
 
 import gc
+import json
 import logging
 import os
 from collections.abc import Sequence
@@ -56,6 +57,7 @@ class TrainJob:
     perturb: str = "none"  # rule-library perturbation (ablation), nemsim.rules.perturb
     perturb_seed: int = 0
     test: bool = True  # evaluate best.pt on the test split at the end
+    recipe: str | None = None  # the recipe file this run is a stage of (recorded in the summary)
 
 
 def _apply_fraction(manifest: dict, fraction: float, tf: Any) -> dict:
@@ -124,6 +126,30 @@ def init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> None
              sorted(missing))
 
 
+def _provenance(job: TrainJob, manifest: dict) -> dict[str, Any]:
+    """``ModelMeta.provenance`` of a run: its warm start, its recipe and the data it trained on (each file,
+    the cases read from it, and a digest of what it holds: case ids, controls, simulator configuration)."""
+    import hashlib
+
+    import numpy as np
+
+    from nemsim.data.hdf5 import open_trajectories
+
+    def record(path: Path, role: str, cases: int | None = None) -> dict[str, Any]:
+        with open_trajectories(path) as tf:
+            h = hashlib.sha256()
+            for part in (np.asarray(tf.case_ids), np.asarray(tf.controls_raw), np.asarray(tf.complete)):
+                h.update(np.ascontiguousarray(part).tobytes())
+            h.update(json.dumps(tf.generator, sort_keys=True, default=str).encode())
+            n = int(np.count_nonzero(tf.complete)) if cases is None else cases
+        return {"file": str(path), "role": role, "cases": n, "digest": h.hexdigest()[:16]}
+
+    data = [record(Path(job.data), "splits", len(manifest.get("train", [])))]
+    data += [record(Path(p), "extra") for p in job.extra_data]
+    return {"init_from": None if job.init_from is None else str(job.init_from), "recipe": job.recipe,
+            "data": data}
+
+
 def _complete_only(manifest: dict, tf: Any) -> dict:
     """``manifest`` restricted to the cases ``tf`` holds complete (--complete-only); the drops are logged."""
     from nemsim.data.splits import complete_cases
@@ -177,14 +203,20 @@ def _log_to_file(out: Path) -> logging.Handler:
 
 def _check_like_data(path: Path, tf: Any, flag: str) -> None:
     """Refuse a further trajectory file (``flag`` = --extra-data or --pair-data) that is missing, has no
-    complete case, or was not made by the main data file's scene, simulator configuration and rules."""
+    complete case, or was not made by the main data file's scene, simulator configuration and rules. The
+    simulated domain may differ: a quarter-domain run (``SimConfig.domain``) simulates the same mean
+    evolution between mirror walls (benchmarks/small/sim_quarter.md)."""
     from nemsim.data.hdf5 import open_trajectories
+
+    def physics(generator: dict) -> Any:
+        config = generator.get("config")
+        return {k: v for k, v in config.items() if k != "domain"} if isinstance(config, dict) else config
 
     if not Path(path).is_file():
         raise TrainInputError(f"{flag} {path} does not exist")
     with open_trajectories(path) as other:
         checks = (("scene", other.scene, tf.scene), ("rules", other.rules_sha256, tf.rules_sha256),
-                  ("simulator configuration", other.generator.get("config"), tf.generator.get("config")),
+                  ("simulator configuration", physics(other.generator), physics(tf.generator)),
                   ("states per case", other.n_states, tf.n_states))
         for what, theirs, ours in checks:
             if theirs != ours:
@@ -193,12 +225,29 @@ def _check_like_data(path: Path, tf: Any, flag: str) -> None:
             raise TrainInputError(f"{flag} {path} has no complete case")
 
 
-def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
+def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int, shape: dict[str, bool]) -> Any:
     """Every complete case of an extra trajectory file as training items (``--extra-data``)."""
     from nemsim.data.dataset import TransitionDataset
 
     _check_like_data(path, tf, "--extra-data")
-    return TransitionDataset(path, None, "train", visible_transitions=visible, unroll=unroll)
+    return TransitionDataset(path, None, "train", visible_transitions=visible, unroll=unroll, **shape)
+
+
+def _memory_set(sets: list[Any], cfg: Any) -> Any:
+    """The training sets decoded once into memory (``in_memory``): on the training GPU when they take at
+    most half of its free memory, else in host memory."""
+    import torch
+
+    from nemsim.data.dataset import MemoryTransitions
+    from nemsim.training.loop import pick_device
+
+    device = pick_device(cfg.device)
+    probe = MemoryTransitions.nbytes_of(sets)
+    if device.type == "cuda" and probe > 0.5 * torch.cuda.mem_get_info(device)[0]:
+        device = torch.device("cpu")
+    log.info("training set in memory: %d cases, %.2f GB float16 on %s", sum(len(s.rows) for s in sets),
+             probe / 1e9, device)
+    return MemoryTransitions(sets, device=device if device.type == "cuda" else "cpu", progress=cfg.progress)
 
 
 def _pair_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
@@ -239,11 +288,19 @@ def _load_data(job: TrainJob, cfg: TrainConfig) -> tuple[Any, dict, Any]:
             manifest = {**manifest, split: list(manifest[split])[:limit]}
     visible = manifest.get("visible_transitions")
     unroll = cfg.unroll_steps * _steps_per_call(job.model_overrides)
-    train_set: Any = TransitionDataset(job.data, manifest, "train", visible_transitions=visible,
-                                       unroll=unroll)
-    extra_sets = [_extra_train_set(path, tf, visible, unroll) for path in job.extra_data]
+    shape = {"symmetrize": cfg.symmetrize_targets,  # what every training state becomes (nemsim.symmetry)
+             "quarter": (job.model_overrides or {}).get("domain") == "quarter"}
+    try:
+        train_set: Any = TransitionDataset(job.data, manifest, "train", visible_transitions=visible,
+                                           unroll=unroll, **shape)
+        extra_sets = [_extra_train_set(path, tf, visible, unroll, shape) for path in job.extra_data]
+    except ValueError as exc:
+        raise TrainInputError(str(exc)) from None
     if extra_sets:
         log.info("extra training data: %s", ", ".join(f"{e.path} ({len(e.rows)} cases)" for e in extra_sets))
+    if cfg.in_memory:
+        train_set = _memory_set([train_set, *extra_sets], cfg)
+    elif extra_sets:
         train_set = TransitionSets([train_set, *extra_sets])
     pairs = None if job.pair_data is None else _pair_set(job.pair_data, tf, visible, unroll)
     if pairs is not None:
@@ -316,7 +373,8 @@ def run_training(job: TrainJob) -> dict[str, Any]:
             init_from(model, Path(job.init_from), job.model, rules, scene)
         mcfg = _config_dict(model_config(job.model, scene, overrides))
         meta = ModelMeta(name=job.model, config=mcfg, scene=scene, rules=rules,
-                         rules_perturbation=perturbation, sim_config=tf.generator or None)
+                         rules_perturbation=perturbation, sim_config=tf.generator or None,
+                         provenance=_provenance(job, manifest))
         summary = train(cfg, model, data, out, meta, resume=job.resume)
         log.info("training done: best %s %.5g at epoch %d", summary["select_metric"], summary["best_val"],
                  summary["best_epoch"])

@@ -146,14 +146,14 @@ async def get_job_mesh(
             detail=f"the trajectories of job {job_id!r} are no longer kept (only the newest finished jobs' "
             "are): submit the simulation again",
         )
-    last = len(sim) - 1
+    last = sim.steps
     step = last if step is None else step
     if step > last:
         reject(("query", "step"), f"step = {step} is beyond this job's last state ({last})")
     ch = 0 if channel == "mask" else 1
     meta = {"job_id": job_id, "step": step, "channel": channel, "colour": "surrogate signed distance, nm"}
     data = await anyio.to_thread.run_sync(
-        error_mesh, sim[step, ch], pred[step, ch], served.scene, format, meta
+        error_mesh, sim.state(step)[ch], pred.state(step)[ch], served.scene, format, meta
     )
     return Response(
         content=data,

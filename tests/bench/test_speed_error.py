@@ -2,8 +2,11 @@
 
 One simulator-generated data file (3 design cases, full tiny horizon) and one untrained NEMSim
 checkpoint are shared by the module; the bench runs once (1 case, runtimes torch-f32, torch-bf16 and, when
-openvino is installed, openvino-f32; throughput batch 2) through the CLI. The equal-accuracy interpolation
-is checked against hand-computed numbers. `nemsim evaluate --runtime` is scored on the same file.
+openvino is installed, openvino-f32; throughput batch 2) through the CLI. `tiny` is odd (13 x 13), so there
+the quarter-domain simulator is skipped with a note; the quarter rows and the side-by-side speed-ups run on
+a one-case `small` file of 2 simulated transitions (the rest of the horizon repeats the last state) for 2
+steps. The equal-accuracy interpolation and the speed-ups against both domains are checked against
+hand-computed numbers. `nemsim evaluate --runtime` is scored on the same file.
 """
 
 from __future__ import annotations
@@ -64,6 +67,14 @@ def test_speed_error_report(speed_error_out):
     sims = [r for r in rows if r["kind"] == "simulator"]
     models = [r for r in rows if r["kind"] == "model"]
     assert [r["budget"] for r in sims] == [1.0, 0.5, 0.25, 0.125, 0.0625]
+    # tiny is 13 x 13: the quarter domain is refused, so skipped with its reason; no quarter figures
+    assert {r["domain"] for r in sims} == {"full"} and rep["sim_domains"] == ["full"]
+    assert list(rep["sim_domains_skipped"]) == ["quarter"] and "even nx and ny" in rep["sim_domains_skipped"][
+        "quarter"]  # fmt: skip
+    assert rep["config"]["sim_domains"] == ["full", "quarter"]  # the default asked for both
+    for r in rows:
+        assert r["speedup_quarter"] is r["speedup_cpu_quarter"] is r["equal_accuracy_quarter"] is None
+    assert rep["speed"]["simulator_quarter_s"] is None and rep["speed"]["equal_accuracy_quarter"] is None
     assert [r["runtime"] for r in models] == RUNTIMES and {r["model"] for r in models} == {"nemsim"}
     assert [r["backend"] for r in models] == [r.split("-")[0] for r in RUNTIMES]  # no fallback happened
     for r in rows:
@@ -106,6 +117,8 @@ def test_speed_error_table_and_plot(speed_error_out):
                   *(f"nemsim {r}" for r in RUNTIMES)):  # fmt: skip
         assert label in md
     assert "<=" in md  # the untrained model's equal-accuracy speed-up is a bound
+    assert "The quarter-domain simulator was not measured (skipped): domain 'quarter'" in md
+    assert "simulator quarter" not in md and "### Speed-ups against" not in md
     png = (speed_error_out / "speed_error.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 
@@ -129,6 +142,133 @@ def test_equal_accuracy_interpolates_log_log():
     assert equal_accuracy_time(pts, 0.08) == (1.0, "upper")
     assert equal_accuracy_time([], 0.02) == (None, "none")
     assert equal_accuracy_time(pts, float("nan")) == (None, "none")
+
+
+def _sim_row(domain: str, budget: float, wall: float, err: float) -> dict:
+    return {"kind": "simulator", "domain": domain, "budget": budget, "wall_s": wall, "cpu_s": wall / 2,
+            "avg_rmse": err, "batch_wall_s": None}  # fmt: skip
+
+
+def test_speedups_against_both_domains_side_by_side():
+    """``add_speedups`` on a synthetic report: each domain's budget-1 time over the row's, and equal
+    accuracy along each domain's own curve; a single quarter budget is one point (>= / <= off it)."""
+    from bench.speed_error import add_speedups, format_markdown
+
+    model = {"kind": "model", "domain": None, "budget": None, "wall_s": 0.5, "cpu_s": 0.25, "avg_rmse": 0.02,
+             "batch_wall_s": 0.1}  # fmt: skip
+    full = [_sim_row("full", 1.0, 8.0, 0.01), _sim_row("full", 0.25, 2.0, 0.04)]
+    quarter = [_sim_row("quarter", 1.0, 3.0, 0.012)]
+    rows = [*full, *quarter, model]
+    add_speedups(rows)
+    assert model["speedup"] == 16.0 and model["speedup_cpu"] == 16.0 and model["batch_speedup"] == 80.0
+    assert model["speedup_quarter"] == 6.0 and model["speedup_cpu_quarter"] == 6.0
+    assert model["batch_speedup_quarter"] == pytest.approx(30.0)
+    # full curve: 0.02 is half-way in log between 0.01 (8 s) and 0.04 (2 s): 4 s, 8x the model's 0.5 s
+    eq = model["equal_accuracy"]
+    assert eq["bound"] == "interpolated" and eq["simulator_wall_s"] == pytest.approx(4.0)
+    assert eq["speedup_wall"] == pytest.approx(8.0) and eq["speedup_cpu"] == pytest.approx(8.0)
+    # one quarter point, more accurate than the model: the quarter needs at most its budget-1 time
+    eq_q = model["equal_accuracy_quarter"]
+    assert eq_q == {"simulator_wall_s": 3.0, "speedup_wall": 6.0, "simulator_cpu_s": 1.5, "speedup_cpu": 6.0,
+                    "bound": "upper"}  # fmt: skip
+    # a model more accurate than the quarter's one point: at least that time
+    better = {**model, "avg_rmse": 0.011}
+    add_speedups([*full, *quarter, better])
+    assert better["equal_accuracy_quarter"]["bound"] == "lower"
+    assert better["equal_accuracy_quarter"]["speedup_wall"] == 6.0
+    # the simulator rows against each other: the quarter's budget 1 is 8 / 3 x the full domain's speed
+    assert quarter[0]["speedup"] == pytest.approx(8 / 3) and quarter[0]["speedup_quarter"] == 1.0
+    # no quarter rows (a report of the full domain only, or one from before the domain key): None throughout
+    legacy = [{k: v for k, v in r.items() if k != "domain"} for r in full] + [dict(model)]
+    add_speedups(legacy)
+    assert legacy[-1]["speedup"] == 16.0 and legacy[-1]["equal_accuracy"]["bound"] == "interpolated"
+    assert legacy[-1]["speedup_quarter"] is legacy[-1]["equal_accuracy_quarter"] is None
+    # the side-by-side table: ">=" / "<=" marks per domain
+    rep = {"scene": "s", "setting": "x", "case_ids": [0], "steps": 2, "throughput_batch": 4,
+           "noise_floor": {"avg_rmse": 0.01, "cd": 0.1},
+           "rows": [{**r, "label": r.get("label", "m"), "note": "", "noise_floor": False, "final_rmse": 0.0,
+                     "cd": 0.0, "avg_rmse_vs_data": 0.0} for r in rows]}  # fmt: skip
+    md = format_markdown(rep)
+    assert "| m | 0.0200 | 16x (16x) | 6x (6x) | 8x (8x) | <=6x (<=6x) | 80x | 30x |" in md
+
+
+@pytest.fixture(scope="module")
+def small_sim_data(tmp_path_factory, rules):
+    """A one-case `small` data file (even 26 x 26: the quarter runs) with a real full-domain generator
+    record: 2 simulated transitions, the rest of the horizon the last state repeated (the bench reads 2)."""
+    import numpy as np
+
+    from nemsim.controls import lhs_design
+    from nemsim.data.hdf5 import TrajectoryWriter
+    from nemsim.scenes import SMALL
+    from nemsim.sim import SimConfig, run_trajectory
+    from nemsim.sim.generate import generator_meta
+
+    cfg = SimConfig().resolved(SMALL)
+    u = np.asarray(lhs_design()[0], dtype=np.float64)
+    states = run_trajectory(SMALL, rules, u, np.random.default_rng(0), cfg, n_transitions=2).states
+    states = np.concatenate([states, np.repeat(states[-1:], SMALL.n_states - len(states), axis=0)])
+    root = tmp_path_factory.mktemp("speed_error_small")
+    path = root / "data.h5"
+    writer = TrajectoryWriter(path, scene=SMALL, case_ids=[0], controls_raw=u[None],
+                              generator=generator_meta(SMALL, cfg, 0), rules_sha256=rules.sha256)  # fmt: skip
+    writer.write(0, states, seed=0)
+    writer.close()
+    (root / "splits").mkdir()
+    manifest = {"setting": "control-id", "train": [], "val": [], "test": [0], "unused": [],
+                "visible_transitions": SMALL.n_transitions}  # fmt: skip
+    (root / "splits" / "control-id.json").write_text(json.dumps(manifest))
+    return path
+
+
+@pytest.fixture(scope="module")
+def small_checkpoint(tmp_path_factory, rules):
+    """An untrained NEMSim checkpoint on `small`."""
+    import dataclasses
+
+    from nemsim.inference.checkpoint import save_checkpoint
+    from nemsim.registry import build_model, model_config
+    from nemsim.scenes import SMALL
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("ckpt_small") / "small_nemsim.pt"
+    save_checkpoint(path, build_model("nemsim", SMALL, rules), model_name="nemsim",
+                    model_config=dataclasses.asdict(model_config("nemsim", SMALL)), scene=SMALL, rules=rules,
+                    summary={"note": "untrained, for tests"}, metrics={})  # fmt: skip
+    return path
+
+
+def test_quarter_domain_rows_and_side_by_side_speedups(tmp_path, small_sim_data, small_checkpoint):
+    """On `small` the quarter-domain simulator is timed and scored at every budget against the same
+    full-domain reference, on its own seeds, and every variant reports its speed-ups against both."""
+    from nemsim.cli import main
+
+    assert main(["bench", "speed-error", "--data", str(small_sim_data), "--checkpoints",
+                 str(small_checkpoint), "--cases", "1", "--steps", "2", "--budgets", "1,0.5", "--runtimes",
+                 "torch-f32", "--batch", "2", "--out", str(tmp_path)]) == 0  # fmt: skip
+    rep = json.loads((tmp_path / "speed_error.json").read_text())
+    assert rep["sim_domains"] == ["full", "quarter"] and rep["sim_domains_skipped"] == {}
+    rows = rep["rows"]
+    sims = [(r["domain"], r["budget"], r["label"]) for r in rows if r["kind"] == "simulator"]
+    assert sims == [("full", 1.0, "simulator, budget 1"), ("full", 0.5, "simulator, budget 1/2"),
+                    ("quarter", 1.0, "simulator quarter, budget 1"),
+                    ("quarter", 0.5, "simulator quarter, budget 1/2")]  # fmt: skip
+    q1 = next(r for r in rows if r["label"] == "simulator quarter, budget 1")
+    assert not q1["noise_floor"] and q1["avg_rmse"] > 0 and q1["avg_rmse_vs_data"] > 0  # its own stream
+    assert q1["speedup_quarter"] == 1.0
+    model = next(r for r in rows if r["kind"] == "model")
+    assert model["speedup_quarter"] == pytest.approx(q1["wall_s"] / model["wall_s"])
+    assert model["speedup_cpu_quarter"] == pytest.approx(q1["cpu_s"] / model["cpu_s"])
+    assert model["batch_speedup_quarter"] == pytest.approx(q1["wall_s"] / model["batch_wall_s"])
+    eq_q = model["equal_accuracy_quarter"]
+    assert eq_q["bound"] in ("interpolated", "lower", "upper") and _finite(eq_q["speedup_wall"])
+    sp = rep["speed"]
+    assert sp["simulator_quarter_s"] == q1["wall_s"] and sp["speedup_quarter"] == model["speedup_quarter"]
+    assert sp["equal_accuracy_quarter"]["speedup"] == eq_q["speedup_wall"]
+    md = (tmp_path / "speed_error.md").read_text()
+    assert "| simulator quarter, budget 1/2 |" in md and "### Speed-ups against the full-domain and the " \
+        "quarter-domain simulator" in md and "Quarter-domain simulator at budget 1 against the same" in md
+    assert "not measured" not in md
 
 
 def test_bad_runtime_is_one_line_exit_2(tmp_path, tiny_sim_data, capsys):
@@ -202,7 +342,7 @@ def test_default_out_is_not_the_committed_results():
 
     args = build_parser().parse_args(["bench", "speed-error", "--data", "x.h5"])
     assert args.out == "runs/speed-error" and args.batch == 16 and args.threads == 1
-    assert args.budgets == "1,0.5,0.25,0.125,0.0625"
+    assert args.budgets == "1,0.5,0.25,0.125,0.0625" and args.sim_domains == "full,quarter"
 
 
 def test_collect_builds_results_json_and_readme(tmp_path, speed_error_out):

@@ -168,3 +168,20 @@ def test_depth_never_decreases_with_the_axis_projection():
         assert np.all(np.diff(depth) >= -1e-9)  # nm: only the readout's float64 rounding
         falls.append(np.diff(profile_metrics_batch(loose[b], TINY)["etch_depth"]).min())
     assert min(falls) < -0.05  # nm: the per-channel slack alone lets the depth run backwards
+
+
+def test_chunk_projection_equals_state_by_state():
+    """The vectorized projection of a call's n states (the GPU form: a cumulative maximum) gives exactly the
+    states and running maximum of projecting them one by one."""
+    from nemsim.model.monotone import MonotoneProjection
+
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(2, 2, 6, 5, 5, generator=g) * 2 - 1
+    states = torch.rand(2, 4, 2, 6, 5, 5, generator=g) * 2 - 1
+    one, many = MonotoneProjection(x0, (0.05, 0.2), 0.0), MonotoneProjection(x0, (0.05, 0.2), 0.0)
+    a = states.clone()
+    for j in range(a.shape[1]):
+        one.project_(a[:, j])
+    b = many._project_chunk_vectorized_(states.clone())
+    assert torch.equal(a, b) and torch.equal(one.running_max, many.running_max)
+    assert not torch.equal(a, states)  # the projection changed something

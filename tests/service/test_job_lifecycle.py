@@ -255,6 +255,112 @@ def test_second_job_of_a_client_is_429_and_cancel_kills_the_child(make_client, d
     assert c.post("/simulations", json={"controls": default_controls, "steps": 2}).status_code == 202
 
 
+# --- design jobs in child processes ---------------------------------------------------------------------
+
+DESIGN_SEARCH = {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}  # seconds on tiny
+ENDLESS_SEARCH = {**DESIGN_SEARCH, "iterations": 100_000}  # searches until cancelled
+
+
+def _with_search(monkeypatch, search: dict) -> None:
+    """POST /design bodies get this search configuration."""
+    import service.routes.inverse as route
+
+    real = route.spec_from_dict
+    monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": search}))
+
+
+def _poll_job(c, location: str, timeout_s: float = 180.0) -> dict:
+    finished = ("done", "failed", "cancelled")
+    return wait_for("the job", lambda: (b := c.get(location).json())["status"] in finished and b, timeout_s)
+
+
+@needs_proc
+def test_a_design_job_searches_in_a_child_process(make_client, tmp_path, monkeypatch):
+    """The search runs in a child of its own (task `design`), never in the server; the child is reaped
+    when it is done and its folder removed."""
+    import nemsim.analysis.inverse
+
+    started: list[tuple[subprocess.Popen, str]] = []
+    start = SimulatorChildren.start
+
+    def recorded(self, job_dir: Path, task: str = "simulate") -> subprocess.Popen:
+        child = start(self, job_dir, task)
+        started.append((child, task))
+        return child
+
+    def not_here(*args, **kwargs):
+        raise AssertionError("the design searched in the server process")
+
+    monkeypatch.setattr(SimulatorChildren, "start", recorded)
+    monkeypatch.setattr(nemsim.analysis.inverse, "search", not_here)  # the server's; the child has its own
+    _with_search(monkeypatch, DESIGN_SEARCH)
+    c = make_client(jobs_dir=tmp_path)
+    r = c.post("/design", json={"targets": {"etch_depth": {"value": 20, "tol": 5}}, "step": 2, "k": 2})
+    assert r.status_code == 202, r.text
+    done = _poll_job(c, r.headers["location"])
+    assert done["status"] == "done", done
+    assert done["progress"] == 1.0 and len(done["result"]["recipes"]) == 2
+    [(child, task)] = started
+    assert task == "design" and child.pid != os.getpid()
+    assert child.returncode == 0 and proc_stat(child.pid) is None  # exited and reaped (not a zombie)
+    assert job_dirs(tmp_path) == []
+
+
+@needs_proc
+def test_cancelling_a_design_job_kills_its_child(make_client, tmp_path, monkeypatch):
+    _with_search(monkeypatch, ENDLESS_SEARCH)
+    c = make_client(jobs_dir=tmp_path)
+    r = c.post("/design", json={"targets": {"etch_depth": 20}, "step": 2})
+    assert r.status_code == 202, r.text
+
+    def searching() -> int | None:
+        pids = sim_children(os.getpid())
+        stat = proc_stat(pids[0]) if pids else None
+        return pids[0] if stat is not None and int(stat[16]) == 19 else None  # field 19: nice
+
+    pid = wait_for("the design's child", searching)
+    stat = proc_stat(pid)
+    assert stat is not None and int(stat[2]) == pid and int(stat[3]) == pid  # own group and session
+    assert Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[-2] == b"design"
+    [folder] = job_dirs(tmp_path)
+    assert (folder / "model.pt").is_file()  # the served weights, loaded by the child
+    assert c.delete(r.headers["location"]).status_code == 200
+    assert _poll_job(c, r.headers["location"], timeout_s=10)["status"] == "cancelled"
+    assert proc_stat(pid) is None and job_dirs(tmp_path) == []
+
+
+def test_a_failed_design_reports_what_the_search_raised(served, tmp_path):
+    """The job's message is the search's own, as when it ran in the server."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from nemsim.analysis.intervals import Support
+    from nemsim.analysis.inverse import InverseContext, search, spec_from_dict
+    from service.inverse import design_work
+
+    x0 = np.zeros((2, 3, 3, 3), dtype=np.float32)  # not the scene's shape: the first rollout fails
+    loaded = served.predictor.loaded
+    broken = SimpleNamespace(
+        predictor=SimpleNamespace(x0=x0, sim_config=None, loaded=loaded), model_id="broken-initial-state"
+    )
+    spec = spec_from_dict({"targets": {"etch_depth": 20}, "step": 2, "search": DESIGN_SEARCH})
+    ctx = InverseContext(
+        loaded.model, loaded.scene, torch.from_numpy(x0), None, Support.from_record(None), model_id="x"
+    )
+    with pytest.raises(Exception) as here:  # noqa: PT011 -- whatever it is, the job must say the same
+        search(ctx, spec)
+    jobs = JobQueue(work_dir=tmp_path)
+    try:
+        options = {"seed": 0, "verify": False, "verify_top": 1, "sim_seed": 1, "sim_max_work": 20.0}
+        job = jobs.submit("design", lambda j: design_work(j, broken, spec, **options))
+        wait_for("the failure", lambda: job.status in ("done", "failed"), timeout_s=180)
+    finally:
+        jobs.close()
+    assert job.status == "failed" and job.message == (str(here.value) or type(here.value).__name__)
+    assert job_dirs(tmp_path) == []
+
+
 def test_an_unusable_jobs_dir_fails_the_job_without_naming_a_path(tmp_path):
     not_a_dir = tmp_path / "file"
     not_a_dir.write_text("")

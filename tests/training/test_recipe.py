@@ -61,7 +61,7 @@ def test_malformed_recipes_are_one_line_exit_2(tmp_path, tiny_data, capsys):
     out = str(tmp_path / "runs")
     cases = [
         (["--recipe", str(_recipe(tmp_path, tiny_data)), "--out", out, "--epochs", "3"],
-         "beside it give only --out, --device, --no-progress (got --epochs)"),
+         "beside it give only --out, --device, --no-progress, --data-workers (got --epochs)"),
         (["--recipe", str(_recipe(tmp_path, tiny_data))], "needs --out"),
         (["--recipe", str(_recipe(tmp_path, tiny_data, second=["--out", "x"])), "--out", out],
          "--out is set by the recipe"),
@@ -94,3 +94,28 @@ def test_shipped_recipe_parses():
         add_train_arguments(parser)
         args = parser.parse_args([*stage.args, "--out", "unused"])
         assert args.config is None or (ROOT / args.config).is_file(), (stage.name, args.config)
+
+
+def test_recipe_data_commands_run_in_order_and_resume(tmp_path):
+    """A recipe's ``data`` list: design/splits whose --out exists are skipped, generate always runs (it
+    resumes by itself), a failing command stops the recipe with its name; malformed lists are refused."""
+    from nemsim.training.recipe import run_recipe_data
+
+    have = tmp_path / "design.csv"
+    have.write_text("x\n")
+    raw = {"scene": "tiny", "stages": [{"name": "a", "args": []}],
+           "data": [["design", "--n", "4", "--out", str(have)],
+                    ["generate", "--scene", "tiny", "--controls", str(have), "--out", str(tmp_path / "t.h5")],
+                    ["splits", "--design", str(have), "--out", str(tmp_path / "splits")]]}
+    recipe = recipe_from_dict(raw)
+    ran, lines = [], []
+    run_recipe_data(recipe, lambda words: ran.append(words[0]) or 0, lines.append)
+    assert ran == ["generate", "splits"]
+    assert "exists, skipped" in lines[0] and "generate" in lines[1]
+    with pytest.raises(RuntimeError, match="exited with 3"):
+        run_recipe_data(recipe, lambda words: 3, lines.append)
+    for bad, words in (([["train", "--out", "x"]], "not one of"),
+                       ([["generate", "--scene", "tiny"]], "--out"),
+                       (["generate"], "list of command-line words")):
+        with pytest.raises(ValueError, match=words):
+            recipe_from_dict({**raw, "data": bad})
