@@ -35,11 +35,11 @@ $(DATA)/small.h5: | venv
 
 benchmarks: venv $(DATA)/small.h5
 	$(BIN)/nemsim bench speed-error --data $(DATA)/small.h5 --splits $(DATA)/splits --setting control-id \
-	    --checkpoints $(CKPT) --runtimes torch-f32,openvino-bf16 --cases 5 --out $(SMALL)
+	    --checkpoints $(CKPT) --runtimes torch-f32,openvino-bf16 --sim-domains full,quarter --cases 5 --out $(SMALL)
 	$(BIN)/nemsim bench physics --checkpoint $(CKPT) --cache-dir $(CACHE) --out $(SMALL)/physics
 	$(BIN)/nemsim bench extrapolation --checkpoint $(CKPT) --cache-dir $(CACHE) --out $(SMALL)/extrapolation
 	$(BIN)/nemsim stress --checkpoint $(CKPT) --max-corners 32 --cache-dir $(CACHE) --json $(SMALL)/stress.json
-	NEMSIM_ALLOCATOR=default $(BIN)/nemsim bench service --checkpoint $(CKPT) -n 16 \
+	NEMSIM_ALLOCATOR=default $(BIN)/nemsim bench service --checkpoint $(CKPT) -n 30 \
 	    --json $(SMALL)/service_latency.json
 	OMP_NUM_THREADS=1 $(BIN)/nemsim bench service --probes --checkpoint $(CKPT) --json $(SMALL)/service_probes.json \
 	    --md $(SMALL)/service_probes.md

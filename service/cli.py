@@ -37,6 +37,10 @@ def register(sub: Subparsers) -> None:
                    help="TCP port (default $NEMSIM_PORT or 8000; e.g. NEMSIM_PORT=8080 make serve)")
     p.add_argument("--workers", type=int, default=1,
                    help="worker processes, each with its own model copy (default 1)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default=None,
+                   help="where rollouts compute: cpu (the OpenVINO runtime; default) or cuda (CUDA graphs: "
+                        "a whole constant-control rollout is one replay; without CUDA it falls back to the "
+                        "CPU, logged); the same as NEMSIM_RUNTIME_BACKEND=openvino|cuda")
     p.set_defaults(handler=_cmd_serve)
 
 
@@ -73,6 +77,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         ) from None
     # every worker process builds its app from the environment, so the choice travels there
     os.environ["NEMSIM_CHECKPOINT"] = resolve_checkpoint(args.checkpoint)
+    if args.device is not None:
+        os.environ["NEMSIM_RUNTIME_BACKEND"] = "cuda" if args.device == "cuda" else "openvino"
     os.environ.setdefault("NEMSIM_EXIT_ON_LOAD_FAILURE", "1")  # a checkpoint that can never load: exit 3
     from service.config import get_settings
     from service.main import LOAD_FAILURE_EXIT

@@ -12,11 +12,14 @@ step), and most of those differences are small, so the trajectory is stored as w
   fit, else the int8 `ESCAPE` plus the int16 difference in a second array.
 
 Decoding adds the differences back in the same wrapping arithmetic, so every state is bit-identical to
-the float16 it was made from (what the API returned before). One state is decoded from the nearer of the
-two stored ends (at most half the transitions); the whole trajectory, or blocks of consecutive states
-(`blocks`) for a response streamed without holding it all. Encoding works through `CHUNK` transitions at
-a time, so its temporaries stay a fraction of the trajectory's size. Both directions are single passes
-compiled by numba (numpy's boolean indexing took most of an uncached rollout's extra time).
+the float16 it was made from (what the API returned before). The states of a quarter-domain model are exactly
+symmetric under the square's mirrors (``nemsim.symmetry``): of them only the quadrant is stored and every
+decoded state is unfolded, the same states for a quarter of the work and memory. One state is decoded from
+the nearer of the two stored ends (at most half the transitions); the whole trajectory, or blocks of
+consecutive states (`blocks`) for a response streamed without holding it all. Encoding works through
+`CHUNK` transitions at a time, so its temporaries stay a fraction of the trajectory's size. Both directions
+are single passes compiled by numba (numpy's boolean indexing took most of an uncached rollout's extra
+time).
 """
 
 from __future__ import annotations
@@ -103,7 +106,7 @@ def _apply(
 class CompactStates:
     """A trajectory (T+1, 2, D, H, W) of float16 states (module docstring). Build with `encode`."""
 
-    shape: tuple[int, ...]  # (T+1, 2, D, H, W)
+    shape: tuple[int, ...]  # (T+1, 2, D, H, W) of the trajectory (what every method returns)
     first: np.ndarray  # (N,) uint16: bit patterns of state 0, N = 2·D·H·W
     last: np.ndarray  # (N,) uint16: bit patterns of state T
     changed: bytes  # zlib of (T, ceil(N / 8)) uint8: bit i % 8 of byte i // 8 of row t: voxel i changes at t
@@ -111,11 +114,24 @@ class CompactStates:
     wide: np.ndarray  # (E,) int16: the differences outside [-127, 127], in order
     offsets: np.ndarray  # (T+1,) int64: transition t's differences are small[offsets[t]:offsets[t+1]]
     wide_offsets: np.ndarray  # (T+1,) int64: and its wide ones wide[wide_offsets[t]:wide_offsets[t+1]]
+    # the states are exactly symmetric under the square's mirrors and only their quadrant is stored
+    # (``nemsim.symmetry.fold``): the lateral size they are unfolded to; None: the whole states are stored
+    full_size: int | None = None
 
     @classmethod
-    def encode(cls, states: np.ndarray | torch.Tensor) -> CompactStates:
+    def encode(cls, states: np.ndarray | torch.Tensor, full_size: int | None = None) -> CompactStates:
         """From states (T+1, 2, D, H, W): a float16 array, or a float32 tensor rounded to float16 here chunk
-        by chunk (torch's conversion is vectorized; no float16 copy of the whole trajectory is made)."""
+        by chunk (torch's conversion is vectorized; no float16 copy of the whole trajectory is made).
+        ``full_size``: the states are exactly symmetric under the square's mirrors (a quarter-domain
+        model's): only their quadrant is stored, a quarter of the work and of the memory."""
+        shape = tuple(int(d) for d in states.shape)
+        if full_size is not None:
+            from nemsim.symmetry import fold
+
+            if shape[-1] != full_size:
+                raise ValueError(f"full_size {full_size} does not match states of shape {list(shape)}")
+            folded = fold(torch.as_tensor(states))
+            states = folded.contiguous() if isinstance(states, torch.Tensor) else folded.numpy().copy()
         if isinstance(states, torch.Tensor):
             if states.dtype != torch.float32 or states.dim() < 2:
                 raise ValueError(f"need a float32 tensor (T+1, ...), got {states.dtype} {list(states.shape)}")
@@ -149,7 +165,7 @@ class CompactStates:
             wides.append(wide[:n_wide].copy())
         packed.append(packer.flush())
         return cls(
-            shape=tuple(int(d) for d in states.shape),
+            shape=shape,
             first=bits(0, 1)[0].copy(),
             last=bits(steps, steps + 1)[0].copy(),
             changed=b"".join(packed),
@@ -157,7 +173,26 @@ class CompactStates:
             wide=np.concatenate(wides) if wides else np.zeros(0, dtype=np.int16),
             offsets=np.cumsum(counts[0]),
             wide_offsets=np.cumsum(counts[1]),
+            full_size=full_size,
         )
+
+    @property
+    def _stored(self) -> tuple[int, ...]:
+        """The shape of one stored state: (2, D, H, W), or its quadrant's."""
+        if self.full_size is None:
+            return self.shape[1:]
+        from nemsim.scenes import quadrant_size
+
+        c = quadrant_size(self.full_size)
+        return (*self.shape[1:-2], c, c)
+
+    def _out(self, stored: np.ndarray) -> np.ndarray:
+        """Stored states (..., h, w) float16 as the trajectory's (unfolded when only the quadrant is kept)."""
+        if self.full_size is None:
+            return stored
+        from nemsim.symmetry import unfold
+
+        return unfold(torch.from_numpy(stored), self.full_size).numpy()
 
     @property
     def steps(self) -> int:
@@ -193,7 +228,7 @@ class CompactStates:
             self._run(acc, 0, k, 1)
         else:
             self._run(acc, k, self.steps, -1)
-        return acc.view(np.float16).reshape(self.shape[1:])
+        return self._out(acc.view(np.float16).reshape(self._stored))
 
     def decode(self) -> np.ndarray:
         """All states (T+1, 2, D, H, W) float16."""
@@ -201,19 +236,19 @@ class CompactStates:
         out[0] = self.first
         if self.steps:
             self._run(self.first.copy(), 0, self.steps, 1, out[1:])
-        return out.view(np.float16).reshape(self.shape)
+        return self._out(out.view(np.float16).reshape(self.shape[0], *self._stored))
 
     def blocks(self, size: int = 4) -> Iterator[np.ndarray]:
         """All states in order, at most `size` at a time ((n, 2, D, H, W) float16 each): `decode` in
         pieces."""
         acc = self.first.copy()
-        yield acc.copy().view(np.float16).reshape(1, *self.shape[1:])
+        yield self._out(acc.copy().view(np.float16).reshape(1, *self._stored))
         bits = self._bits() if self.steps else None
         for t0 in range(0, self.steps, size):
             t1 = min(t0 + size, self.steps)
             block = np.empty((t1 - t0, acc.size), dtype=np.uint16)
             self._run(acc, t0, t1, 1, block, bits)
-            yield block.view(np.float16).reshape(t1 - t0, *self.shape[1:])
+            yield self._out(block.view(np.float16).reshape(t1 - t0, *self._stored))
 
     def take(self, steps: Sequence[int]) -> np.ndarray:
         """States at `steps` (n, 2, D, H, W) float16, C-contiguous: decoded one by one, or all at once

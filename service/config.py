@@ -124,8 +124,10 @@ class Settings(BaseSettings):
         description="torch intra-op threads (None: torch's default, e.g. OMP_NUM_THREADS, capped at the CPU "
         "count divided by max_concurrency, so concurrent rollouts do not oversubscribe the cores)",
     )
-    runtime_backend: Literal["openvino", "torch"] = Field(
-        default="openvino", description="rollout runtime; openvino falls back to torch (logged) if missing"
+    runtime_backend: Literal["openvino", "torch", "cuda"] = Field(
+        default="openvino",
+        description="rollout runtime; openvino falls back to torch (logged) if missing; cuda: CUDA graphs on "
+        "the GPU (`nemsim serve --device cuda`), eager torch on the CPU without CUDA (logged)",
     )
     runtime_precision: Literal["f32", "bf16"] = Field(
         default="bf16", description="rollout precision (bf16: same Avg RMSE within 1 %, measured)"

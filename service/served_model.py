@@ -221,7 +221,8 @@ class ServedModel:
                 k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
                 for k, vals in pred.metrics.items()
             }
-            states = CompactStates.encode(buf[: schedule.steps + 1])  # float16 (T+1, 2, D, H, W), compactly
+            states = CompactStates.encode(buf[: schedule.steps + 1],  # float16 (T+1, 2, D, H, W), compactly
+                                          full_size=self.predictor.symmetric_size)
         finally:
             self._give_back(buf)
         if pred.warnings:

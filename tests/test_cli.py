@@ -419,3 +419,12 @@ def test_the_library_imports_neither_the_service_nor_the_bench():
             found += [f"{path.relative_to(root.parent)}: {n}" for n in names
                       if n.split(".")[0] in ("service", "bench")]
     assert not found, found
+
+
+def test_evaluate_cuda_runtime_needs_a_cuda_device(tmp_path, capsys):
+    args = ["evaluate", "--checkpoint", str(tmp_path / "x.pt"), "--data", str(tmp_path / "x.h5"), "--setting",
+            "control-id", "--runtime", "cuda-f32"]
+    assert cli.main(args) == 2
+    assert "runs on a CUDA device; give --device cuda" in capsys.readouterr().err
+    assert cli.main([*args[:-1], "openvino-f32", "--device", "cuda"]) == 2
+    assert "runs on the CPU only" in capsys.readouterr().err

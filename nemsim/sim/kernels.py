@@ -575,12 +575,8 @@ def fly(
         axis = -1
         t = 0.0
         hit = False
-        if mirror:
-            wx = wall_index(ix, nx, True)
-            wy = wall_index(iy, ny, True)
-        else:
-            wx = ix % nx
-            wy = iy % ny
+        wx = wall_index(ix, nx, mirror)
+        wy = wall_index(iy, ny, mirror)
         if fill[wx, wy, iz] > 0.0:
             # started inside material (e.g. a product deposited where this particle waits): hit it at once
             hit = True
@@ -618,12 +614,8 @@ def fly(
                 counters[C_STEPS] += steps
                 counters[C_ESC_TOP] += 1
                 return tail
-            if mirror:
-                wx = wall_index(ix, nx, True)
-                wy = wall_index(iy, ny, True)
-            else:
-                wx = ix % nx
-                wy = iy % ny
+            wx = wall_index(ix, nx, mirror)
+            wy = wall_index(iy, ny, mirror)
             if fill[wx, wy, iz] > 0.0:
                 hit = True
         if not hit:

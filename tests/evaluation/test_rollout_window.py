@@ -15,7 +15,8 @@ from nemsim.model import NEMSim, NEMSimConfig
 from nemsim.model.window import DepthWindow, WindowConfig, WindowRun, attached, band_start
 from nemsim.scenes import TINY
 
-SHIPPED = Path(__file__).resolve().parents[2] / "checkpoints" / "nemsim-small.pt"
+CHECKPOINTS = Path(__file__).resolve().parents[2] / "checkpoints"
+FULL_DOMAIN = CHECKPOINTS / "nemsim-small-full.pt"  # the window runs on full-domain models
 # Stated tolerance (module docstring of nemsim.model.window): windowed vs full rollout of the shipped model,
 # RMS difference per step averaged over the steps <= 0.01 (measured 0.0010-0.0090 over 40 steps and
 # 0.0029-0.0097 over 100 steps on six control vectors).
@@ -87,12 +88,12 @@ def test_windowed_rollout_holds_the_voxels_below_and_reports_the_fraction(rules)
         rollout(lambda x, u: x, x0, torch.zeros(1, 14), 2, window=True)
 
 
-def test_windowed_rollout_agrees_with_the_full_one_on_the_shipped_model():
+def test_windowed_rollout_agrees_with_the_full_one_on_a_trained_model():
     from nemsim.inference.checkpoint import load_checkpoint
     from nemsim.sim import initial_state
 
     torch.set_num_threads(1)
-    loaded = load_checkpoint(SHIPPED)
+    loaded = load_checkpoint(FULL_DOMAIN)
     x0 = torch.from_numpy(np.asarray(initial_state(loaded.scene), dtype=np.float32))[None]
     g = torch.Generator().manual_seed(1)
     u = (torch.rand(4, 14, generator=g) * 2 - 1)[3:4]  # control vector "case 3" of the measurement
@@ -103,3 +104,14 @@ def test_windowed_rollout_agrees_with_the_full_one_on_the_shipped_model():
     rms = (win - full).pow(2).mean(dim=(0, 2, 3, 4, 5)).sqrt()  # (T+1,)
     assert rms[1:].mean() <= TOLERANCE_AVG_RMS
     assert stats["fraction_computed"] < 1.0
+
+
+def test_a_quarter_domain_model_refuses_the_window():
+    from nemsim.inference.checkpoint import load_checkpoint
+    from nemsim.sim import initial_state
+
+    loaded = load_checkpoint(CHECKPOINTS / "nemsim-small.pt")  # the served model: quarter domain
+    assert loaded.model.config.domain == "quarter"
+    x0 = torch.from_numpy(np.asarray(initial_state(loaded.scene), dtype=np.float32))[None]
+    with pytest.raises(ValueError, match="not available for a quarter-domain model"):
+        rollout(loaded.model, x0, torch.zeros(1, 14), 2, window=True)

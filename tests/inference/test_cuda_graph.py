@@ -247,3 +247,44 @@ def test_uncapturable_model_falls_back_to_eager(tiny_k4, monkeypatch, strict_fp3
     again = CUDAGraphRuntime(model)
     assert (rollout(again, x, u) - got).abs().max() < TOL  # type: ignore[arg-type]
     assert again.backend == "cuda" and again.describe()["graphs"] == [1]
+
+
+def test_replayed_whole_rollout_of_a_quarter_model(tiny_scene):
+    """A quarter-domain model's whole-rollout graph runs on the quadrant and gives the library rollout's
+    full fields, exactly symmetric."""
+    from nemsim.symmetry import symmetrize
+
+    model, x0 = _trained(tiny_scene, {"steps_per_call": 4, "flux_gate": True, "domain": "quarter"})
+    runtime = _Replayed(model)
+    x = x0[None].repeat(2, 1, 1, 1, 1)
+    u = _controls(2, 1, None, seed=5)[:, 0]  # (2, 14)
+    got = runtime.rollout(x, u, 7)
+    want = rollout(model, x, u, 7)
+    assert got.shape == want.shape == (2, 8, *x.shape[1:])
+    assert (got - want).abs().max() <= 1e-6
+    assert torch.equal(got[:, 1:], symmetrize(got[:, 1:]))
+    c = (x.shape[-1] + 1) // 2  # the graph was captured on the quadrant
+    assert list(runtime._rollouts) == [(2, 7, (2, x.shape[2], c, c), None)]
+
+
+def test_predictor_rolls_constant_controls_as_one_graph(tiny_checkpoint):
+    """``Predictor`` with a CUDA-graph runtime: constant controls take the whole-rollout graph, a recipe the
+    per-call path; both give the reference predictor's states."""
+    import numpy as np
+
+    from nemsim.controls import CONTROL_SPECS
+    from nemsim.inference import Predictor
+
+    ref = Predictor.from_checkpoint(tiny_checkpoint, backend="torch")
+    fast = Predictor(ref.loaded, backend="torch")
+    fast.runtime = _Replayed(ref.loaded.model)
+    mid = {s.name: (s.low + s.high) / 2 for s in CONTROL_SPECS}
+    low = {s.name: s.low for s in CONTROL_SPECS}
+    out = torch.empty(8, *ref.scene.state_shape)
+    a, b = fast.rollout(mid, 6, out=out), ref.rollout(mid, 6)
+    assert np.abs(a.states - b.states).max() <= 1e-6
+    assert fast.runtime.describe()["rollout_graphs"] == [(1, 6)]  # one replay of the whole rollout
+    recipe = [mid] * 3 + [low] * 3
+    a, b = fast.rollout(recipe, out=out), ref.rollout(recipe)
+    assert np.abs(a.states - b.states).max() <= 1e-6
+    assert fast.runtime.describe()["rollout_graphs"] == [(1, 6)]  # the recipe went call by call

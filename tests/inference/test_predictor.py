@@ -161,3 +161,30 @@ def test_openvino_matches_torch(predictor, tiny_checkpoint):
     b = predictor.rollout(_mid(), 4)
     assert fast.runtime.backend == "openvino"  # no silent fallback
     assert np.abs(a.states - b.states).max() <= 1e-4
+
+
+def test_a_quarter_domain_model_rolls_out_exactly_symmetric_states(tmp_path, tiny_scene, rules):
+    """A quarter-domain checkpoint: the predictor starts from the symmetric mean of the scene's initial state,
+    so every state it returns has the square's 8 symmetries exactly (``symmetric_size``); the service stores
+    such trajectories as their quadrant."""
+    import dataclasses
+
+    from nemsim.inference.checkpoint import save_checkpoint
+    from nemsim.registry import build_model, model_config
+    from nemsim.symmetry import symmetrize
+    from service.compact_states import CompactStates
+
+    torch.manual_seed(0)
+    overrides = {"domain": "quarter", "steps_per_call": 2, "decoder_out_scale": 1.0}
+    model = build_model("nemsim", tiny_scene, rules, overrides)
+    path = tmp_path / "quarter.pt"
+    save_checkpoint(path, model, model_name="nemsim",
+                    model_config=dataclasses.asdict(model_config("nemsim", tiny_scene, overrides)),
+                    scene=tiny_scene, rules=rules, summary={}, metrics={})
+    pred = Predictor.from_checkpoint(path, backend="torch")
+    assert pred.symmetric_size == tiny_scene.field_shape[-1]
+    assert "averaged over the scene's symmetries" in pred.initial_state_source
+    states = torch.from_numpy(pred.rollout(_mid(), 4).states.copy())
+    assert torch.equal(states, symmetrize(states)) and (states[-1] - states[0]).abs().max() > 1e-3
+    stored = CompactStates.encode(states, full_size=pred.symmetric_size)
+    assert np.array_equal(stored.decode(), states.half().numpy())

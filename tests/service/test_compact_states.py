@@ -48,3 +48,23 @@ def test_a_rollout_takes_a_fraction_of_its_float16_size(served, default_controls
     result, _ = s.rollout(np.array([list(default_controls.values())] * 20))
     float16_bytes = 2 * int(np.prod(result.states.shape))
     assert result.states.nbytes < float16_bytes / 2, (result.states.nbytes, float16_bytes)
+
+
+def test_a_symmetric_trajectory_keeps_its_quadrant_only():
+    """States with the square's symmetry (a quarter-domain model's) are stored as their quadrant: every
+    decoded state, block and pick equals the original, and the entry is a fraction of the full one."""
+    from nemsim.symmetry import symmetrize
+
+    g = torch.Generator().manual_seed(3)
+    states = symmetrize((torch.rand(9, 2, 6, 10, 10, generator=g) * 2 - 1).clamp(-0.9, 0.9))
+    states[3:] = states[3]  # some transitions without change
+    full = CompactStates.encode(states)
+    quarter = CompactStates.encode(states, full_size=10)
+    want = states.half().numpy()
+    assert quarter.shape == full.shape == tuple(states.shape)
+    assert np.array_equal(quarter.decode(), want) and np.array_equal(quarter.state(7), want[7])
+    assert np.array_equal(np.concatenate(list(quarter.blocks(3))), want)
+    assert np.array_equal(quarter.take([2, 5]), want[[2, 5]])
+    assert quarter.nbytes < 0.4 * full.nbytes
+    with pytest.raises(ValueError, match="full_size"):
+        CompactStates.encode(states, full_size=12)

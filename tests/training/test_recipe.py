@@ -81,19 +81,23 @@ def test_malformed_recipes_are_one_line_exit_2(tmp_path, tiny_data, capsys):
     assert "required: --data, --setting" in capsys.readouterr().err
 
 
-def test_shipped_recipe_parses():
-    """configs/nemsim-small.yaml (the served model's recipe) is a valid recipe whose stage arguments parse."""
+@pytest.mark.parametrize("name", ["nemsim-small.yaml", "small/quarter-from-full.yaml"])
+def test_shipped_recipes_parse(name):
+    """The committed recipes (the model from nothing; how the served model was made) are valid recipes whose
+    data commands and stage arguments parse, and whose config files and warm start exist."""
+    from nemsim.cli import build_parser
     from nemsim.cli.train import add_train_arguments
 
-    path = ROOT / "configs" / "nemsim-small.yaml"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
-    recipe = recipe_from_dict(yaml.safe_load(path.read_text()))
+    recipe = recipe_from_dict(yaml.safe_load((ROOT / "configs" / name).read_text()))
+    assert recipe.data, "a recipe names the commands that make its data"
+    for words in recipe.data:
+        build_parser().parse_args(list(words))
     for stage in recipe.stages:
         parser = argparse.ArgumentParser()
         add_train_arguments(parser)
         args = parser.parse_args([*stage.args, "--out", "unused"])
         assert args.config is None or (ROOT / args.config).is_file(), (stage.name, args.config)
+        assert args.init_from is None or (ROOT / args.init_from).is_file(), (stage.name, args.init_from)
 
 
 def test_recipe_data_commands_run_in_order_and_resume(tmp_path):
