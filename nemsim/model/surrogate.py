@@ -28,10 +28,11 @@ Quarter domain (``domain = "quarter"``, not in the paper; "model only what a sce
 the square's symmetry (``nemsim.symmetry``) the network runs on the lower quadrant of the field, whose high
 lateral faces lie on the hole axis; ``_pad`` gives them the mirror halo of the full field, so a convolution
 near the axis sees what it would see on the whole field. The GroupNorm statistics and the context pooling
-over the quadrant equal those over a symmetric full field up to the halo. The predicted quadrant is
-averaged with its transpose (the diagonal mirror), so a prediction has all 8 symmetries exactly. Rollouts
-run on the quadrant (``nemsim.evaluation.rollout`` folds x_0 and unfolds the trajectory); ``predict`` also
-accepts a full field.
+are the quadrant's own: a convolution with an unsymmetric kernel does not commute with the mirrors, so a
+network trained on the full field needs retraining on the quadrant. The predicted quadrant is averaged with
+its transpose (the diagonal mirror), so a prediction has all 8 symmetries exactly. Rollouts run on the
+quadrant (``nemsim.evaluation.rollout`` folds x_0 and unfolds the trajectory); ``predict`` also accepts a
+full field.
 
 Multi-step prediction (``steps_per_call`` = k, not in the paper; k = 1 is the paper's model): one call
 predicts x̂_{t+j} = clamp(x_t + r_j, -1, 1), j = 1..k, with cumulative residuals r_j from the decoder's
