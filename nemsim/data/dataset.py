@@ -278,7 +278,7 @@ class MemoryTransitions(Dataset):
         self.unroll, self._starts = first.unroll, first._starts
         self.n_states = first.n_states
         n_cases = sum(len(s.rows) for s in sets)
-        shape = first.transform(torch.zeros(1, *first.scene.state_shape)).shape[1:]  # (C, D, H', W')
+        shape = self.state_shape(sets)  # (C, D, H', W')
         self.device = torch.device(device)
         self.states = torch.empty((n_cases, self.n_states, *shape), dtype=torch.float16, device=self.device)
         self.u = torch.empty((n_cases, self.n_states - 1, first.u.shape[-1]), dtype=torch.float32,
@@ -304,10 +304,14 @@ class MemoryTransitions(Dataset):
         self._offsets = torch.arange(self.unroll + 1, device=self.device)  # (n+1,)
 
     @staticmethod
-    def nbytes_of(sets: list[TransitionDataset]) -> int:
+    def state_shape(sets: list[TransitionDataset]) -> tuple[int, ...]:
+        """(C, D, H', W') of one state as ``sets`` yield it (after their transform)."""
+        return tuple(sets[0].transform(torch.zeros(1, *sets[0].scene.state_shape)).shape[1:])
+
+    @classmethod
+    def nbytes_of(cls, sets: list[TransitionDataset]) -> int:
         """Bytes the states of ``sets`` take in memory (float16, after their transform)."""
-        shape = sets[0].transform(torch.zeros(1, *sets[0].scene.state_shape)).shape[1:]
-        return sum(len(s.rows) for s in sets) * sets[0].n_states * int(np.prod(shape)) * 2
+        return sum(len(s.rows) for s in sets) * sets[0].n_states * int(np.prod(cls.state_shape(sets))) * 2
 
     def __len__(self) -> int:
         return int(self.states.shape[0]) * self._starts
