@@ -111,6 +111,23 @@ def _worker_init(parent_pid: int | None = None) -> None:
         threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
 
 
+_WORKER_CASE: tuple | None = None  # (scene, rules, config) of a pool worker, set once by _pool_worker_init
+
+
+def _pool_worker_init(parent_pid: int, scene: Scene, rules: RuleTensors, config: SimConfig) -> None:
+    """A pool worker receives the scene, rules and config once: each task is then a few hundred bytes. With
+    ~55 kB tasks the call queue's pipe stays full while workers are busy, and a run stopped while the pool
+    shuts down could hang at exit with the queue's feeder thread blocked on a pipe nobody reads."""
+    global _WORKER_CASE
+    _worker_init(parent_pid)
+    _WORKER_CASE = (scene, rules, config)
+
+
+def _simulate_in_worker(task: CaseTask) -> tuple:
+    assert _WORKER_CASE is not None, "a pool worker is initialized by _pool_worker_init"
+    return simulate_case(*_WORKER_CASE, task)
+
+
 def _exit_with_parent(parent_pid: int, poll_s: float = 1.0) -> None:
     """Worker watchdog: exit as soon as the generating process is gone (even if it was SIGKILLed), instead
     of finishing a case nobody will write (the simulation loop returns to Python every macro step)."""
@@ -166,14 +183,14 @@ def _run_process_pool(scene, rules, config, tasks, workers, stop: _StopRequest) 
 
     ctx = mp.get_context("spawn")  # no fork of an open HDF5 file / torch state
     pending = list(tasks)[::-1]
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                               initargs=(os.getpid(),))  # fmt: skip
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_pool_worker_init,
+                               initargs=(os.getpid(), scene, rules, config))  # fmt: skip
     finished = False
     try:
         running: set[Any] = set()  # futures of the cases being simulated
         while pending or running:
             while pending and len(running) < 2 * workers:  # bound memory: states return to the parent
-                running.add(pool.submit(simulate_case, scene, rules, config, pending.pop()))
+                running.add(pool.submit(_simulate_in_worker, pending.pop()))
             done, running = wait(running, timeout=0.5, return_when=FIRST_COMPLETED)
             stop.check()
             for fut in done:
