@@ -58,6 +58,24 @@ def symmetrize(x: torch.Tensor, group: str = "d4") -> torch.Tensor:
     return out.to(x.dtype)
 
 
+def symmetrize_diagonal_(x: torch.Tensor) -> torch.Tensor:
+    """``x.copy_(symmetrize(x, "diagonal"))`` in place, without a temporary: each off-diagonal pair (i, j),
+    (j, i) of every (..., c, c) plane is replaced by its mean (the same float32 operation, 0.5 * (a + b)).
+    Used on every call of a quarter-domain rollout. Returns x."""
+    _square(x)
+    if (x.device.type == "cpu" and x.dtype == torch.float32 and not x.requires_grad
+            and x[(0,) * (x.dim() - 2)].is_contiguous() and x.numel()):
+        planes = x.detach().reshape(-1, *x.shape[-2:]) if x.is_contiguous() else None
+        if planes is not None:
+            _symmetrize_planes(planes.numpy())
+            return x
+        if x.dim() > 2:  # e.g. a chunk of a batched trajectory buffer: contiguous per leading index
+            for sub in x.unbind(0):
+                symmetrize_diagonal_(sub)
+            return x
+    return x.copy_(symmetrize(x, "diagonal"))
+
+
 def fold(x: torch.Tensor) -> torch.Tensor:
     """The lower quadrant (..., c, c) of a square field (..., n, n) (a view)."""
     _, n = _square(x)
@@ -122,3 +140,16 @@ def _unfold_planes(q: np.ndarray, out: np.ndarray) -> None:
                 out[p, i, j] = q[p, a, j]
             for j in range(c, n):
                 out[p, i, j] = q[p, a, n - 1 - j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _symmetrize_planes(a: np.ndarray) -> None:
+    """a[p, i, j] = a[p, j, i] = 0.5 * (a[p, i, j] + a[p, j, i]) for every plane p, in place."""
+    c = a.shape[1]
+    half = np.float32(0.5)
+    for p in range(a.shape[0]):
+        for i in range(c):
+            for j in range(i + 1, c):
+                v = half * (a[p, i, j] + a[p, j, i])
+                a[p, i, j] = v
+                a[p, j, i] = v

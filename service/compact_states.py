@@ -123,13 +123,18 @@ class CompactStates:
         """From states (T+1, 2, D, H, W): a float16 array, or a float32 tensor rounded to float16 here chunk
         by chunk (torch's conversion is vectorized; no float16 copy of the whole trajectory is made).
         ``full_size``: the states are exactly symmetric under the square's mirrors (a quarter-domain
-        model's): only their quadrant is stored, a quarter of the work and of the memory."""
+        model's): only their quadrant is stored, a quarter of the work and of the memory; the states may
+        then be given as that quadrant (T+1, 2, D, c, c) already."""
         shape = tuple(int(d) for d in states.shape)
-        if full_size is not None:
+        if full_size is not None and shape[-1] != full_size:  # given as their quadrant already?
+            from nemsim.scenes import quadrant_size
+
+            if shape[-1] != quadrant_size(full_size) or shape[-2] != shape[-1]:
+                raise ValueError(f"full_size {full_size} does not match states of shape {list(shape)}")
+            shape = (*shape[:-2], full_size, full_size)  # the trajectory's shape (what decoding returns)
+        elif full_size is not None:
             from nemsim.symmetry import fold
 
-            if shape[-1] != full_size:
-                raise ValueError(f"full_size {full_size} does not match states of shape {list(shape)}")
             folded = fold(torch.as_tensor(states))
             states = folded.contiguous() if isinstance(states, torch.Tensor) else folded.numpy().copy()
         if isinstance(states, torch.Tensor):

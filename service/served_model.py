@@ -214,15 +214,15 @@ class ServedModel:
         return (cached, True) if cached is not None else self.compute_rollout(schedule, rid)
 
     def _compute(self, rid: str, schedule: ControlSchedule) -> RolloutResult:
-        buf = self._take_buffer(schedule.steps)  # (>= T+1, 2, D, H, W) float32
-        try:
-            pred = self.predictor.rollout(schedule, out=buf)
+        buf = self._take_buffer(schedule.steps)  # (>= T+1, 2, D, H, W) float32, or the quadrant's shape
+        try:  # a symmetric model's rollout stays on the quadrant (what the cache keeps; a quarter the work)
+            pred = self.predictor.rollout(schedule, out=buf, quadrant=True)
             metrics = {
                 k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
                 for k, vals in pred.metrics.items()
             }
-            states = CompactStates.encode(buf[: schedule.steps + 1],  # float16 (T+1, 2, D, H, W), compactly
-                                          full_size=self.predictor.symmetric_size)
+            states = CompactStates.encode(buf[: schedule.steps + 1],  # float16, compactly
+                                          full_size=pred.full_size)
         finally:
             self._give_back(buf)
         if pred.warnings:
@@ -252,7 +252,7 @@ class ServedModel:
             if self._buffers:
                 self._buffers.pop(0)  # too short for this rollout: replaced by a longer one
         with torch.inference_mode(False):
-            return torch.empty((steps + 1, *self.predictor.x0.shape), dtype=torch.float32)
+            return torch.empty((steps + 1, *self.predictor.state_shape(quadrant=True)), dtype=torch.float32)
 
     def _give_back(self, buf: torch.Tensor) -> None:
         with self._buffers_lock:

@@ -9,7 +9,7 @@ import torch
 from nemsim.evaluation.rollout import rollout
 from nemsim.inference.runtime import compile_model, openvino_available
 from nemsim.scenes import SCENES, Scene, quadrant_size
-from nemsim.symmetry import fold, mirror_pad, symmetrize, unfold
+from nemsim.symmetry import fold, mirror_pad, symmetrize, symmetrize_diagonal_, unfold
 
 torch.set_num_threads(1)
 
@@ -133,3 +133,16 @@ def test_openvino_matches_pytorch_on_the_quadrant(tiny_scene):
     assert (out - ref).abs().max() <= 1e-4
     for image in _images(out[:, 1:]):
         assert torch.equal(image, out[:, 1:])
+
+
+def test_the_in_place_diagonal_average_is_the_diagonal_symmetrize():
+    """``symmetrize_diagonal_`` (the rollout's per-call diagonal mirror, no temporary) gives the same float32
+    values as ``symmetrize(x, "diagonal")`` on a whole buffer, on a chunk of a batched trajectory buffer
+    (contiguous per batch row only) and on a transposed view (the fallback)."""
+    g = torch.Generator().manual_seed(5)
+    buf = torch.randn(3, 6, 2, 4, 7, 7, generator=g)
+    for view in (buf.clone(), buf.clone()[:, 2:5], buf.clone().transpose(0, 1), buf.clone()[0, 0, 0, 0]):
+        want = symmetrize(view, "diagonal")
+        assert symmetrize_diagonal_(view) is view
+        assert torch.equal(view, want)
+        assert torch.equal(view, view.transpose(-1, -2))

@@ -36,7 +36,7 @@ import torch
 from torch import nn
 
 from nemsim.model.monotone import projection_of
-from nemsim.symmetry import fold, quarter_model_size, symmetrize, unfold
+from nemsim.symmetry import fold, quarter_model_size, symmetrize, symmetrize_diagonal_, unfold
 
 StepCallback = Callable[[int, torch.Tensor], None]
 
@@ -149,7 +149,7 @@ def rollout(
             else:
                 dst.copy_(model.predict(x, cache)[:, :n])  # type: ignore[operator]
         if quarter and (into is not None or not fast):  # predict symmetrizes itself; the rest here
-            dst.copy_(symmetrize(dst, "diagonal"))
+            symmetrize_diagonal_(dst)
         if project is not None:
             project.project_chunk_(dst)
         for j in range(n):

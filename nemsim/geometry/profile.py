@@ -27,7 +27,10 @@ Definitions (nm = voxels * scene.voxel_nm):
     per column) over the planar field, the columns at least opening_radius + d_max from the axis (else all
     outside opening_radius + 1); a column without mask counts as fully eroded.
 
-:func:`profile_metrics_batch` is vectorized over a leading step axis (T, 2, D, H, W).
+:func:`profile_metrics_batch` is vectorized over a leading step axis (T, 2, D, H, W). It also takes the
+states' quadrant (T, 2, D, c, c) (``nemsim.symmetry.fold``) of fields exactly symmetric under the square's
+mirrors (a quarter-domain model's rollout): the lines through the axis and the mask-top map are rebuilt by
+reflection from the quadrant, so the metrics equal those of the unfolded fields without building them.
 """
 
 from __future__ import annotations
@@ -104,12 +107,22 @@ def _half_widths(lines: np.ndarray, a: float, n: int) -> np.ndarray:
     return (_first_crossing(right, pos_r) - a) + (a - _first_crossing(left, pos_l))
 
 
-def _widths(si: np.ndarray, scene: Scene) -> np.ndarray:
-    """Width w (voxels) of every row. si: (T, D, H, W) -> (T, D)."""
+def _reflect(half: np.ndarray, n: int) -> np.ndarray:
+    """The full line (..., n) rebuilt from its lower half (..., c) by the mirror about the centre."""
+    c = half.shape[-1]
+    return np.concatenate([half, half[..., : n - c][..., ::-1]], axis=-1)
+
+
+def _widths(si: np.ndarray, scene: Scene, quadrant: bool = False) -> np.ndarray:
+    """Width w (voxels) of every row. si: (T, D, H, W), or its quadrant (T, D, c, c) -> (T, D)."""
     ax_x = scene.opening_centre[0] + 1.0  # index coordinates
     ax_y = scene.opening_centre[1] + 1.0
-    x_lines = _interp_at(si, 2, ax_y)  # (T, D, W)
-    y_lines = _interp_at(si, 3, ax_x)  # (T, D, H)
+    if quadrant:  # the axis lies on the quadrant's last row and column (the mirror of each is its neighbour)
+        x_lines = _reflect(si[..., -1, :].astype(np.float64), scene.nx + 2)  # (T, D, W)
+        y_lines = _reflect(si[..., :, -1].astype(np.float64), scene.ny + 2)  # (T, D, H)
+    else:
+        x_lines = _interp_at(si, 2, ax_y)  # (T, D, W)
+        y_lines = _interp_at(si, 3, ax_x)  # (T, D, H)
     return 0.5 * (_half_widths(x_lines, ax_x, scene.nx) + _half_widths(y_lines, ax_y, scene.ny))
 
 
@@ -136,7 +149,8 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
     if hasattr(states, "detach"):
         states = states.detach().cpu().numpy()
     x = np.asarray(states)
-    if x.ndim != 5 or x.shape[1:] != scene.state_shape:
+    quadrant = scene.symmetry == "d4" and x.ndim == 5 and x.shape[1:] == scene.quarter_state_shape
+    if not quadrant and (x.ndim != 5 or x.shape[1:] != scene.state_shape):
         raise ValueError(
             f"states shape {x.shape}; expected (T, *{scene.state_shape}) for scene {scene.name!r}"
         )
@@ -149,7 +163,10 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
     ax_y = scene.opening_centre[1] + 1.0
 
     # --- etch depth: scan the axis column of the Si channel downward ---------------------------
-    col = _interp_at(_interp_at(si, 3, ax_x), 2, ax_y)  # (T, D)
+    if quadrant:
+        col = si[:, :, -1, -1].astype(np.float64)  # (T, D)
+    else:
+        col = _interp_at(_interp_at(si, 3, ax_x), 2, ax_y)  # (T, D)
     rows_down = np.arange(nz, 0, -1, dtype=np.float64)  # native rows, top to bottom (index coords)
     floor = _first_crossing(col[:, nz:0:-1], rows_down)  # (T,) index coordinate of the hole floor
     si_surface = scene.si_top + 0.5  # initial Si top in index coordinates
@@ -157,7 +174,7 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
 
     # --- width profile over the Si rows ---------------------------------------------------------
     top_row = scene.si_top  # index of the top Si row (native si_top - 1)
-    w = _widths(si[:, 1 : top_row + 1], scene)  # (T, top_row) rows 1..top_row
+    w = _widths(si[:, 1 : top_row + 1], scene, quadrant)  # (T, top_row) rows 1..top_row
     rows = np.arange(1, top_row + 1, dtype=np.float64)
     above = rows[None, :] > floor[:, None]  # rows inside the hole
     top_w = w[:, -1]
@@ -180,15 +197,21 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
     frac = (z_b - lo)[:, None, None]
     t_idx = np.arange(t_count)
     plane = (1.0 - frac) * si[t_idx, lo] + frac * si[t_idx, lo + 1]  # (T, H, W) float64
-    bottom = _widths(plane[:, None], scene)[:, 0]
+    bottom = _widths(plane[:, None], scene, quadrant)[:, 0]
     bottom = np.where(depth >= BOTTOM_MIN_VOX, bottom, 0.0)
 
     # --- mask thickness loss ---------------------------------------------------------------------
     sel = _field_columns_mask(scene)  # (ny, nx)
-    m_cols = mask[:, scene.si_top + 1 : nz + 1, 1:-1, 1:-1][:, :, sel]  # (T, rows, K) mask rows
-    m_cols = np.moveaxis(m_cols[:, ::-1], 1, -1).astype(np.float64)  # (T, K, rows) top to bottom
     m_rows = np.arange(nz, scene.si_top, -1, dtype=np.float64)
-    m_top = _first_crossing(m_cols, m_rows).mean(axis=1)  # (T,)
+    if quadrant:  # the mask top of every quadrant column, reflected to the full map, then the same columns
+        m_cols = np.moveaxis(mask[:, nz : scene.si_top : -1], 1, -1).astype(np.float64)  # (T, c, c, rows)
+        top_q = _first_crossing(m_cols, m_rows)  # (T, c, c)
+        top_full = _reflect(np.swapaxes(_reflect(top_q, scene.nx + 2), 1, 2), scene.ny + 2)  # (T, W, H)
+        m_top = np.swapaxes(top_full, 1, 2)[:, 1:-1, 1:-1][:, sel].mean(axis=1)  # (T,)
+    else:
+        m_cols = mask[:, scene.si_top + 1 : nz + 1, 1:-1, 1:-1][:, :, sel]  # (T, rows, K) mask rows
+        m_cols = np.moveaxis(m_cols[:, ::-1], 1, -1).astype(np.float64)  # (T, K, rows) top to bottom
+        m_top = _first_crossing(m_cols, m_rows).mean(axis=1)  # (T,)
     mask_loss = (scene.resist_top + 0.5) - m_top
 
     return {

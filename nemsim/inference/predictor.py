@@ -9,7 +9,9 @@ initial state, built by the simulator with the configuration of the checkpoint's
 records one, and returns the trajectory with its profile metrics (``nemsim.geometry.profile``) and the
 stability guard's findings. A quarter-domain model (``nemsim.symmetry``) starts from that state averaged over
 the scene's symmetries (the simulator's initial state is symmetric up to the sub-voxel rounding of its
-distance transform), so each of its trajectories is exactly symmetric (``symmetric_size``).
+distance transform), so each of its trajectories is exactly symmetric (``symmetric_size``), and
+``rollout(..., quadrant=True)`` keeps it on the quadrant: no full field is built, the metrics and the
+stability guard read a quarter of the voxels, and ``nemsim.symmetry.unfold`` rebuilds any state on demand.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_no
 from nemsim.inference import range_check
 from nemsim.inference.checkpoint import LoadedModel, checkpoint_id, load_checkpoint
 from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
-from nemsim.symmetry import quarter_model_size, symmetrize
+from nemsim.symmetry import fold, quarter_model_size, symmetrize
 
 log = logging.getLogger(__name__)
 
@@ -156,13 +158,16 @@ class Prediction:
     """One rollout: the states, their profile metrics and what the stability guard found."""
 
     schedule: ControlSchedule
-    states: np.ndarray  # (T+1, 2, D, H, W) float32 normalized SDF (a view of ``out`` when one was given)
+    # (T+1, 2, D, H, W) float32 normalized SDF (a view of ``out`` when one was given), or the quadrant
+    # (T+1, 2, D, c, c) of fields of lateral size ``full_size`` (``Predictor.rollout(..., quadrant=True)``)
+    states: np.ndarray
     metrics: dict[str, np.ndarray]  # name -> (T+1,) values in nm (NaN where undefined)
     times_s: list[float]  # (T+1,)
     rollout_s: float
     metrics_s: float
     warnings: tuple[str, ...] = ()
     non_finite_from: int | None = None  # the first step whose state is not finite (NaN/Inf), None: none
+    full_size: int | None = None  # set when ``states`` holds the quadrant of fields of this lateral size
 
     @property
     def steps(self) -> int:
@@ -312,19 +317,25 @@ class Predictor:
         steps: int | None = None,
         *,
         out: torch.Tensor | None = None,
+        quadrant: bool = False,
     ) -> Prediction:
         """Roll the model out from the initial state under ``controls`` (physical units, see
         ``control_schedule``) and compute the profile metrics of every state.
 
         Args:
-            out: optional float32 buffer (>= T+1, 2, D, H, W) the states are written into (the returned
-                ``states`` is then a view of it, valid while the caller does not reuse it).
+            out: optional float32 buffer (>= T+1, *``state_shape(quadrant)``) the states are written into
+                (the returned ``states`` is then a view of it, valid while the caller does not reuse it).
+            quadrant: return the states' quadrant (``Prediction.full_size`` set), when the rollouts are
+                exactly symmetric (``symmetric_size``); otherwise the full fields, as without it.
         """
         from nemsim.evaluation.rollout import rollout
 
         sched = self.schedule(controls, steps)
         T = sched.steps
+        on_quadrant = quadrant and self.symmetric_size is not None
         x0 = torch.from_numpy(self.x0)[None]  # (1, 2, D, H, W)
+        if on_quadrant:
+            x0 = fold(x0).contiguous()  # the model's own domain: the rollout stays there
         u = torch.from_numpy(sched.normalized)[None]  # (1, T, 14)
         t0 = time.perf_counter()
         whole = getattr(self.runtime, "rollout", None)  # CUDA graphs: a constant-control rollout, one replay
@@ -349,7 +360,15 @@ class Predictor:
             metrics_s=t2 - t1,
             warnings=tuple(warnings),
             non_finite_from=non_finite_from,
+            full_size=self.symmetric_size if on_quadrant else None,
         )
+
+    def state_shape(self, quadrant: bool = False) -> tuple[int, ...]:
+        """(2, D, H, W) of a rollout's states, or (2, D, c, c) for ``rollout(..., quadrant=True)`` when the
+        rollouts are exactly symmetric."""
+        if quadrant and self.symmetric_size is not None:
+            return tuple(self.scene.quarter_state_shape)
+        return tuple(self.x0.shape)
 
     def metrics(self, states: np.ndarray) -> dict[str, np.ndarray]:
         """Profile metrics (nm) of states (T+1, 2, D, H, W): name -> (T+1,) (``profile_metrics_batch``)."""

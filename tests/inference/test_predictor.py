@@ -171,7 +171,7 @@ def test_a_quarter_domain_model_rolls_out_exactly_symmetric_states(tmp_path, tin
 
     from nemsim.inference.checkpoint import save_checkpoint
     from nemsim.registry import build_model, model_config
-    from nemsim.symmetry import symmetrize
+    from nemsim.symmetry import fold, symmetrize
     from service.compact_states import CompactStates
 
     torch.manual_seed(0)
@@ -188,3 +188,13 @@ def test_a_quarter_domain_model_rolls_out_exactly_symmetric_states(tmp_path, tin
     assert torch.equal(states, symmetrize(states)) and (states[-1] - states[0]).abs().max() > 1e-3
     stored = CompactStates.encode(states, full_size=pred.symmetric_size)
     assert np.array_equal(stored.decode(), states.half().numpy())
+    # on the quadrant (the service's path): the same states' quadrant, the same metrics, no full field built
+    whole = pred.rollout(_mid(), 4)
+    quad = pred.rollout(_mid(), 4, quadrant=True)
+    assert quad.full_size == pred.symmetric_size and whole.full_size is None
+    assert quad.states.shape[1:] == pred.state_shape(quadrant=True) == tiny_scene.quarter_state_shape
+    assert np.array_equal(quad.states, fold(torch.from_numpy(whole.states)).numpy())
+    for name, values in whole.metrics.items():
+        np.testing.assert_allclose(quad.metrics[name], values, rtol=0, atol=1e-9, err_msg=name)
+    from_quadrant = CompactStates.encode(torch.from_numpy(quad.states.copy()), full_size=quad.full_size)
+    assert np.array_equal(from_quadrant.decode(), stored.decode())

@@ -170,18 +170,25 @@ def test_depth_never_decreases_with_the_axis_projection():
     assert min(falls) < -0.05  # nm: the per-channel slack alone lets the depth run backwards
 
 
-def test_chunk_projection_equals_state_by_state():
-    """The vectorized projection of a call's n states (the GPU form: a cumulative maximum) gives exactly the
-    states and running maximum of projecting them one by one."""
+@pytest.mark.parametrize("form", ["vectorized", "cpu", "cpu-slice"])
+def test_chunk_projection_equals_state_by_state(form):
+    """The projection of a call's n states -- the GPU form (a cumulative maximum) and the CPU's compiled pass,
+    on a whole buffer and on a chunk of a batched trajectory buffer -- gives exactly the states and running
+    maximum of projecting them one by one; a NaN stays NaN in the states and the running maximum."""
     from nemsim.model.monotone import MonotoneProjection
 
     g = torch.Generator().manual_seed(0)
     x0 = torch.rand(2, 2, 6, 5, 5, generator=g) * 2 - 1
-    states = torch.rand(2, 4, 2, 6, 5, 5, generator=g) * 2 - 1
+    buf = torch.rand(2, 6, 2, 6, 5, 5, generator=g) * 2 - 1
+    buf[1, 2, 1, 3, 2, 2] = float("nan")
+    states = buf[:, 1:5] if form == "cpu-slice" else buf[:, :4].contiguous()
     one, many = MonotoneProjection(x0, (0.05, 0.2), 0.0), MonotoneProjection(x0, (0.05, 0.2), 0.0)
     a = states.clone()
     for j in range(a.shape[1]):
         one.project_(a[:, j])
-    b = many._project_chunk_vectorized_(states.clone())
-    assert torch.equal(a, b) and torch.equal(one.running_max, many.running_max)
-    assert not torch.equal(a, states)  # the projection changed something
+    b = states.clone() if form != "cpu-slice" else buf.clone()[:, 1:5]
+    b = many._project_chunk_vectorized_(b) if form == "vectorized" else many.project_chunk_(b)
+    assert torch.equal(a.nan_to_num(9.0), b.nan_to_num(9.0)) and torch.equal(a.isnan(), b.isnan())
+    assert torch.equal(one.running_max.nan_to_num(9.0), many.running_max.nan_to_num(9.0))
+    assert torch.equal(one.running_max.isnan(), many.running_max.isnan()) and many.running_max.isnan().any()
+    assert not torch.equal(a.nan_to_num(9.0), states.nan_to_num(9.0))  # the projection changed something
