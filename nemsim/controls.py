@@ -31,6 +31,7 @@ Choices where the paper is silent:
 from __future__ import annotations
 
 import csv
+import difflib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -143,12 +144,29 @@ IS_LOG = np.array([s.kind == "log" for s in CONTROL_SPECS])
 A = TypeVar("A")  # np.ndarray or torch.Tensor
 
 
+def closest_name(name: str, choices: tuple[str, ...] = CONTROL_NAMES) -> str | None:
+    """The name among ``choices`` closest to a misspelt one (``difflib`` similarity >= 0.6, compared in
+    lower case with '-' and ' ' read as '_'), or None when none is close."""
+    key = str(name).strip().lower().replace("-", "_").replace(" ", "_")
+    found = difflib.get_close_matches(key, [c.lower() for c in choices], n=1, cutoff=0.6)
+    return next(c for c in choices if c.lower() == found[0]) if found else None
+
+
+def unknown_control(name: str, extra: tuple[str, ...] = ()) -> str:
+    """The message for an unknown control name: the closest valid name ("did you mean ...") when one is
+    close, else the list of the controls; ``extra``: other names valid where the name was given."""
+    close = closest_name(name, CONTROL_NAMES + extra)
+    if close is not None:
+        return f"unknown control {name!r}; did you mean {close!r}?"
+    return f"unknown control {name!r}; expected one of {list(CONTROL_NAMES + extra)}"
+
+
 def control_index(name: str) -> int:
-    """Column index of a control; ValueError listing the choices."""
+    """Column index of a control; ValueError naming the closest valid name (``unknown_control``)."""
     try:
         return CONTROL_INDEX[name]
     except KeyError:
-        raise ValueError(f"unknown control {name!r}; expected one of {list(CONTROL_NAMES)}") from None
+        raise ValueError(unknown_control(name)) from None
 
 
 def _is_torch(x: object) -> bool:

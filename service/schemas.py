@@ -4,6 +4,12 @@ Controls are given by name in physical units; each field's JSON schema carries i
 physically admissible range (violations are 422 naming the field) and the design range the model
 was trained on (values outside it are accepted with a warning). The field set is built from
 `nemsim.controls.CONTROL_SPECS`, so units and ranges are typed once.
+
+A control set may be partial: a missing control takes the documented default (the centre of the design
+range, `default_controls_raw`, what `/model` lists), and the answer names the defaulted ones, so an
+engineer changes two knobs without copying fourteen. An unknown name is refused (a typo must not
+silently become a default) with the closest valid name (`nemsim.controls.unknown_control`). Both rules
+live in the `Controls` model only, so rollouts, recipes and simulator jobs share them.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from nemsim.controls import (
     from_normalized,
     guard_max,
     to_normalized,
+    unknown_control,
 )
 from nemsim.inference import ControlSchedule
 
@@ -39,7 +46,7 @@ DEFAULT_STEPS = 100  # the paper horizon: 100 transitions of 0.1 s
 MAX_STEPS_HARD = 10_000  # no configuration may allow more (Settings.max_steps has the same bound)
 CHANNELS = ("mask", "si")  # state channel 0, 1
 Channel = Literal["mask", "si"]
-MeshFormat = Literal["glb", "ply", "obj", "stl"]
+MeshFormat = Literal["glb", "ply", "obj", "stl", "vtp"]
 FieldsMode = Literal["none", "final", "all"]
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -113,18 +120,45 @@ def _control_field(spec: Any, default: float | None, *, strict: bool = True) -> 
     return (typ, field)
 
 
+_DEFAULTS = default_controls_raw()
+
+
+def refuse_unknown_names(data: Any, extra: tuple[str, ...] = ()) -> Any:
+    """Before-validator of a control set: ValueError for the first name that is neither a control nor one
+    of `extra`, naming the closest valid name (an unknown name is never dropped or defaulted)."""
+    if isinstance(data, dict):
+        for name in data:
+            if name not in CONTROL_NAMES and name not in extra:
+                raise ValueError(unknown_control(str(name), extra))
+    return data
+
+
+class _ControlsBase(BaseModel):
+    model_config = _STRICT
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_names(cls, data: Any) -> Any:
+        return refuse_unknown_names(data)
+
+
 Controls = create_model(  # type: ignore[call-overload]
     "Controls",
-    __config__=_STRICT,
-    __doc__="The 14 process controls by name, in physical units (all required).",
-    **{s.name: _control_field(s, None) for s in CONTROL_SPECS},
+    __base__=_ControlsBase,
+    __doc__="The 14 process controls by name, in physical units. Any subset: a missing control takes its "
+    "documented default (the centre of the design range, as listed by GET /model); an unknown name is "
+    "refused with the closest valid one.",
+    **{s.name: _control_field(s, float(_DEFAULTS[i])) for i, s in enumerate(CONTROL_SPECS)},
 )
-
-_DEFAULTS = default_controls_raw()
 
 
 class _MechanismsBase(BaseModel):
     model_config = _STRICT
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_names(cls, data: Any) -> Any:
+        return refuse_unknown_names(data, extra=("factors",))
 
     @model_validator(mode="after")
     def _meaningful(self) -> _MechanismsBase:
@@ -216,9 +250,11 @@ NormalizedVector = Annotated[
 
 
 def _request_schema_extra(schema: dict[str, Any]) -> None:
-    """An example, and "exactly one of controls, controls_normalized, recipe" (null counts as absent)."""
+    """Examples (a full and a partial control set), and "exactly one of controls, controls_normalized, recipe"
+    (null counts as absent)."""
     schema["examples"] = [
-        {"controls": array_to_controls(default_controls_raw()), "steps": 100}
+        {"controls": array_to_controls(default_controls_raw()), "steps": 100},
+        {"controls": {"flux_cl": 0.01, "energy_mean_ar_plus": 300.0}, "steps": 50},
     ]
     schema["oneOf"] = [
         {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
@@ -236,7 +272,9 @@ class ControlSource(BaseModel):
         json_schema_extra=_request_schema_extra,
     )
 
-    controls: Controls | None = Field(None, description="constant controls by name, physical units")  # type: ignore[valid-type]
+    controls: Controls | None = Field(  # type: ignore[valid-type]
+        None, description="constant controls by name, physical units (any subset; the rest take the defaults)"
+    )
     controls_normalized: NormalizedVector | None = Field(
         None,
         description=f"constant controls as 14 normalized numbers in the order {list(CONTROL_NAMES)}; "
@@ -301,6 +339,14 @@ class ControlSource(BaseModel):
         rows = self._rows_raw()  # (K, 14)
         per_transition = rows if self.recipe is not None else np.repeat(rows, self.steps, axis=0)  # (T, 14)
         return ControlSchedule.physical(per_transition)
+
+    @property
+    def defaulted(self) -> list[str]:
+        """The controls left out of the request and filled from the defaults (CONTROL_NAMES order); for a
+        recipe, those left out of any of its control sets; none for `controls_normalized` (all 14 given)."""
+        rows: list[BaseModel] = [self.controls] if self.controls is not None else self.recipe or []
+        given = set.intersection(*(row.model_fields_set for row in rows)) if rows else set(CONTROL_NAMES)
+        return [n for n in CONTROL_NAMES if n not in given]
 
     @property
     def source(self) -> str:
@@ -423,7 +469,13 @@ class RolloutResponse(BaseModel):
     metrics: dict[str, list[float | None]] = Field(
         description="profile metrics per state (index = step): etch depth, widths, bowing, mask loss"
     )
-    controls: dict[str, float] = Field(description="controls of the first transition, physical units")
+    controls: dict[str, float] = Field(
+        description="the full control set of the first transition as used, physical units (defaults "
+        "filled in)"
+    )
+    defaulted: list[str] = Field(
+        [], description="controls the request left out, filled from the documented defaults (GET /model)"
+    )
     recipe: list[dict[str, float]] | None = Field(None, description="per-transition controls, when varying")
     warnings: list[str]
     extrapolation: list[ExtrapolationInfo] = Field(

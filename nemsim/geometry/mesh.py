@@ -1,4 +1,4 @@
-"""Surface meshes of one SDF channel, in nm, and their export to glb / ply / obj / stl.
+"""Surface meshes of one SDF channel, in nm, and their export to glb / ply / obj / stl / vtp.
 
 Coordinates. The field is a padded, transposed (D, H, W) = (z, y, x) channel (index = native + 1).
 Marching cubes (scikit-image, level 0, unit spacing) gives vertices in index coordinates; we undo the
@@ -11,13 +11,25 @@ of the material (towards increasing SDF, i.e. into vacuum).
 
 Provenance: ``metadata`` (a JSON-serializable dict) is stored in ``mesh.metadata`` and embedded where the
 format allows it: glb mesh ``extras``, ply ``comment`` header lines (one ``key=json`` per line), an obj
-``#`` comment header, and (truncated to 80 bytes) the binary stl header.
+``#`` comment header, (truncated to 80 bytes) the binary stl header, and in vtp an XML comment (every
+entry, ``key: json``) plus ``FieldData`` (the numeric entries, one Float64 tuple each, which ParaView
+lists in its information panel).
+
+VTP is VTK's XML PolyData (``VTKFile`` version 1.0, ``header_type="UInt64"``), what ParaView and VTK
+based tools (ViennaPS among them) read natively. It is written here with the standard library rather
+than through the ``vtk`` package (a large dependency for one writer): points Float32, triangles as
+Int64 ``connectivity`` / ``offsets``, point ``Normals`` and, when the mesh has vertex colours (the
+surrogate-error meshes), an RGBA UInt8 ``colors`` array; arrays inline as base64 of the byte count
+followed by the little-endian data, uncompressed.
 """
 
 from __future__ import annotations
 
+import base64
 import json
+import math
 from typing import TYPE_CHECKING, Any, Literal
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
@@ -26,13 +38,14 @@ if TYPE_CHECKING:
 
     from nemsim.scenes import Scene
 
-MeshFormat = Literal["glb", "ply", "obj", "stl"]
-MESH_FORMATS: tuple[str, ...] = ("glb", "ply", "obj", "stl")
+MeshFormat = Literal["glb", "ply", "obj", "stl", "vtp"]
+MESH_FORMATS: tuple[str, ...] = ("glb", "ply", "obj", "stl", "vtp")
 MEDIA_TYPES = {
     "glb": "model/gltf-binary",
     "ply": "application/octet-stream",
     "obj": "model/obj",
     "stl": "model/stl",
+    "vtp": "application/xml",  # no registered type; VTK's files are XML
 }
 
 
@@ -86,6 +99,65 @@ def _ply_with_comments(data: bytes, meta: dict) -> bytes:
     return ("\n".join(header) + "\n").encode("ascii", errors="replace") + data[head_end:]
 
 
+def _vtk_array(
+    name: str, values: np.ndarray, vtk_type: str, components: int = 1, tuples: bool = False
+) -> str:
+    """One inline binary ``DataArray``: base64 of the UInt64 byte count followed by the data (one stream);
+    ``tuples``: state the tuple count (``FieldData`` arrays need it, VTK reads them empty otherwise)."""
+    raw = np.ascontiguousarray(values).tobytes()
+    data = base64.b64encode(np.array([len(raw)], dtype="<u8").tobytes() + raw).decode("ascii")
+    comps = f' NumberOfComponents="{components}"' if components > 1 else ""
+    if tuples:
+        comps += f' NumberOfTuples="{len(values) // components}"'
+    return f'<DataArray type="{vtk_type}" Name={quoteattr(name)}{comps} format="binary">{data}</DataArray>'
+
+
+def _xml_comment(text: str) -> str:
+    """`text` as an XML comment (a comment may not hold "--" nor end in "-")."""
+    return "<!-- " + text.replace("--", "- -").rstrip("-") + " -->"
+
+
+def _vtp(mesh: trimesh.Trimesh, meta: dict) -> bytes:
+    """VTK XML PolyData of a triangle mesh (module docstring), provenance in a comment and ``FieldData``."""
+    verts = np.asarray(mesh.vertices, dtype="<f4").reshape(-1, 3)  # (V, 3) nm
+    faces = np.asarray(mesh.faces, dtype="<i8").reshape(-1, 3)  # (F, 3)
+    point_arrays = []
+    if len(verts):
+        point_arrays.append(_vtk_array("Normals", np.asarray(mesh.vertex_normals, dtype="<f4"), "Float32", 3))
+        if getattr(mesh.visual, "kind", None) == "vertex":
+            colours = np.asarray(mesh.visual.vertex_colors, dtype=np.uint8)  # type: ignore[union-attr]
+            point_arrays.append(_vtk_array("colors", colours, "UInt8", 4))
+    numeric = {
+        k: float(v)
+        for k, v in meta.items()
+        if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+    }
+    field_data = "".join(
+        _vtk_array(k, np.array([v], dtype="<f8"), "Float64", tuples=True) for k, v in numeric.items()
+    )
+    lines = ["NEMSim surface mesh"] + [f"{k}: {json.dumps(v, default=str)}" for k, v in meta.items()]
+    offsets = 3 * np.arange(1, len(faces) + 1, dtype="<i8")  # (F,) end of each triangle in connectivity
+    parts = [
+        '<?xml version="1.0"?>',
+        _xml_comment("\n     ".join(line.replace("\n", " ") for line in lines)),
+        '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" header_type="UInt64">',
+        "<PolyData>",
+        f"<FieldData>{field_data}</FieldData>" if field_data else "",
+        f'<Piece NumberOfPoints="{len(verts)}" NumberOfVerts="0" NumberOfLines="0" NumberOfStrips="0" '
+        f'NumberOfPolys="{len(faces)}">',
+        f'<PointData Normals="Normals">{"".join(point_arrays)}</PointData>' if point_arrays else "",
+        f"<Points>{_vtk_array('Points', verts, 'Float32', 3)}</Points>",
+        "<Polys>"
+        + _vtk_array("connectivity", faces.reshape(-1), "Int64")
+        + _vtk_array("offsets", offsets, "Int64")
+        + "</Polys>",
+        "</Piece>",
+        "</PolyData>",
+        "</VTKFile>",
+    ]
+    return ("\n".join(p for p in parts if p) + "\n").encode("utf-8")
+
+
 def export_mesh(mesh: trimesh.Trimesh, fmt: str) -> bytes:
     """Serialize a mesh to one of ``MESH_FORMATS``, embedding ``mesh.metadata`` where the format allows.
 
@@ -110,6 +182,8 @@ def export_mesh(mesh: trimesh.Trimesh, fmt: str) -> bytes:
             mesh, include_normals=False, include_color=False, include_texture=False, header=header
         )
         return text.encode("utf-8")
+    if fmt == "vtp":
+        return _vtp(mesh, meta)
     data = bytearray(stl.export_stl(mesh))
     # binary STL: 80-byte free header (must not start with "solid", or readers take it for ASCII)
     summary = "NEMSim " + " ".join(f"{k}={v}" for k, v in meta.items() if isinstance(v, (str, int, float)))

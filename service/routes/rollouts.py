@@ -1,18 +1,34 @@
-"""Rollouts and their surface meshes."""
+"""Rollouts, their surface meshes and their exports.
+
+Exports of a cached rollout, by its id (404 once it left the cache, as for its meshes):
+
+* `metrics.csv`: one row per state; columns `step`, `time [s]` and each profile metric in nm (the unit in
+  the column name, so a spreadsheet keeps it), undefined values as empty cells; `#` comment lines first
+  name the model, the scene and the controls (a recipe adds one column per control instead). Built on a
+  worker thread without a gate: a few hundred rows cost less than a gate's bookkeeping.
+* `trajectory.h5`: the states in the simulator's data-file layout (`nemsim.data.hdf5`, one case), so
+  `nemsim.data.hdf5.open_trajectories` and every HDF5 tool read it (`_write_trajectory`). Decoding and
+  compressing every state is real work: it waits at the mesh gate like a mesh export.
+"""
 
 from __future__ import annotations
 
 import base64
+import csv
+import io
+import json
+import math
 import time
 import uuid
 from collections.abc import Iterable, Iterator
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
+from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, transform
 from nemsim.inference import MEDIA_TYPES, Refused
 from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
 from service.inverse import rollout_intervals
@@ -182,6 +198,7 @@ async def post_rollout(
         times_s=result.times_s,
         metrics=result.metrics,
         controls=array_to_controls(result.controls_raw[0]),
+        defaulted=body.defaulted,
         recipe=[array_to_controls(row) for row in result.controls_raw] if varying else None,
         warnings=warnings,
         extrapolation=[e.as_dict() for e in found],  # type: ignore[misc]
@@ -216,7 +233,7 @@ async def get_mesh(
     gates: GatesDep,
     step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
     channel: Annotated[Channel, Query(description="mask or si")] = "si",
-    format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
+    format: Annotated[MeshFormat, Query(description="glb, ply, obj, stl or vtp (VTK PolyData)")] = "glb",
 ) -> Response:
     """The zero-level surface of one channel at one step of a cached rollout, in nm, with provenance."""
     result = cached_rollout(served, rollout_id)
@@ -233,3 +250,146 @@ async def get_mesh(
             "X-Model-Id": served.model_id,
         },
     )
+
+
+def _number(value: float | None) -> str:
+    """A CSV cell: six significant digits (far finer than the metrics' accuracy), empty when undefined."""
+    return "" if value is None or not math.isfinite(value) else f"{value:.6g}"
+
+
+def metrics_csv(served: ServedModel, result: RolloutResult) -> str:
+    """The per-state profile metrics of a rollout as CSV text (module docstring)."""
+    raw = result.controls_raw  # (T, 14) physical units
+    varying = bool((raw != raw[0]).any())
+    scene = served.scene
+    out = io.StringIO()
+    out.write(
+        f"# NEMSim rollout {result.id}: model {result.model_id}, scene {scene.name} (voxel "
+        f"{scene.voxel_nm:g} nm), {result.steps} transitions of {scene.snapshot_dt_s:g} s\n"
+    )
+    if varying:
+        out.write(
+            f"# controls: a recipe of {len(raw)} control sets; the row of step k >= 1 holds the controls of "
+            "the transition into step k\n"
+        )
+    else:
+        out.write(f"# controls (physical units): {json.dumps(array_to_controls(raw[0]))}\n")
+    names = list(result.metrics)
+    header = ["step", "time [s]"] + [f"{n} [nm]" for n in names]
+    if varying:
+        header += [f"{s.name} [{s.unit}]" for s in CONTROL_SPECS]
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(header)
+    for k, t in enumerate(result.times_s):
+        row = [str(k), f"{t:.6g}"] + [_number(result.metrics[n][k]) for n in names]
+        if varying:
+            row += [repr(float(v)) for v in raw[k - 1]] if k else [""] * len(CONTROL_NAMES)
+        writer.writerow(row)
+    return out.getvalue()
+
+
+def _write_trajectory(served: ServedModel, result: RolloutResult) -> bytes:
+    """A rollout as an HDF5 file in the simulator's data-file layout (`nemsim.data.hdf5`), one case:
+    `states` (1, T+1, 2, D, H, W) float16 normalized SDF (x `d_max` for nm), `times` (T+1,) s,
+    `controls_raw` (1, 14) the first transition's controls and `controls_raw_schedule` (1, T, 14) every
+    transition's, `case_ids` [0], `seeds` [-1] (no simulator seed), `complete` [1]; the root attributes
+    of the data files (scene JSON, control and channel names, `d_max`, rules SHA-256, `generator`
+    naming the model) plus `source`, `model_id`, `rollout_id`, `voxel_nm` and `controls` (JSON). Extra:
+    `metrics/<name>` (T+1,) nm, NaN where undefined. `check_dataset`'s data-set checks (T = the scene's
+    horizon, controls inside the design ranges) may flag a rollout that differs from a simulated case."""
+    import h5py
+
+    from nemsim.data.hdf5 import CHANNEL_NAMES, DEFAULT_COMPRESSION, FORMAT_VERSION
+
+    scene, loaded = served.scene, served.predictor.loaded
+    raw = np.asarray(result.controls_raw, dtype=np.float64)  # (T, 14)
+    states_shape = (1, result.steps + 1, *scene.state_shape)
+    provenance = {
+        "source": "NEMSim surrogate rollout",
+        "model_id": result.model_id,
+        "checkpoint": loaded.path.name if loaded.path else "",
+        "rollout_id": result.id,
+    }
+    buf = io.BytesIO()
+    with h5py.File(buf, "w") as f:
+        f.attrs.update(
+            format_version=FORMAT_VERSION,
+            scene=scene.to_json(),
+            control_names=list(CONTROL_NAMES),
+            channel_names=list(CHANNEL_NAMES),
+            d_max=float(scene.d_max_nm),
+            d_max_unit="nm",
+            d_max_vox=float(scene.d_max_vox),
+            rules_sha256=str(loaded.rules.sha256),
+            generator=json.dumps(provenance, sort_keys=True),
+            source="surrogate",
+            model_id=result.model_id,
+            rollout_id=result.id,
+            voxel_nm=float(scene.voxel_nm),
+            controls=json.dumps(array_to_controls(raw[0])),
+        )
+        filt, level, shuffle = DEFAULT_COMPRESSION
+        states = f.create_dataset(
+            "states", shape=states_shape, dtype="<f2", chunks=(1, 1, *scene.state_shape),
+            compression=filt, compression_opts=level, shuffle=shuffle,
+        )  # fmt: skip
+        k = 0
+        for block in result.states.blocks():  # (n, 2, D, H, W) float16, a few states at a time
+            states[0, k : k + len(block)] = block
+            k += len(block)
+        f["times"] = np.asarray(result.times_s, dtype=np.float64)
+        f["controls_raw"] = raw[:1]
+        f["controls_transformed"] = transform(raw[:1])
+        f["controls_raw_schedule"] = raw[None]
+        f["case_ids"] = np.zeros(1, dtype=np.int64)
+        f["seeds"] = np.full(1, -1, dtype=np.int64)
+        f["complete"] = np.ones(1, dtype=np.uint8)
+        f.create_dataset("case_meta", data=[json.dumps(provenance)], dtype=h5py.string_dtype())
+        for name, values in result.metrics.items():
+            f[f"metrics/{name}"] = np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+            f[f"metrics/{name}"].attrs["unit"] = "nm"
+    return buf.getvalue()
+
+
+_EXPORT_RESPONSES: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorBody, "description": "unknown or expired rollout id"},
+}
+
+
+def _attachment(data: bytes | str, media_type: str, filename: str, model_id: str) -> Response:
+    return Response(
+        content=data,
+        media_type=media_type,
+        headers={"Content-Disposition": f'attachment; filename="{filename}"', "X-Model-Id": model_id},
+    )
+
+
+@router.get(
+    "/rollouts/{rollout_id}/metrics.csv",
+    response_class=Response,
+    responses={200: {"content": {"text/csv": {}}, "description": "the metrics table"}, **_EXPORT_RESPONSES},
+)
+async def get_metrics_csv(
+    rollout_id: Annotated[str, Path(max_length=64)], served: ServedModelDep
+) -> Response:
+    """The profile metrics of a cached rollout, one row per state, as CSV (nm; empty cells: undefined)."""
+    result = cached_rollout(served, rollout_id)
+    text = await run_in_threadpool(metrics_csv, served, result)
+    return _attachment(text, "text/csv", f"nemsim_{rollout_id}_metrics.csv", served.model_id)
+
+
+@router.get(
+    "/rollouts/{rollout_id}/trajectory.h5",
+    response_class=Response,
+    responses={
+        200: {"content": {"application/x-hdf5": {}}, "description": "the trajectory file"},
+        **_EXPORT_RESPONSES,
+    },
+)
+async def get_trajectory_h5(
+    request: Request, rollout_id: Annotated[str, Path(max_length=64)], served: ServedModelDep, gates: GatesDep
+) -> Response:
+    """Every state of a cached rollout (both channels) as HDF5 in the simulator's data-file layout."""
+    result = cached_rollout(served, rollout_id)
+    data = await gated(request, gates.mesh, _write_trajectory, served, result)
+    return _attachment(data, "application/x-hdf5", f"nemsim_{rollout_id}_trajectory.h5", served.model_id)

@@ -46,11 +46,32 @@ def test_si_top_plane_height(tiny_scene, make_hole):
     assert np.median(m.vertices[:, 2]) == pytest.approx(tiny_scene.si_top * tiny_scene.voxel_nm)
 
 
+def _read_vtp(data: bytes) -> trimesh.Trimesh:
+    """The triangles of a VTK XML PolyData file with inline binary arrays (UInt64 header), read by hand."""
+    import base64
+    import xml.etree.ElementTree as ET
+
+    def array(node, name: str, dtype: str) -> np.ndarray:
+        el = next(a for a in node.iter("DataArray") if a.get("Name") == name)
+        raw = base64.b64decode(el.text.strip())
+        n = int(np.frombuffer(raw[:8], dtype="<u8")[0])
+        return np.frombuffer(raw[8 : 8 + n], dtype=dtype)
+
+    piece = ET.fromstring(data).find("PolyData/Piece")
+    faces = array(piece, "connectivity", "<i8").reshape(-1, 3)
+    assert np.array_equal(array(piece, "offsets", "<i8"), 3 * np.arange(1, len(faces) + 1))
+    assert int(piece.get("NumberOfPolys")) == len(faces)
+    return trimesh.Trimesh(array(piece, "Points", "<f4").reshape(-1, 3), faces, process=False)
+
+
 @pytest.mark.parametrize("fmt", MESH_FORMATS)
 def test_export_round_trip(sphere_mesh, fmt):
     data = export_mesh(sphere_mesh, fmt)
     assert isinstance(data, bytes)
-    back = trimesh.load(io.BytesIO(data), file_type=fmt, force="mesh")
+    if fmt == "vtp":  # trimesh reads no VTK files
+        back = _read_vtp(data)
+    else:
+        back = trimesh.load(io.BytesIO(data), file_type=fmt, force="mesh")
     assert len(back.faces) == len(sphere_mesh.faces)
     assert back.volume == pytest.approx(sphere_mesh.volume, rel=1e-4)
     if fmt == "glb":
@@ -59,6 +80,8 @@ def test_export_round_trip(sphere_mesh, fmt):
         assert b"comment case_id=7" in data.split(b"end_header")[0]
     elif fmt == "obj":
         assert data.decode().startswith("# NEMSim surface mesh") and "# case_id: 7" in data.decode()
+    elif fmt == "vtp":
+        assert b"NEMSim surface mesh" in data and b"case_id: 7" in data
     else:
         assert data[:6] == b"NEMSim"
 

@@ -18,7 +18,8 @@ BAD_BODIES = {
     "wrong type (controls list)": lambda c: {"controls": [1, 2, 3]},
     "wrong type (steps)": lambda c: {"controls": c, "steps": "ten"},
     "fractional steps": lambda c: {"controls": c, "steps": 2.5},
-    "missing control": lambda c: {"controls": {k: v for k, v in c.items() if k != "angle_cl"}},
+    "misspelt control": lambda c: {"controls": {"flux_cll": 0.01}},
+    "misspelt control in a recipe": lambda c: {"recipe": [c, {"energy_mean_ar": 300.0}]},
     "unknown control": lambda c: {"controls": _controls(c, flux_xe_plus=1.0)},
     "unknown top-level field": lambda c: {"controls": c, "temperature": 300},
     "no controls": lambda c: {"steps": 3},
@@ -55,6 +56,31 @@ def test_bad_body_422(client, default_controls, name):
     body = r.json()
     assert isinstance(body["message"], str) and body["message"]
     assert all({"loc", "msg", "type"} <= set(d) for d in body["detail"])
+
+
+@pytest.mark.parametrize(
+    ("given", "meant"),
+    [("flux_cll", "flux_cl"), ("Flux-Ar-Plus", "flux_ar_plus"), ("energy_mean_ar", "energy_mean_ar_plus")],
+)
+def test_unknown_control_names_the_closest(client, given, meant):
+    r = client.post("/rollout", json={"controls": {given: 1.0}, "steps": 1})
+    assert r.status_code == 422, r.text
+    assert f"unknown control {given!r}; did you mean {meant!r}?" in r.json()["message"]
+    assert r.json()["detail"][0]["loc"] == ["body", "controls"]
+
+
+def test_unknown_control_far_from_any_lists_them(client):
+    r = client.post("/rollout", json={"controls": {"temperature": 300.0}, "steps": 1})
+    assert r.status_code == 422
+    assert "unknown control 'temperature'; expected one of" in r.json()["message"]
+    assert "energy_std_ar_plus" in r.json()["message"]
+
+
+def test_unknown_mechanisms_parameter_names_the_closest(client):
+    r = client.get("/mechanisms", params={"angel_cl": 4})
+    assert r.status_code == 422 and "did you mean 'angle_cl'?" in r.json()["message"]
+    r = client.get("/mechanisms", params={"factor": 2})
+    assert r.status_code == 422 and "did you mean 'factors'?" in r.json()["message"]
 
 
 @pytest.mark.parametrize("name", ["flux_cl", "energy_mean_ar_plus"])

@@ -104,6 +104,43 @@ def test_recipe(client, default_controls):
     assert constant["id"] != body["id"]
 
 
+def test_partial_controls_take_the_defaults(client, default_controls):
+    """Two controls given: the other twelve are /model's defaults, named in `defaulted`, and the rollout is
+    the very one of the full set (same id: same normalized schedule)."""
+    given = {"flux_cl": 0.01, "energy_mean_ar_plus": 300.0}
+    r = client.post("/rollout", json={"controls": given, "steps": 2})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    full = {**default_controls, **given}
+    assert body["controls"] == pytest.approx(full)
+    assert body["defaulted"] == [n for n in default_controls if n not in given]
+    defaults = {c["name"]: c["default"] for c in client.get("/model").json()["controls"]}
+    assert {n: body["controls"][n] for n in body["defaulted"]} == pytest.approx(
+        {n: defaults[n] for n in body["defaulted"]}
+    )
+    same = client.post("/rollout", json={"controls": full, "steps": 2}).json()
+    assert same["id"] == body["id"] and same["defaulted"] == []
+    empty = client.post("/rollout", json={"controls": {}, "steps": 2}).json()
+    assert empty["controls"] == pytest.approx(default_controls) and len(empty["defaulted"]) == 14
+
+
+def test_partial_recipe_rows_and_simulation_jobs(client, default_controls, make_client):
+    body = client.post("/rollout", json={"recipe": [{"flux_cl": 0.01}, {**default_controls}]}).json()
+    assert body["recipe"][0] == pytest.approx({**default_controls, "flux_cl": 0.01})
+    assert body["recipe"][1] == pytest.approx(default_controls)
+    assert body["defaulted"] == [n for n in default_controls if n != "flux_cl"]
+    assert (
+        client.post("/rollout", json={"controls_normalized": [0.0] * 14, "steps": 1}).json()["defaulted"]
+        == []
+    )
+    # simulator jobs share the schema: a partial set passes validation (the work bound then refuses it)
+    jobs = make_client(sim_max_work=1e-9)
+    r = jobs.post("/simulations", json={"controls": {"flux_cl": 0.01}, "steps": 1})
+    assert r.status_code == 422 and "work of a design-centre run" in r.json()["message"]
+    r = jobs.post("/simulations", json={"controls": {"flux_cll": 0.01}, "steps": 1})
+    assert r.status_code == 422 and "did you mean 'flux_cl'?" in r.json()["message"]
+
+
 def test_inline_meshes(client, default_controls):
     req = {
         "controls": default_controls,
