@@ -6,27 +6,48 @@
 #   docker run -p 8000:8000 -e NEMSIM_API_KEYS=... -v $PWD/ckpt:/ckpt -e NEMSIM_CHECKPOINT=/ckpt/model.pt nemsim
 # A checkpoint that cannot load stops the container (exit 3); the HEALTHCHECK polls /ready. The image holds the
 # library and the service (not the benchmark harness: `nemsim bench` is absent there).
-FROM python:3.11-slim
+#
+# Without a container registry or the PyTorch wheel index (PyPI and a Debian mirror reachable):
+#   sudo docker/build-base.sh                                   # Debian bookworm base from debootstrap
+#   pip download --no-deps -d docker/wheels torch==2.13.0+cpu   # any index or wheel folder holding the CPU wheel
+#   docker build --build-arg BASE_IMAGE=nemsim-base:bookworm -t nemsim .
+# A torch wheel in docker/wheels/ is installed instead of the index's; both bases need only `python3 -m venv`.
+# Two stages: the packages go into a virtual environment (/opt/nemsim) built in the first stage, and only that
+# environment reaches the image (no build tools, wheels or pip caches in its layers).
+ARG BASE_IMAGE=python:3.11-slim
 
-ENV PYTHONDONTWRITEBYTECODE=1 \
-    PYTHONUNBUFFERED=1 \
-    PIP_NO_CACHE_DIR=1 \
+FROM ${BASE_IMAGE} AS build
+ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
+ENV PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    OMP_NUM_THREADS=2 \
-    NUMBA_CACHE_DIR=/tmp/numba-cache
+    PATH=/opt/nemsim/bin:$PATH
+RUN python3 -m venv /opt/nemsim
 
-WORKDIR /app
+# torch first, as a CPU wheel, so the package install below does not pull CUDA wheels
+COPY docker/wheels/ /wheels/
+RUN set -e; \
+    wheel=$(ls /wheels/torch-2.13.0+cpu-*.whl 2>/dev/null | head -n 1); \
+    if [ -n "$wheel" ]; then pip install "$wheel"; \
+    else pip install --index-url "$TORCH_INDEX_URL" torch==2.13.0; fi
 
-# torch first, from the CPU wheel index, so the package install below does not pull CUDA wheels
-RUN pip install --index-url https://download.pytorch.org/whl/cpu torch==2.13.0
-
+WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY nemsim ./nemsim
 COPY service ./service
 COPY rules ./rules
-RUN pip install ".[service]"
+RUN pip install ".[service]" \
+    && python -c "import torch, service.main; assert torch.version.cuda is None, torch.version.cuda"
+
+FROM ${BASE_IMAGE}
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    OMP_NUM_THREADS=2 \
+    NUMBA_CACHE_DIR=/tmp/numba-cache \
+    PATH=/opt/nemsim/bin:$PATH
+COPY --from=build /opt/nemsim /opt/nemsim
 
 # the shipped checkpoint: the service serves ./checkpoints/nemsim-small.pt (cwd = /app); resume state excluded
+WORKDIR /app
 COPY checkpoints ./checkpoints
 
 RUN useradd --create-home --uid 10001 nemsim && chown -R nemsim /app

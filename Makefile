@@ -20,6 +20,15 @@ test: venv
 
 .PHONY: venv serve test benchmarks
 
+# The service image (Dockerfile); without a container registry, first `sudo docker/build-base.sh` and a CPU torch
+# wheel in docker/wheels/ (the Dockerfile's header), then: make container BASE_IMAGE=nemsim-base:bookworm
+IMAGE ?= nemsim
+BASE_IMAGE ?= python:3.11-slim
+container:
+	docker build --build-arg BASE_IMAGE=$(BASE_IMAGE) -t $(IMAGE) .
+
+.PHONY: container
+
 # Benchmarks of the served model (benchmarks/README.md lists every result and its command): the data of the
 # model card's recipe first (resumable; about 20 core-minutes per 500 `small` cases), then each benchmark, then
 # every result stamped with the checkpoint's id. Long: hours of CPU; run it in the background.
