@@ -1,7 +1,8 @@
 """The `nemsim` command line: one argparse parser, one module per command group.
 
 Command groups: ``rules``; ``data`` (design, splits, data check|stats); ``sim`` (generate); ``train``;
-``evaluate`` (evaluate, models, counterfactual); ``analysis`` (sensitivity, inverse, calibrate). Commands
+``evaluate`` (evaluate, models, counterfactual); ``analysis`` (sensitivity, inverse, calibrate); ``learn``
+(active learning: propose, measure, run). Commands
 implemented outside the library are plugins: each entry point of the group ``nemsim.cli`` (pyproject.toml:
 `serve` from ``service.cli``, `bench ...` and `stress` from ``bench.cli``) is a ``register(subparsers)``
 that adds its parsers, so the library never imports those packages. Each module's handlers parse their
@@ -30,7 +31,7 @@ import typing
 from collections.abc import Sequence
 from pathlib import Path
 
-from nemsim.cli import analysis, data, evaluate, rules, sim, train
+from nemsim.cli import analysis, data, evaluate, learn, rules, sim, train
 from nemsim.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_BROKEN_PIPE,
@@ -44,7 +45,7 @@ from nemsim.cli.common import (
 __all__ = ["EXIT_BAD_INPUT", "EXIT_BUG", "UserError", "build_parser", "entry", "main"]
 
 PLUGIN_GROUP = "nemsim.cli"  # entry points: NAME = "module:register"
-COMMAND_GROUPS = (rules, data, sim, train, evaluate, analysis)
+COMMAND_GROUPS = (rules, data, sim, train, evaluate, analysis, learn)
 INSTALL_HINTS = {"serve": "pip install 'nemsim[service]'"}  # what a plugin that fails to import needs
 
 
@@ -203,8 +204,8 @@ def _error_report(exc: Exception, args: argparse.Namespace) -> tuple[int, str]:
 
 def _command_name(args: argparse.Namespace) -> str:
     """``nemsim COMMAND [ACTION]`` of a parsed command line, e.g. ``nemsim data check``."""
-    words = [args.command] + [getattr(args, k) for k in ("rules_command", "data_command", "bench")
-                              if getattr(args, k, None)]  # fmt: skip
+    actions = ("rules_command", "data_command", "learn_command", "bench")
+    words = [args.command] + [getattr(args, k) for k in actions if getattr(args, k, None)]
     return " ".join(["nemsim", *words])
 
 

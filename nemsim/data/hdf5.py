@@ -607,7 +607,10 @@ def check_dataset(path: str | Path, *, read_states: bool = True,
         uniq_rows = len(np.unique(raw, axis=0)) if n else 0
         rep.add("unique ids/controls", ok_ids and uniq_rows == n,
                 f"{len(np.unique(ids))} unique ids, {uniq_rows} unique control vectors of {n}")
-        rep.add("control ranges", *_check_ranges(raw, "controls_raw"))
+        ok, detail, note = _check_ranges(raw, "controls_raw")
+        rep.add("control ranges", ok, detail)
+        if note:
+            rep.warnings.append(note)
         tr = f["controls_transformed"][()]
         ok = tr.shape == raw.shape and bool(np.allclose(tr, transform(raw), rtol=1e-12, atol=1e-12))
         rep.add("controls_transformed", ok,
@@ -615,8 +618,10 @@ def check_dataset(path: str | Path, *, read_states: bool = True,
         if "controls_raw_schedule" in f:
             sch = f["controls_raw_schedule"][()]
             shp_ok = sch.shape == (n, T - 1, N_CONTROLS)
-            rep.add("schedule", shp_ok and _check_ranges(sch.reshape(-1, N_CONTROLS), "schedule")[0],
-                    f"{sch.shape}; " + _check_ranges(sch.reshape(-1, N_CONTROLS), "schedule")[1])
+            ok, detail, note = _check_ranges(sch.reshape(-1, N_CONTROLS), "schedule")
+            rep.add("schedule", shp_ok and ok, f"{sch.shape}; {detail}")
+            if note:
+                rep.warnings.append(note)
         ints = [j for j, s in enumerate(CONTROL_SPECS) if s.kind == "int"]
         if not np.all(raw[:, ints] == np.round(raw[:, ints])):
             rep.warnings.append("non-integer cosine-power exponents in controls_raw")
@@ -633,11 +638,21 @@ def check_dataset(path: str | Path, *, read_states: bool = True,
     return rep
 
 
-def _check_ranges(raw: np.ndarray, what: str) -> tuple[bool, str]:
+def _check_ranges(raw: np.ndarray, what: str) -> tuple[bool, str, str]:
+    """(ok, detail, warning) of raw controls (rows, 14): inadmissible values (``check_admissible``: not
+    finite, physically impossible) fail; admissible values outside the design box (a recipe simulated past
+    its edges, e.g. by active learning) only warn: the file is sound, its cases lie beyond the box."""
+    from nemsim.controls import check_admissible
+
+    bad = check_admissible(raw)
+    if bad:
+        return False, f"{len(bad)} inadmissible values in {what}, e.g. {bad[0]}", ""
     span = HIGH - LOW
     lo, hi = LOW - CONTROL_RANGE_RTOL * span, HIGH + CONTROL_RANGE_RTOL * span
-    bad = ~np.isfinite(raw) | (raw < lo) | (raw > hi)
-    if not bad.any():
-        return True, f"all {raw.shape[0]} rows inside the configured ranges"
-    cols = sorted({CONTROL_NAMES[j] for j in np.nonzero(bad)[1]})
-    return False, f"{int(bad.any(axis=1).sum())} rows of {what} outside the configured ranges in {cols}"
+    out = (raw < lo) | (raw > hi)
+    if not out.any():
+        return True, f"all {raw.shape[0]} rows inside the configured ranges", ""
+    cols = sorted({CONTROL_NAMES[j] for j in np.nonzero(out)[1]})
+    rows = int(out.any(axis=1).sum())
+    return True, f"admissible; {rows} rows beyond the design box", \
+        f"{rows} rows of {what} outside the configured ranges in {cols} (admissible: beyond the design box)"
