@@ -111,7 +111,8 @@ def _worker_init(parent_pid: int | None = None) -> None:
         threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
 
 
-_WORKER_CASE: tuple | None = None  # (scene, rules, config) of a pool worker, set once by _pool_worker_init
+# (scene, rules, config) of a pool worker, set once by _pool_worker_init
+_WORKER_CASE: tuple[Scene, RuleTensors, SimConfig] | None = None
 
 
 def _pool_worker_init(parent_pid: int, scene: Scene, rules: RuleTensors, config: SimConfig) -> None:
@@ -125,7 +126,8 @@ def _pool_worker_init(parent_pid: int, scene: Scene, rules: RuleTensors, config:
 
 def _simulate_in_worker(task: CaseTask) -> tuple:
     assert _WORKER_CASE is not None, "a pool worker is initialized by _pool_worker_init"
-    return simulate_case(*_WORKER_CASE, task)
+    scene, rules, config = _WORKER_CASE
+    return simulate_case(scene, rules, config, task)
 
 
 def _exit_with_parent(parent_pid: int, poll_s: float = 1.0) -> None:
