@@ -393,6 +393,12 @@ class JobCreated(BaseModel):
     kind: str
     status: str
     location: str = Field(description="GET this for the job's status and result")
+    controls: dict[str, float] | None = Field(
+        None, description="a simulation's controls, every one of them (the first transition's for a recipe)"
+    )
+    defaulted: list[str] = Field(
+        default_factory=list, description="controls the request left out, taken from the defaults"
+    )
 
 
 class JobStatus(BaseModel):

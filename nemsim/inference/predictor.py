@@ -388,7 +388,7 @@ class Predictor:
 
     # --- meshes ---------------------------------------------------------------------------------------
     def mesh(self, field: np.ndarray, fmt: str, metadata: dict[str, Any] | None = None) -> bytes:
-        """File bytes (glb, ply, obj or stl) of the zero-level surface of one channel's field (D, H, W), in
+        """File bytes (glb, ply, obj, stl or vtp) of the zero-level surface of one channel's field (D, H, W), in
         nm, with ``metadata`` as provenance (``nemsim.geometry.mesh``)."""
         from nemsim.geometry.mesh import export_mesh, surface_mesh
 

@@ -17,7 +17,7 @@ from service.deps import ServedModelDep, SettingsDep, busy, client_key, reject, 
 from service.jobs import Job, JobQueue, TooManyJobs, UnknownJob, error_mesh, simulate_and_compare
 from service.openapi import ErrorBody
 from service.scheduler import ServiceBusy
-from service.schemas import Channel, JobCreated, JobStatus, MeshFormat, SimulationRequest
+from service.schemas import Channel, JobCreated, JobStatus, MeshFormat, SimulationRequest, array_to_controls
 
 router = APIRouter(tags=["jobs"])
 
@@ -98,7 +98,8 @@ async def post_simulation(
     seed = body.seed
     job = submit_job(request, jobs, "simulation", lambda j: simulate_and_compare(j, served, schedule, seed))
     location = f"/jobs/{job.id}"
-    created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location)
+    created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location,
+                         controls=array_to_controls(schedule.raw[0]), defaulted=body.defaulted)  # fmt: skip
     return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})
 
 
@@ -132,7 +133,7 @@ async def get_job_mesh(
     served: ServedModelDep,
     step: Annotated[int | None, Query(ge=0, description="state index; default: the final state")] = None,
     channel: Annotated[Channel, Query(description="mask or si")] = "si",
-    format: Annotated[MeshFormat, Query(description="glb, ply, obj or stl")] = "glb",
+    format: Annotated[MeshFormat, Query(description="glb, ply, obj, stl or vtp")] = "glb",
 ) -> Response:
     """The simulator's surface coloured by the surrogate's signed distance from it (nm; glb/ply carry the
     colours)."""

@@ -23,10 +23,13 @@ def wait_status(client, location: str, statuses: set[str], timeout_s: float = 90
 
 def test_simulation_job_compares_surrogate_with_simulator(make_client, default_controls):
     client = make_client()
-    r = client.post("/simulations", json={"controls": default_controls, "steps": 3, "seed": 2})
+    partial = {k: v for k, v in default_controls.items() if k != "flux_cl"}  # one control left out
+    r = client.post("/simulations", json={"controls": partial, "steps": 3, "seed": 2})
     assert r.status_code == 202, r.text
     body = r.json()
-    assert set(body) == {"id", "kind", "status", "location"} and body["kind"] == "simulation"
+    assert set(body) == {"id", "kind", "status", "location", "controls", "defaulted"}
+    assert body["kind"] == "simulation" and body["defaulted"] == ["flux_cl"]
+    assert body["controls"]["flux_cl"] == pytest.approx(default_controls["flux_cl"])
     assert r.headers["location"] == body["location"] == f"/jobs/{body['id']}"
     done = wait_status(client, body["location"], {"done", "failed", "cancelled"})
     assert done["status"] == "done", done
