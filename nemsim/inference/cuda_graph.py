@@ -106,6 +106,10 @@ class _Graph:
     spec: Any
     out: torch.Tensor  # static output: (B, k, 2, D, H, W) per call, (B, T + 1, 2, D, H, W) per rollout
     loaded: GraphCache | None = field(default=None)  # the cache whose values the static leaves hold
+    # the captured function: it holds every tensor the graph reads or writes that was allocated before the
+    # capture (e.g. the monotone projection's running maximum and slack field); freed, their memory would
+    # be handed to other tensors while the replays still use it
+    body: Callable[[], torch.Tensor] | None = field(default=None)
 
 
 class CUDAGraphRuntime(Runtime):
@@ -282,7 +286,7 @@ class CUDAGraphRuntime(Runtime):
             self.backend = "torch"
             return None
         log.info("cuda graph: captured %s, state %s (%s)", what, tuple(sx.shape[1:]), self.precision)
-        return _Graph(replay, sx, leaves, cache.spec, out, loaded=cache)
+        return _Graph(replay, sx, leaves, cache.spec, out, loaded=cache, body=body)
 
     def _load(self, graph: _Graph, cache: GraphCache) -> None:
         """Copy the cache's tensors into the graph's static leaves unless they hold this cache already."""

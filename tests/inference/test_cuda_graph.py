@@ -178,7 +178,11 @@ def _agree(model, x0: torch.Tensor, batch: int, steps: int, change_at: int | Non
     runtime = CUDAGraphRuntime(model)
     diffs = {"calls": float((rollout(runtime, x, u) - want).abs().max())}  # type: ignore[arg-type]
     if change_at is None:
-        diffs["whole"] = float((runtime.rollout(x, u[:, 0], steps) - want).abs().max())
+        diffs["whole"] = float((runtime.rollout(x, u[:, 0], steps) - want).abs().max())  # the capture
+        # a replay after other allocations: memory the graph uses must not have been handed back meanwhile
+        churn = [torch.full((1 << 18,), 7.0, device=dev) for _ in range(64)]
+        diffs["whole_replay"] = float((runtime.rollout(x, u[:, 0], steps) - want).abs().max())
+        del churn
     assert runtime.backend == "cuda" and runtime.fallback_reason is None, runtime.describe()
     return diffs
 
