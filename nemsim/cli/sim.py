@@ -51,6 +51,11 @@ def register(sub: Subparsers) -> None:
                    help="simulate the full periodic box (default) or its quarter between mirror walls (4x "
                         "fewer particles, same noise per voxel, states mirrored to full size; even grids "
                         "only: not tiny); recorded in the file's simulator constants")
+    p.add_argument("--sim-rng", default=None, choices=("stream", "counter"),
+                   help="random numbers: one stream per kernel call (default, the data sets) or counter-"
+                        "based streams per particle keyed by (seed, macro step, source, particle), so that "
+                        "recipes simulated with the same seed share their noise (sweep pairs: a seed_id "
+                        "column); recorded in the file's simulator constants")
     add_sim_overrides(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_generate)
@@ -79,10 +84,11 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
     scene = get_scene(args.scene)
     config = sim_config(args.overrides)
-    if args.sim_domain is not None:
+    if args.sim_domain is not None or args.sim_rng is not None:
         import dataclasses
 
-        config = dataclasses.replace(config, domain=args.sim_domain)
+        config = dataclasses.replace(config, domain=args.sim_domain or config.domain,
+                                     rng_mode=args.sim_rng or config.rng_mode)  # fmt: skip
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     if args.controls:

@@ -127,7 +127,7 @@ class SimConfig:
     ion_wing_fraction: float = 0.0
     ion_wing_m: float = 5.0
     # random numbers (kernels module docstring): "stream" = one generator per kernel call (the data sets);
-    # "counter" = common random numbers keyed by (seed, macro step, particle), for paired recipes
+    # "counter" = common random numbers keyed by (seed, macro step, source, particle), for paired recipes
     rng_mode: str = "stream"
     # simulated domain (module docstring, "Simulated domain"): "full" = the scene's periodic box (the data
     # sets); "quarter" = its lower quadrant between mirror walls, unfolded into the full box at every state

@@ -5,18 +5,33 @@ Pure functions over explicit arrays: the voxel state (``mat``, ``fill``), the ev
 allocated per particle; secondary products go through a preallocated FIFO ring buffer that is drained
 after every primary particle.
 
-Random numbers (``SimConfig.rng_mode``, ``TransportParams.counter_rng``):
-  * "stream" (default): numba's generator, re-seeded at every ``run_particles`` call; the particles of a
-    call consume one shared stream, so a particle that draws one number more shifts every later one.
-  * "counter": common random numbers. Every uniform is a counter-based hash (SplitMix64's finalizer of
-    key + counter x golden gamma, ``mix64``) of a key derived from (trajectory seed, macro step, primary
-    index) (``counter_seed``, ``stream_key``). A primary draws its launch from 8 fixed slots (source, two
-    for the Box-Muller energy, wing, polar angle, azimuth, x, y; drawn whether used or not); its h-th
-    surface hit draws from sub-stream h: the target, channel, absorption and diffuse-reflection choices
-    from fixed slots, then in order the yield rounding, reflection and product directions; its n-th
-    emitted product has its own key. Primary i of macro step t thus draws the same numbers whatever the
-    recipe or the other particles did: two recipes simulated with the same seed share their noise as far
-    as their diverging histories allow (same inverse-CDF uniforms).
+Random numbers (``SimConfig.rng_mode``):
+  * "stream" (default, the data sets' simulator): numba's generator, re-seeded at every ``run_particles``
+    call; the particles of a call consume one shared stream, so a particle that draws one number more (or
+    becomes another species) shifts every later one.
+  * "counter": common random numbers (``run_particles_crn``). Every uniform is a counter-based hash
+    (SplitMix64's finalizer of key + counter x golden gamma, ``mix64``) of a key, and keys are derived by
+    the same hash (``stream_key``): the macro step's key from (trajectory key, macro step) (``counter_seed``),
+    a source's from (step, projectile), the j-th particle of that source from (source, j). A macro step
+    launches a fixed number of particles per source (its rate x dt, with its own carried remainder) and
+    processes them in the order of their arrival times, slot 0 of each particle's launch draws: the
+    particles of two recipes are then the same particles in the same relative order, and a recipe with
+    more flux of one source has the other's particles plus its extra ones inserted at their own times.
+    A primary draws its launch from 8 fixed slots (arrival time, two for the Box-Muller energy, wing,
+    polar angle, azimuth, x, y; drawn whether used or not); its h-th surface hit draws from sub-stream h:
+    the target, channel, absorption and diffuse-reflection choices from fixed slots, then in order the
+    yield rounding, reflection and product directions; its n-th emitted product has its own key. Every
+    draw goes through an inverse CDF, so the same uniform gives the nearest outcome under either recipe
+    (same launch point, angle quantile, energy quantile, channel quantile).
+    What still decorrelates a pair: different particle counts (a flux change: only the extra particles),
+    different outcomes of one draw (a probability, yield, angle or energy control moves the decision
+    boundaries), and every later event that differs because an earlier one changed the surface: a changed
+    voxel changes the target, the channel and the normal of the later hits on and around it, and a
+    changed path hits other voxels. The cascade is fast: on ``small`` (quarter domain, 10 % changes of an
+    ion energy or flux, ``bench.pair_noise``, benchmarks/small/pair_noise) the paired / independent noise
+    ratio of the field is 0.06-0.17 at the first state, 0.36-0.42 after 5 transitions and 0.65-0.74 at
+    the end (the default stream: 0.45-0.87 at once, 0.82-1.01 at the end); a change of 0.1 % reaches
+    0.3 within 40 transitions.
   Helpers take the state ``rs`` (``RS_SIZE`` uint64: mode, particle key, draw key, counter) as an
   optional last argument; without it (or in mode 0) they draw from numba's generator as before.
 
@@ -155,7 +170,6 @@ class TransportParams(NamedTuple):
     refl_energy: float = 0.0  # retained energy fraction of a reflected ion (0: the mass-ratio law)
     wing_fraction: float = 0.0  # fraction of ions launched from cos^wing_m instead of the control's cos^m
     wing_m: float = 5.0
-    counter_rng: bool = False  # counter-based random numbers ("Random numbers" in the module docstring)
     mirror_walls: bool = False  # lateral walls: mirrors instead of periodic wrap (module docstring, "Walls")
 
 
@@ -168,8 +182,7 @@ def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportPar
                            float(config.particle_weight), float(cos_full), float(cos_zero),
                            bool(config.excess_probability_yield), float(config.ion_reflect_diffuse),
                            float(lobe_k), float(config.ion_reflect_energy), float(config.ion_wing_fraction),
-                           float(config.ion_wing_m), config.rng_mode == "counter",
-                           config.domain == "quarter")  # fmt: skip
+                           float(config.ion_wing_m), config.domain == "quarter")  # fmt: skip
 
 
 class WorkBuffers(NamedTuple):
@@ -829,47 +842,46 @@ def _launch_uniform(launch: np.ndarray, slot: int, counter: bool) -> float:
 
 
 @numba.njit(cache=True)
-def run_particles(
-    mat: np.ndarray, fill: np.ndarray, n_target: int, count_ions: bool, src: Sources, neutral_energy: float,
-    tab: KernelTables, prm: TransportParams, buf: WorkBuffers, seed: int,
+def _launch_all(
+    mat: np.ndarray, fill: np.ndarray, n_target: int, count_ions: bool, owner: np.ndarray, index: np.ndarray,
+    src: Sources, neutral_energy: float, tab: KernelTables, prm: TransportParams, buf: WorkBuffers, key: int,
+    counter: bool,
 ) -> None:  # fmt: skip
-    """Launch primaries until ``n_target`` ions (``count_ions``) or primaries have been processed.
+    """The launch loop of both modes (one loop, so that no call per primary is added to ``fly``'s).
 
-    Args:
-      mat: (nx, ny, nz, 5) int32 species amounts; fill: (nx, ny, nz) float64 (both mutated).
-      src: the incident sources (``Sources``); neutral_energy: energy of incident neutrals [eV].
-      tab: the rule tables (``events.KernelTables``); prm: transport settings (``TransportParams``).
-      buf: product queue, scratch and counters (``WorkBuffers``; counters accumulated).
-      seed: seeds numba's generator for this call; with ``prm.counter_rng`` the key of this call's
-        particles instead (``counter_seed``; primary i is keyed by (seed, i), module docstring).
+    Counter mode: the primaries ``(owner[p], index[p])`` (source, index) in this order, keyed from ``key``;
+    else primaries of sources drawn from ``src.cum`` with numba's generator seeded with ``key`` until
+    ``n_target`` ions (``count_ions``) or primaries; the launch draws then come in the order source,
+    energy, wing, polar, azimuth, x, y.
     """
-    counter = prm.counter_rng
     if counter:
-        np.random.seed(seed & 0xFFFFFFFF)  # unused in counter mode; keeps a call deterministic anyway
+        np.random.seed(key & 0xFFFFFFFF)  # nothing draws from it in this mode; a call stays deterministic
     else:
-        np.random.seed(seed)
+        np.random.seed(key)
     rs = new_rng_state(counter)
     launch = np.zeros(N_LAUNCH_DRAWS)
-    call_key = np.uint64(seed)
+    call_key = np.uint64(key)
     particle_key = np.uint64(0)
     queue, counters = buf.queue, buf.counters
     nx, ny, nz = fill.shape
     n_src = src.species.shape[0]
     done = 0
-    n_launched = 0
-    while done < n_target:
+    p = 0
+    while (p < owner.shape[0]) if counter else (done < n_target):
         if counter:
-            particle_key = stream_key(call_key, np.uint64(n_launched))
+            ks = owner[p]
+            particle_key = stream_key(stream_key(call_key, np.uint64(src.species[ks])), np.uint64(index[p]))
             seat_particle(rs, particle_key)
             for q in range(N_LAUNCH_DRAWS):
                 launch[q] = uniform(rs)
-        n_launched += 1
-        u = _launch_uniform(launch, 0, counter)
-        ks = n_src - 1
-        for q in range(n_src):
-            if u < src.cum[q]:
-                ks = q
-                break
+            p += 1
+        else:
+            u = np.random.random()
+            ks = n_src - 1
+            for q in range(n_src):
+                if u < src.cum[q]:
+                    ks = q
+                    break
         s = src.species[ks]
         counters[C_PRIMARY] += 1
         if tab.is_ion[s]:
@@ -895,10 +907,9 @@ def run_particles(
         ph = 2.0 * math.pi * _launch_uniform(launch, 5, counter)
         x0 = _launch_uniform(launch, 6, counter) * nx
         y0 = _launch_uniform(launch, 7, counter) * ny
-        z0 = nz - _FACE_EPS
+        dx0, dy0 = st * math.cos(ph), st * math.sin(ph)
         head = 0
-        tail = fly(s, energy, x0, y0, z0, st * math.cos(ph), st * math.sin(ph), -ct, mat, fill, tab, prm, buf,
-                   head, 0, rs)
+        tail = fly(s, energy, x0, y0, nz - _FACE_EPS, dx0, dy0, -ct, mat, fill, tab, prm, buf, head, 0, rs)
         # drain the FIFO of secondary products (they may not emit further products, but could)
         n_products = 0
         while head != tail:
@@ -915,3 +926,64 @@ def run_particles(
                 seat_particle(rs, stream_key(particle_key, _PRODUCT_STREAMS + np.uint64(n_products)))
             n_products += 1
             tail = fly(qs, qe, qx, qy, qz, qdx, qdy, qdz, mat, fill, tab, prm, buf, head, tail, rs)
+
+
+@numba.njit(cache=True)
+def run_particles(
+    mat: np.ndarray, fill: np.ndarray, n_target: int, count_ions: bool, src: Sources, neutral_energy: float,
+    tab: KernelTables, prm: TransportParams, buf: WorkBuffers, seed: int,
+) -> None:  # fmt: skip
+    """Stream random numbers ("stream" mode, module docstring): launch primaries until ``n_target`` ions
+    (``count_ions``) or primaries have been processed, each of the source drawn from ``src.cum``.
+
+    Args:
+      mat: (nx, ny, nz, 5) int32 species amounts; fill: (nx, ny, nz) float64 (both mutated).
+      src: the incident sources (``Sources``); neutral_energy: energy of incident neutrals [eV].
+      tab: the rule tables (``events.KernelTables``); prm: transport settings (``TransportParams``).
+      buf: product queue, scratch and counters (``WorkBuffers``; counters accumulated).
+      seed: seeds numba's generator for this call.
+    """
+    none = np.zeros(0, dtype=np.int64)
+    _launch_all(mat, fill, n_target, count_ions, none, none, src, neutral_energy, tab, prm, buf, seed, False)
+
+
+@numba.njit(cache=True)
+def launch_order(step_key: int, counts: np.ndarray, species: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Counter mode: the primaries of one macro step as (source, index) pairs in the order of their arrival
+    times (``counts[k]`` particles of source k, keyed by its projectile ``species[k]``; module docstring).
+    Ties (probability 2^-53 per pair) keep source order, then index order."""
+    n = 0
+    for k in range(counts.shape[0]):
+        n += counts[k]
+    times = np.empty(n)
+    owner = np.empty(n, dtype=np.int64)
+    index = np.empty(n, dtype=np.int64)
+    rs = new_rng_state(True)
+    key = np.uint64(step_key)
+    p = 0
+    for k in range(counts.shape[0]):
+        source_key = stream_key(key, np.uint64(species[k]))
+        for j in range(counts[k]):
+            seat_particle(rs, stream_key(source_key, np.uint64(j)))
+            times[p] = uniform(rs)  # launch slot 0
+            owner[p] = k
+            index[p] = j
+            p += 1
+    order = np.argsort(times, kind="mergesort")
+    return owner[order], index[order]
+
+
+@numba.njit(cache=True)
+def run_particles_crn(
+    mat: np.ndarray, fill: np.ndarray, counts: np.ndarray, src: Sources, neutral_energy: float,
+    tab: KernelTables, prm: TransportParams, buf: WorkBuffers, step_key: int,
+) -> None:  # fmt: skip
+    """Counter-based random numbers ("counter" mode, module docstring): launch ``counts[k]`` primaries of
+    every source k, keyed by (``step_key``, projectile, index), in the order of their arrival times
+    (``launch_order``).
+
+    Args: as ``run_particles``; counts: (K,) int64 primaries per source; step_key: the macro step's key
+    (``counter_seed``, a non-negative int64). ``src.cum`` is not used.
+    """
+    owner, index = launch_order(step_key, counts, src.species)
+    _launch_all(mat, fill, 0, False, owner, index, src, neutral_energy, tab, prm, buf, step_key, True)

@@ -14,10 +14,13 @@ for the 10 s horizon. With ``config.particle_budget`` = b < 1 the rates (and so 
 times the calibrated ones and each particle carries weight 1/b (``config`` module docstring). Controls
 are one vector (14,) for the whole trajectory or a recipe (T, 14) with one vector per transition. Every
 macro step seeds the kernel from ``rng``, so a trajectory is a deterministic function of (scene, rules,
-controls, config, rng state). With ``config.rng_mode`` = "counter" one key is drawn from ``rng`` instead
-and macro step g (counted from 0 over the whole horizon) seeds its kernel call with ``counter_seed(key,
-g)``: its primary i draws the same numbers in every recipe simulated from the same seed (common random
-numbers, ``kernels`` module docstring).
+controls, config, rng state). With ``config.rng_mode`` = "counter" one key is drawn from ``rng`` instead,
+macro step g (counted from 0 over the whole horizon) has the key ``counter_seed(key, g)``, and every source
+k launches floor(R_k dt + carry_k) particles with its own carried remainder (every source's long-run count
+stays exact; the number of neutrals per step no longer varies with the species sampling), keyed by
+(step, projectile, index) and processed in the order of their arrival times: the j-th particle of a source
+in step g draws the same numbers in every recipe simulated from the same seed (common random numbers,
+``kernels`` module docstring).
 
 Quarter domain (``config.domain`` = "quarter", ``config`` module docstring): the particles fly in the
 scene's lower quadrant between mirror walls (``domain.lower_quadrant``), at the quadrant's particle rate
@@ -49,7 +52,15 @@ from nemsim.scenes import Scene
 from .config import SimConfig
 from .domain import Domain, initial_domain, lower_quadrant, unfold_domain, unfold_quadrant
 from .events import EventTables, build_event_tables
-from .kernels import COUNTER_NAMES, Sources, WorkBuffers, counter_seed, run_particles, transport_params
+from .kernels import (
+    COUNTER_NAMES,
+    Sources,
+    WorkBuffers,
+    counter_seed,
+    run_particles,
+    run_particles_crn,
+    transport_params,
+)
 from .sdf import psi
 
 log = logging.getLogger(__name__)
@@ -191,15 +202,23 @@ def run_trajectory(
     dt = scene.macro_dt_s
     counter = cfg.rng_mode == "counter"
     key = int(rng.integers(0, 2**63)) if counter else 0
+    carries = np.zeros(len(tables.src_species))  # counter mode: each source's carried remainder
+    e_neutral = cfg.neutral_energy_ev
     for t in range(n_tr):
         rate, m, e_mean, e_std = _sources(tables, schedule[t], rate_per_flux)
         total = float(rate.sum())
         ion_rate = float(rate[tables.is_ion[tables.src_species]].sum())
+        src = Sources(tables.src_species, np.cumsum(rate) / total if total > 0.0 else rate, m, e_mean, e_std)
         for j in range(scene.macro_steps_per_snapshot):
             if counter:
-                seed = counter_seed(key, t * scene.macro_steps_per_snapshot + j)
-            else:
-                seed = int(rng.integers(0, 2**32))
+                due = rate * dt + carries
+                counts = np.floor(due).astype(np.int64)
+                carries = due - counts
+                if counts.any():
+                    step_key = counter_seed(key, t * scene.macro_steps_per_snapshot + j)
+                    run_particles_crn(dom.mat, dom.fill, counts, src, e_neutral, tab, prm, buf, step_key)
+                continue
+            seed = int(rng.integers(0, 2**32))
             if total <= 0.0:
                 continue
             count_ions = ion_rate > 0.0
@@ -208,9 +227,7 @@ def run_trajectory(
             carry = expected - n_target
             if n_target == 0:
                 continue
-            src = Sources(tables.src_species, np.cumsum(rate) / total, m, e_mean, e_std)
-            run_particles(dom.mat, dom.fill, n_target, count_ions, src, cfg.neutral_energy_ev, tab, prm, buf,
-                          seed)
+            run_particles(dom.mat, dom.fill, n_target, count_ions, src, e_neutral, tab, prm, buf, seed)
         states[t + 1] = state()
         if on_transition is not None:
             on_transition(t + 1, n_tr)
