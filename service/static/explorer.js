@@ -1,45 +1,40 @@
-// NEMSim process explorer: controls -> rollout -> 3-D surfaces over time, cross-section, metric curves,
-// mechanisms, A/B comparison and surrogate-vs-simulator jobs. Plain ES module, three.js vendored.
-import * as THREE from '/static/vendor/three/three.module.min.js';
-import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
+// NEMSim process explorer: controls -> rollout -> 3-D surfaces over time, cross-section and etch profile in
+// nm, metric curves, mechanisms, A/B comparison, surrogate-vs-simulator jobs, inverse design and exports.
+// Plain ES modules, three.js vendored; `window.explorer` exposes the state to tests and the console.
+import { api, busy, download, fetchPatiently, retryDelayS, saveBlob, sleep } from '/static/api.js';
+import { FONT, drawProfile, drawSection, niceTicks, ticksWithin, timeColour } from '/static/plot.js';
+import { createView, parseGLB } from '/static/view3d.js';
+import { initDesign } from '/static/design.js';
 
 const $ = (id) => document.getElementById(id);
+const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;' })[c]);
 const COLORS = ['#1f77b4', '#d62728', '#2ca02c', '#9467bd', '#ff7f0e', '#8c564b', '#17becf'];
 const state = {
   model: null, specs: [], inputs: {}, run: null, step: 0, slices: null,
-  a: null, sim: null, playing: null, recipe: [], fit: {},
+  a: null, sim: null, playing: null, recipe: [], fit: {}, job: null,
 };
-window.explorer = state; // for tests and the console (explorer.setStep(k) is set below)
+window.explorer = state;
+let view = null; // the 3-D view (view3d.js), once the model is known
 
-// --- API --------------------------------------------------------------------------------------------
-// The page asks the server only for what it shows and answers its limits: a 429 or 503 is waited out
-// (Retry-After, capped) and tried again, never shown as an empty result.
-const RETRY_CAP_S = 10;
-const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
-const busy = (status) => status === 429 || status === 503;
-function retryDelayS(r, tries) {
-  const given = r ? Number(r.headers.get('Retry-After')) : NaN;
-  return Math.min(RETRY_CAP_S, Number.isFinite(given) && given > 0 ? given : 0.5 * 2 ** tries);
+// --- one job at a time ----------------------------------------------------------------------------------
+// The server runs one job per client (more get 429): a simulator check and a design never overlap.
+const jobs = {
+  what: null,
+  start(what) { if (this.what) return false; this.what = what; syncJobButtons(); return true; },
+  end() { this.what = null; syncJobButtons(); },
+};
+function syncJobButtons() {
+  $('verify').disabled = !!jobs.what || !state.run;
+  $('design-run').disabled = !!jobs.what;
+  for (const id of ['verify', 'design-run']) $(id).title = jobs.what ? `waiting for the running ${jobs.what} job` : '';
 }
-async function fetchPatiently(path, opts = {}, tries = 5) {
-  for (let i = 0; ; i++) {
-    const r = await fetch(path, opts);
-    if (!busy(r.status) || i >= tries) return r;
-    await sleep(1000 * retryDelayS(r, i));
+async function followJob(location, onUpdate) {
+  for (;;) {
+    const job = (await api('GET', location)).data;
+    onUpdate(job);
+    if (['done', 'failed', 'cancelled'].includes(job.status)) return job;
+    await sleep(300);
   }
-}
-async function api(method, path, body) {
-  const opts = { method, headers: {} };
-  if (body !== undefined) { opts.body = JSON.stringify(body); opts.headers['Content-Type'] = 'application/json'; }
-  const r = await fetchPatiently(path, opts);
-  const text = await r.text();
-  let data = null;
-  try { data = text ? JSON.parse(text) : null; } catch (e) { data = null; }
-  if (!r.ok) {
-    const msg = (data && data.message) || `${method} ${path} answered HTTP ${r.status}`;
-    const err = new Error(msg); err.status = r.status; throw err;
-  }
-  return { data, headers: r.headers };
 }
 function showError(msg) { const e = $('error'); e.textContent = msg; e.hidden = !msg; }
 
@@ -47,6 +42,7 @@ function showError(msg) { const e = $('error'); e.textContent = msg; e.hidden = 
 const fwd = (s, v) => (s.kind === 'log' ? Math.log10(Math.max(v, 1e-30)) : v);
 const inv = (s, x) => (s.kind === 'log' ? 10 ** x : x);
 function fmt(v) { return Math.abs(v) >= 1e4 || (Math.abs(v) < 1e-2 && v !== 0) ? v.toExponential(3) : +v.toPrecision(5); }
+const defaults = () => Object.fromEntries(state.specs.map((s) => [s.name, s.default]));
 
 function buildControls() {
   const box = $('controls'); box.innerHTML = '';
@@ -66,7 +62,7 @@ function buildControls() {
     state.inputs[s.name] = { num, rng, div, exact: undefined };
     box.appendChild(div);
   }
-  setControls(Object.fromEntries(state.specs.map((s) => [s.name, s.default])));
+  setControls(defaults());
 }
 function setControls(values) {
   for (const s of state.specs) {
@@ -87,13 +83,19 @@ function readControls() {
   }
   return out;
 }
+function showTab(name) {
+  for (const t of ['controls', 'design']) {
+    $(`tab-${t}`).hidden = t !== name;
+    $(`tab-${t}-btn`).classList.toggle('on', t === name); $(`tab-${t}-btn`).setAttribute('aria-selected', String(t === name));
+  }
+}
 
 // --- recipe mode ------------------------------------------------------------------------------------
 function renderRecipe() {
   const body = $('recipe-table').querySelector('tbody'); body.innerHTML = '';
-  const defaults = Object.fromEntries(state.specs.map((s) => [s.name, s.default]));
+  const base = defaults();
   state.recipe.forEach((ph, i) => {
-    const diff = state.specs.filter((s) => ph.controls[s.name] !== defaults[s.name])
+    const diff = state.specs.filter((s) => ph.controls[s.name] !== base[s.name])
       .map((s) => `${s.name}=${fmt(ph.controls[s.name])}`).join(', ') || '(defaults)';
     const tr = document.createElement('tr');
     tr.innerHTML = `<td>${i + 1}</td><td><input type="number" min="0.1" step="0.1" value="${ph.duration}" class="dur"></td>
@@ -113,6 +115,27 @@ function requestBody() {
   return { recipe: rows };
 }
 
+// --- metrics: undefined is a gap --------------------------------------------------------------------
+// A width exists once the hole reaches the row it is measured on (nemsim.geometry.profile): the top width
+// at the top Si row (its centre half a voxel below the initial Si top), the bottom width from a hole one
+// voxel deep, the neck and the bowing from their first reference row (two rows further down, 2.5 voxels).
+// Before that the API reports 0 (or the top width, for the neck); the page shows nothing there.
+const DEFINED_FROM_VOX = { top_width: [0.5, false], bottom_width: [1, true], neck_width: [2.5, false], bowing: [2.5, false] };
+function definedMetrics(metrics) {
+  const depth = metrics.etch_depth, vox = state.model.scene.voxel_nm;
+  if (!depth) return metrics;
+  const out = {};
+  for (const [n, vals] of Object.entries(metrics)) {
+    const rule = DEFINED_FROM_VOX[n];
+    out[n] = !rule ? vals : vals.map((v, k) => {
+      const d = depth[k], at = rule[0] * vox;
+      return d === null || v === null || (rule[1] ? d < at - 1e-9 : d <= at + 1e-9) ? null : v;
+    });
+  }
+  return out;
+}
+const last = (vals) => vals[vals.length - 1];
+
 // --- canvases fit their column ----------------------------------------------------------------------
 // Each canvas is as wide as its panel (CSS) and drawn at the screen's resolution, in CSS pixels; the
 // page redraws when the window changes size, so nothing is cut at 1280 x 720 or stretched at 1920 x 1080.
@@ -122,95 +145,17 @@ function fitCanvas(c, cssH) {
   if (c.width !== W) c.width = W;
   if (c.height !== H) c.height = H;
   const ctx = c.getContext('2d'); ctx.setTransform(dpr, 0, 0, dpr, 0, 0); ctx.clearRect(0, 0, w, cssH);
-  ctx.font = '11px system-ui';
-  return { ctx, w, h: cssH };
+  ctx.font = FONT;
+  return { ctx, w, h: cssH, dpr };
 }
-function size3d() {
-  const canvas = $('canvas3d'), w = Math.max(200, Math.floor(canvas.parentElement.clientWidth));
-  const h = Math.round(Math.max(220, Math.min(0.8 * w, 0.6 * window.innerHeight)));
-  three.renderer.setPixelRatio(window.devicePixelRatio || 1);
-  three.renderer.setSize(w, h, false);
-  canvas.style.height = `${h}px`;
-  three.camera.aspect = w / h; three.camera.updateProjectionMatrix();
-}
+const planeHeight = () => Math.round(Math.min(380, Math.max(260, 0.42 * window.innerHeight)));
 let resizeQueued = false;
 function redrawAll() {
   resizeQueued = false;
-  if (three.renderer) { size3d(); render(); }
-  if (state.run) { drawSection(state.step); drawChart(); }
+  if (view) { view.resize(); view.render(); }
+  if (state.run) { drawPlanes(state.step); drawChart(); }
   if (state.mechanisms) drawMechanisms(state.mechanisms);
   if (state.sim) drawRmse(state.sim.result);
-}
-
-// --- 3-D view ---------------------------------------------------------------------------------------
-const three = {};
-function init3d() {
-  const canvas = $('canvas3d');
-  const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
-  renderer.setClearColor(0xeef1f5);
-  const scene = new THREE.Scene();
-  const sc = state.model.scene, vx = sc.voxel_nm;
-  const size = new THREE.Vector3(sc.nx * vx, sc.ny * vx, sc.nz * vx);
-  const camera = new THREE.PerspectiveCamera(35, canvas.width / canvas.height, 1, 50 * size.length());
-  const centre = size.clone().multiplyScalar(0.5);
-  camera.up.set(0, 0, 1);
-  camera.position.set(centre.x + 0.8 * size.z, centre.y - 1.25 * size.z, centre.z + 0.55 * size.z);
-  const controls = new OrbitControls(camera, canvas);
-  controls.target.copy(centre); controls.update();
-  scene.add(new THREE.AmbientLight(0xffffff, 0.55));
-  const sun = new THREE.DirectionalLight(0xffffff, 1.6); sun.position.set(1, -2, 3); scene.add(sun);
-  const back = new THREE.DirectionalLight(0xffffff, 0.5); back.position.set(-2, 1, -1); scene.add(back);
-  // cutaway: the half nearer the camera (y below the hole axis) is clipped away so the hole shows
-  const cut = new THREE.Plane(new THREE.Vector3(0, 1, 0), -(sc.ny * vx) / 2);
-  renderer.localClippingEnabled = true;
-  const clip = () => ($('cutaway').checked ? [cut] : []);
-  const mat = (c) => new THREE.MeshStandardMaterial({ color: c, roughness: 0.7, side: THREE.DoubleSide, clippingPlanes: clip() });
-  const mask = new THREE.Mesh(new THREE.BufferGeometry(), mat(0x8a8f99));
-  const si = new THREE.Mesh(new THREE.BufferGeometry(), mat(0xe0913c));
-  const err = new THREE.Mesh(new THREE.BufferGeometry(), new THREE.MeshStandardMaterial({ vertexColors: true, side: THREE.DoubleSide, clippingPlanes: clip() }));
-  $('cutaway').addEventListener('change', () => { for (const m of [mask, si, err]) { m.material.clippingPlanes = clip(); m.material.needsUpdate = true; } render(); });
-  err.visible = false;
-  scene.add(mask, si, err);
-  Object.assign(three, { renderer, scene, camera, controls, mask, si, err });
-  controls.addEventListener('change', render);
-  size3d(); render();
-}
-function render() { three.renderer.render(three.scene, three.camera); }
-
-function parseGLB(buf) {
-  const dv = new DataView(buf);
-  if (dv.getUint32(0, true) !== 0x46546c67) throw new Error('not a glTF binary');
-  let off = 12, json = null, bin = null;
-  while (off < buf.byteLength) {
-    const len = dv.getUint32(off, true), type = dv.getUint32(off + 4, true);
-    if (type === 0x4e4f534a) json = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, off + 8, len)));
-    else if (type === 0x004e4942) bin = buf.slice(off + 8, off + 8 + len);
-    off += 8 + len;
-  }
-  const geom = new THREE.BufferGeometry();
-  const prim = json && json.meshes && json.meshes[0] && json.meshes[0].primitives[0];
-  if (!prim || !bin) return geom;
-  const read = (i) => {
-    const a = json.accessors[i], bv = json.bufferViews[a.bufferView];
-    const n = { SCALAR: 1, VEC2: 2, VEC3: 3, VEC4: 4 }[a.type];
-    const T = { 5126: Float32Array, 5125: Uint32Array, 5123: Uint16Array, 5121: Uint8Array }[a.componentType];
-    const start = (bv.byteOffset || 0) + (a.byteOffset || 0);
-    return { arr: new T(bin.slice(start, start + a.count * n * T.BYTES_PER_ELEMENT)), n, norm: !!a.normalized };
-  };
-  const p = read(prim.attributes.POSITION);
-  geom.setAttribute('position', new THREE.BufferAttribute(p.arr, 3));
-  if (prim.attributes.COLOR_0 !== undefined) {
-    const c = read(prim.attributes.COLOR_0);
-    geom.setAttribute('color', new THREE.BufferAttribute(c.arr, c.n, c.arr instanceof Float32Array ? false : true));
-  }
-  if (prim.indices !== undefined) geom.setIndex(new THREE.BufferAttribute(read(prim.indices).arr, 1));
-  geom.computeVertexNormals();
-  return geom;
-}
-async function fetchGeometry(url) {
-  const r = await fetchPatiently(url);
-  if (!r.ok) return null;
-  return parseGLB(await r.arrayBuffer());
 }
 
 // --- meshes: fetched as shown -------------------------------------------------------------------------
@@ -282,18 +227,26 @@ function nearestSettled(id, step, ch) {
   return null;
 }
 function show3d() {
-  const run = state.run; if (!run || !three.renderer) return;
-  for (const [obj, ch] of [[three.mask, 'mask'], [three.si, 'si']]) {
+  const run = state.run; if (!run || !view) return;
+  let drawn = false;
+  for (const [obj, ch] of [[view.mask, 'mask'], [view.si, 'si']]) {
     const e = nearestSettled(run.id, state.step, ch);
     if (!e) continue; // nothing of this run yet: keep what is drawn
     if (e.geom && obj.geometry !== e.geom) obj.geometry = e.geom;
-    if (!(obj === three.si && three.err.visible)) obj.visible = e.status === 'ok' && e.geom.attributes.position !== undefined;
+    if (!(obj === view.si && view.err.visible)) obj.visible = e.status === 'ok' && e.geom.attributes.position !== undefined;
+    drawn = true;
   }
-  render();
+  view.render();
+  // from the click on Run to the first frame with this run's surfaces
+  if (drawn && run.t0 !== undefined && run.firstViewMs === undefined) {
+    run.firstViewMs = performance.now() - run.t0;
+    (state.firstViews = state.firstViews || []).push(run.firstViewMs);
+  }
 }
 function forgetMeshes(keepId) {
   for (const key of meshes.entries.keys()) if (!key.startsWith(`${keepId}|`)) meshes.entries.delete(key);
 }
+state.surfacePixels = () => (view ? view.surfacePixels() : 0);
 state.meshReady = (step) => !!state.run && CHANNELS.every((ch) => settled(meshes.entries.get(meshKey(state.run.id, step, ch))));
 state.meshStats = () => {
   const n = { requests: meshes.requests };
@@ -301,55 +254,32 @@ state.meshStats = () => {
   return n;
 };
 
-// --- cross-section ----------------------------------------------------------------------------------
-function drawSection(step) {
-  const c = $('section'), { ctx, w, h } = fitCanvas(c, 300);
-  ctx.fillStyle = '#fff'; ctx.fillRect(0, 0, w, h);
+// --- the plane through the hole axis: cross-section and etch profile ------------------------------------
+function drawPlanes(step) {
+  const h = planeHeight(), sec = fitCanvas($('section'), h), prof = fitCanvas($('profile'), h);
   if (!state.slices) return;
-  // side by side with A when A is pinned (same time)
-  const panels = [[state.slices, 'current']];
+  const panels = [[state.slices, state.a && state.a.slices ? 'current' : '']];
   if (state.a && state.a.slices) panels.push([state.a.slices, 'A']);
-  const pw = w / panels.length;
-  panels.forEach(([sl, label], p) => {
-    const [n, , D, W] = sl.shape, plane = D * W, base = Math.min(step, n - 1) * 2 * plane;
-    const img = new ImageData(W, D);
-    for (let z = 0; z < D; z++) for (let x = 0; x < W; x++) {
-      const m = sl.bytes[base + z * W + x] / 127.5 - 1, s = sl.bytes[base + plane + z * W + x] / 127.5 - 1;
-      const o = ((D - 1 - z) * W + x) * 4; // depth index grows upwards
-      let rgb = [238, 241, 245];
-      if (s < 0) rgb = [224, 145, 60]; else if (m < 0) rgb = [138, 143, 153];
-      if (Math.min(Math.abs(m), Math.abs(s)) < 0.08) rgb = [30, 36, 48];
-      img.data.set([...rgb, 255], o);
-    }
-    const tmp = document.createElement('canvas'); tmp.width = W; tmp.height = D;
-    tmp.getContext('2d').putImageData(img, 0, 0);
-    const scale = Math.min((pw - 8) / W, (h - 16) / D);
-    ctx.imageSmoothingEnabled = false;
-    ctx.drawImage(tmp, p * pw + (pw - W * scale) / 2, 16, W * scale, D * scale);
-    if (panels.length > 1) { ctx.fillStyle = '#334'; ctx.fillText(label, p * pw + 6, 12); }
-  });
+  drawSection(sec.ctx, sec, panels, step, state.model.scene, sec.dpr);
+  const run = state.run, tmax = run.times_s[run.steps], dt = tmax / run.steps;
+  const times = ticksWithin(0, tmax, 5);
+  const lines = times.ticks.map((t, q) => ({
+    sl: state.slices, step: Math.round(t / dt), label: `t = ${times.label(t)} s`, colour: timeColour(q / Math.max(1, times.ticks.length - 1)),
+  }));
+  lines.push({ sl: state.slices, step, label: `now (${run.times_s[step].toFixed(1)} s)`, colour: '#000', width: 2.2 });
+  if (state.a && state.a.slices) lines.push({ sl: state.a.slices, step: Math.min(step, state.a.steps), label: 'A, now', colour: '#d62728', width: 1.8, dash: [5, 3] });
+  state.fit.profile = drawProfile(prof.ctx, prof, lines, state.model.scene);
 }
 
 // --- chart ------------------------------------------------------------------------------------------
-function niceTicks(lo, hi, n = 5) {
-  if (!(hi > lo)) hi = lo + 1;
-  const raw = (hi - lo) / n, mag = 10 ** Math.floor(Math.log10(raw)), f = raw / mag;
-  const step = (f <= 1 ? 1 : f <= 2 ? 2 : f <= 2.5 ? 2.5 : f <= 5 ? 5 : 10) * mag;
-  const a = Math.floor(lo / step + 1e-9) * step, b = Math.ceil(hi / step - 1e-9) * step;
-  let dec = 0;
-  while (dec < 6 && Math.abs(Math.round(step * 10 ** dec) - step * 10 ** dec) > 1e-6) dec++;
-  const ticks = [];
-  for (let v = a; v <= b + step / 2; v += step) ticks.push(v);
-  return { lo: a, hi: b, ticks, label: (v) => v.toFixed(dec) };
-}
 function drawChart() {
   const c = $('chart'), { ctx, w: cw, h: ch } = fitCanvas(c, 260);
   const run = state.run; if (!run) return;
-  const names = Object.keys(run.metrics);
+  const names = Object.keys(run.shown);
   const series = [[run, []], [state.a, [6, 4]], [state.sim, [2, 3]]].filter(([s]) => s);
   let ymin = 0, ymax = 1;
-  for (const [s] of series) for (const n of names) for (const v of (s.metrics[n] || [])) if (v !== null) { ymin = Math.min(ymin, v); ymax = Math.max(ymax, v); }
-  const tmax = Math.max(...series.map(([s]) => s.times_s[s.times_s.length - 1]));
+  for (const [s] of series) for (const n of names) for (const v of (s.shown[n] || [])) if (v !== null) { ymin = Math.min(ymin, v); ymax = Math.max(ymax, v); }
+  const tmax = Math.max(...series.map(([s]) => last(s.times_s)));
   const yt = niceTicks(ymin, ymax), xt = niceTicks(0, tmax);
   const L = 8 + Math.max(...yt.ticks.map((v) => ctx.measureText(yt.label(v)).width));
   const R = 30 + Math.max(...names.map((n) => ctx.measureText(n).width)), T = 16, B = 32;
@@ -369,7 +299,7 @@ function drawChart() {
   names.forEach((n, i) => {
     ctx.strokeStyle = COLORS[i % COLORS.length];
     for (const [s, dash] of series) {
-      const vals = s.metrics[n]; if (!vals) continue;
+      const vals = s.shown[n]; if (!vals) continue;
       ctx.setLineDash(dash); ctx.lineWidth = 1.6; ctx.beginPath(); let pen = false;
       vals.forEach((v, k) => { if (v === null) { pen = false; return; } const x = X(s.times_s[k]), y = Y(v); pen ? ctx.lineTo(x, y) : ctx.moveTo(x, y); pen = true; });
       ctx.stroke();
@@ -382,23 +312,24 @@ function drawChart() {
   const legendRight = L + w + 22 + Math.max(...names.map((n) => ctx.measureText(n).width));
   state.fit.chart = legendRight <= cw && T + 10 + 15 * (names.length - 1) <= ch;
 }
+const fixed = (x, d = 1) => (Math.abs(x) < 0.5 * 10 ** -d ? 0 : x).toFixed(d); // no "-0.0"
+const nm1 = (x) => (x === null || x === undefined ? '–' : fixed(x));
 function metricsTable() {
   const run = state.run; if (!run) return;
   const k = state.step, cols = [['current', run]];
   if (state.a) cols.push(['A', state.a]);
   if (state.sim) cols.push(['simulator', state.sim]);
-  const v = (x) => (x === null || x === undefined ? '–' : x.toFixed(1));
   let html = `<table><tr><th>at t = ${run.times_s[k].toFixed(1)} s (nm)</th>${cols.map(([n]) => `<th>${n}</th>`).join('')}</tr>`;
-  for (const n of Object.keys(run.metrics)) html += `<tr><td>${n}</td>${cols.map(([, s]) => `<td>${v((s.metrics[n] || [])[Math.min(k, s.metrics[n].length - 1)])}</td>`).join('')}</tr>`;
-  $('final-metrics').innerHTML = html + '</table>';
+  for (const n of Object.keys(run.shown)) html += `<tr><td>${n}</td>${cols.map(([, s]) => `<td>${nm1((s.shown[n] || [])[Math.min(k, s.shown[n].length - 1)])}</td>`).join('')}</tr>`;
+  $('final-metrics').innerHTML = `${html}</table><p class="hint">– : not defined yet (the hole has not reached the row it is measured on)</p>`;
 }
 
 // --- time -------------------------------------------------------------------------------------------
 function setStep(step) {
   state.step = step; $('time').value = step;
   $('time-label').textContent = `t = ${state.run.times_s[step].toFixed(1)} s (step ${step})`;
-  three.err.visible = false;
-  show3d(); pumpMeshes(); drawSection(step); drawChart(); metricsTable();
+  if (view.err.visible) { view.showError(null); delete $('view3d').dataset.errorShown; }
+  show3d(); pumpMeshes(); drawPlanes(step); drawChart(); metricsTable();
 }
 function togglePlay() {
   if (state.playing) { clearInterval(state.playing); state.playing = null; $('play').textContent = 'Play'; return; }
@@ -409,6 +340,50 @@ function togglePlay() {
     setStep(state.step + 1);
   }, 100);
   pumpMeshes();
+}
+
+// --- warnings in plain language ---------------------------------------------------------------------
+/** The model's measured errors as /model reports them: per evaluation set, mean surface distance
+ * (Chamfer, voxels -> nm) and field RMSE; sets named ood* were held out beyond the trained range. */
+function measuredErrors() {
+  const m = (state.model && state.model.metrics) || {}, vox = state.model.scene.voxel_nm;
+  const has = (v) => v && typeof v === 'object' && (typeof v.cd === 'number' || typeof v.avg_rmse === 'number');
+  const sets = Object.entries(m).filter(([, v]) => has(v));
+  if (!sets.length && has(m)) sets.push(['test set', m]);
+  const text = (v) => [
+    typeof v.cd === 'number' ? `surfaces ${(v.cd * vox).toFixed(1)} nm from the simulator's on average` : '',
+    typeof v.avg_rmse === 'number' ? `field RMSE ${v.avg_rmse.toFixed(3)} of the normalized SDF` : '',
+  ].filter(Boolean).join(', ');
+  const ood = ([k]) => /^ood/i.test(k);
+  return {
+    inside: sets.filter((e) => !ood(e)).map(([k, v]) => [k, text(v)]),
+    outside: sets.filter(ood).map(([k, v]) => [k, text(v), v.ood_controls]),
+  };
+}
+function rangeNote(ex, clipped) {
+  const items = ex.map((e) => `<li><b>${esc(e.control)}</b> = ${fmt(e.value)} ${esc(e.unit)}: ${e.side} the trained range `
+    + `${fmt(e.train_min)}–${fmt(e.train_max)}</li>`).join('');
+  let html = '<p><b>⚠ Outside the trained range.</b> The model learned from simulations with every control inside its '
+    + `trained range. Here:</p><ul>${items}</ul>`;
+  html += clipped
+    ? '<p>The server clipped these controls to the edge of the range (its policy): the prediction is for the clipped values, '
+      + 'not the ones set.</p>'
+    : '<p>The prediction is an extrapolation: it may be off by more than the model\'s usual error, even when it looks '
+      + 'plausible. Check it with “Verify with simulator”.</p>';
+  const err = measuredErrors(), names = new Set(ex.map((e) => e.control));
+  const out = err.outside.filter(([, , ctl]) => !ctl || ctl.some((c) => names.has(c)));
+  if (out.length) html += `<p>Measured beyond the trained range (held-out simulations): ${out.map(([k, t]) => `${esc(k)}: ${t}`).join('; ')}.</p>`;
+  else html += '<p>This server reports no measured error outside the range.</p>';
+  if (err.inside.length) html += `<p class="hint">Inside the range, measured on held-out simulations: ${err.inside.map(([k, t]) => `${esc(k)}: ${t}`).join('; ')}.</p>`;
+  return html;
+}
+function showWarnings(data) {
+  const ex = data.extrapolation || [];
+  const other = data.warnings.filter((w) => !(ex.length && /outside the training range/.test(w)));
+  let html = ex.length ? rangeNote(ex, data.clipped) : '';
+  html += other.map((w) => `<p>⚠ ${esc(w)}</p>`).join('');
+  if (ex.length) html += `<details><summary>the server's words</summary>${data.warnings.map((w) => `<p class="hint">${esc(w)}</p>`).join('')}</details>`;
+  const box = $('warnings'); box.hidden = !html; box.innerHTML = html;
 }
 
 // --- run --------------------------------------------------------------------------------------------
@@ -422,16 +397,15 @@ async function run() {
   try {
     const { data } = await api('POST', '/rollout', body);
     (state.rolloutMs = state.rolloutMs || []).push(performance.now() - t0);
+    data.t0 = t0; data.shown = definedMetrics(data.metrics);
     state.run = data; state.body = body; state.sim = null;
     $('comparison').innerHTML = ''; $('rmse').hidden = true; $('job-status').textContent = '';
-    const w = $('warnings');
-    w.hidden = !data.warnings.length;
-    w.innerHTML = data.warnings.map((x) => `⚠ ${x}`).join('<br>');
+    showWarnings(data);
     for (const s of state.specs) state.inputs[s.name].div.classList.remove('api-out');
     for (const e of data.extrapolation || []) if (state.inputs[e.control]) state.inputs[e.control].div.classList.add('out', 'api-out');
     // the final state first: its surfaces are asked for while the cross-sections load
     const slider = $('time'); slider.disabled = true; slider.max = data.steps; slider.value = data.steps;
-    forgetMeshes(data.id); state.step = data.steps; three.err.visible = false; pumpMeshes();
+    forgetMeshes(data.id); state.step = data.steps; view.showError(null); pumpMeshes();
     const [sl] = await Promise.all([
       api('GET', `/rollouts/${data.id}/slices`).then((x) => x.data), meshesSettled(data.id, data.steps),
     ]);
@@ -439,10 +413,11 @@ async function run() {
     slider.disabled = false;
     setStep(data.steps);
     if (state.a) renderAB();
-    state.firstViewMs = performance.now() - t0;
-    (state.firstViews = state.firstViews || []).push(state.firstViewMs);
+    (state.readyMs = state.readyMs || []).push(performance.now() - t0);
     document.body.dataset.runs = String((+document.body.dataset.runs || 0) + 1);
-    for (const id of ['play', 'pin-a', 'verify', 'mech-run']) $(id).disabled = false;
+    for (const id of ['play', 'pin-a', 'mech-run']) $(id).disabled = false;
+    for (const b of document.querySelectorAll('#exports button')) b.disabled = false;
+    syncJobButtons();
     if (!$('recipe-mode').checked) mechanisms('for the controls of this run');
     else {
       state.mechanisms = null; fitCanvas($('mech'), 20);
@@ -469,7 +444,7 @@ function drawMechanisms(res) {
   for (const f of res.families) bars.push([`share ${f}`, (100 * (res.base.M[f] || 0)) / tot, '#1f77b4']);
   for (const iv of res.interventions) bars.push([`Cl+×${iv.s_cl_plus} Cl×${iv.s_cl}: ΔR`, iv.delta_R_pct || 0, '#d62728']);
   const rowH = 16, { ctx, w } = fitCanvas($('mech'), 4 + rowH * bars.length);
-  const pct = (v) => `${v.toFixed(1)}%`;
+  const pct = (v) => `${fixed(v)}%`;
   const x0 = 6 + Math.max(...bars.map((b) => ctx.measureText(b[0]).width));
   const room = 4 + Math.max(...bars.map((b) => ctx.measureText(pct(b[1])).width)); // a value label beside its bar
   const amax = Math.max(1, ...bars.map((b) => Math.abs(b[1])));
@@ -494,7 +469,7 @@ function pinA() {
 }
 function renderAB() {
   const box = $('ab'); box.hidden = !state.a;
-  if (!state.a || !state.run) { drawChart(); if (state.run) drawSection(state.step); return; }
+  if (!state.a || !state.run) { drawChart(); if (state.run) drawPlanes(state.step); return; }
   // a control's values over the run, consecutive repeats merged (one value for constant controls)
   const seq = (r, n) => (r.recipe ? r.recipe.map((c) => c[n]) : [r.controls[n]]).filter((v, i, a) => i === 0 || v !== a[i - 1]);
   const show = (vals) => vals.map(fmt).join(' → ');
@@ -502,67 +477,117 @@ function renderAB() {
   let html = '<table><tr><th>control (over time)</th><th>A</th><th>current</th></tr>';
   html += diff.map((s) => `<tr><td>${s.name}</td><td>${show(seq(state.a, s.name))}</td><td>${show(seq(state.run, s.name))}</td></tr>`).join('') || '<tr><td colspan=3>same controls</td></tr>';
   html += '</table><table><tr><th>final (nm)</th><th>A</th><th>current</th><th>current − A</th></tr>';
-  for (const n of Object.keys(state.run.metrics)) {
-    const a = state.a.metrics[n][state.a.metrics[n].length - 1], b = state.run.metrics[n][state.run.metrics[n].length - 1];
-    html += `<tr><td>${n}</td><td>${a?.toFixed(1) ?? '–'}</td><td>${b?.toFixed(1) ?? '–'}</td><td>${a !== null && b !== null ? (b - a).toFixed(1) : '–'}</td></tr>`;
+  for (const n of Object.keys(state.run.shown)) {
+    const a = last(state.a.shown[n]), b = last(state.run.shown[n]);
+    html += `<tr><td>${n}</td><td>${nm1(a)}</td><td>${nm1(b)}</td><td>${a !== null && b !== null ? fixed(b - a) : '–'}</td></tr>`;
   }
-  box.innerHTML = html + '</table>';
-  drawChart(); metricsTable(); drawSection(state.step);
+  box.innerHTML = `${html}</table>`;
+  drawChart(); metricsTable(); drawPlanes(state.step);
 }
 
 // --- simulator jobs ---------------------------------------------------------------------------------
 async function verify() {
   showError('');
-  const body = { ...state.body, steps: state.run.steps };
-  $('verify').disabled = true; $('job-progress').hidden = false; $('job-progress').value = 0;
+  if (!jobs.start('simulator')) return;
+  const body = { ...state.body, steps: state.run.steps }, run = state.run;
+  $('job-progress').hidden = false; $('job-progress').value = 0;
   try {
     const { data } = await api('POST', '/simulations', body);
     $('job-status').textContent = `job ${data.id}: ${data.status}`;
     state.job = data; $('job-cancel').hidden = false;
-    let job;
-    for (;;) {
-      job = (await api('GET', data.location)).data;
-      $('job-progress').value = job.progress; $('job-status').textContent = `job ${job.id}: ${job.status} (${Math.round(100 * job.progress)}%)`;
-      if (['done', 'failed', 'cancelled'].includes(job.status)) break;
-      await sleep(300);
-    }
+    const job = await followJob(data.location, (j) => {
+      $('job-progress').value = j.progress; $('job-status').textContent = `job ${j.id}: ${j.status} (${Math.round(100 * j.progress)}%)`;
+    });
     if (job.status === 'cancelled') { $('job-status').textContent = `job ${job.id}: cancelled`; return; }
     if (job.status !== 'done') { showError(`simulator job ${job.status}: ${job.message || ''}`); return; }
-    showComparison(job.result);
+    if (state.run === run) showComparison(job.result);
   } catch (e) { showError(e.message); } finally {
-    $('verify').disabled = false; $('job-progress').hidden = true; $('job-cancel').hidden = true;
+    jobs.end(); $('job-progress').hidden = true; $('job-cancel').hidden = true;
   }
 }
 function drawRmse(res) {
-  const { ctx, w: cw, h: ch } = fitCanvas($('rmse'), 140);
-  const r = res.rmse_per_step.map((v) => v || 0), rmax = Math.max(...r, 1e-6), L = 44, w = cw - L - 8, h = ch - 28;
-  ctx.strokeStyle = '#99a'; ctx.strokeRect(L, 6, w, h); ctx.fillStyle = '#445';
-  ctx.fillText(rmax.toFixed(3), 2, 14); ctx.fillText('0', 30, 6 + h); ctx.fillText('per-step RMSE (normalized SDF) vs time', L + 4, ch - 6);
-  ctx.strokeStyle = '#d62728'; ctx.beginPath();
-  r.forEach((v, k) => { const x = L + (w * k) / (r.length - 1), y = 6 + h * (1 - v / rmax); k ? ctx.lineTo(x, y) : ctx.moveTo(x, y); });
+  const { ctx, w: cw, h: ch } = fitCanvas($('rmse'), 150);
+  const r = res.rmse_per_step, times = res.times_s || r.map((_, k) => k / 10);
+  const yt = niceTicks(0, Math.max(1e-6, ...r.filter((v) => v !== null))), xt = niceTicks(0, last(times));
+  const L = 8 + Math.max(...yt.ticks.map((v) => ctx.measureText(yt.label(v)).width)), T = 18, B = 30, w = cw - L - 8, h = ch - T - B;
+  const X = (t) => L + (w * t) / xt.hi, Y = (v) => T + h * (1 - v / yt.hi);
+  ctx.strokeStyle = '#99a'; ctx.strokeRect(L, T, w, h); ctx.fillStyle = '#445';
+  ctx.textAlign = 'right'; for (const v of yt.ticks) ctx.fillText(yt.label(v), L - 4, Y(v) + 4);
+  ctx.textAlign = 'center'; for (const t of xt.ticks) ctx.fillText(xt.label(t), X(t), T + h + 13);
+  ctx.fillText('time (s)', L + w / 2, ch - 4);
+  ctx.textAlign = 'left'; ctx.fillText('RMSE of the normalized SDF (surrogate vs simulator, per state)', 2, 11);
+  ctx.strokeStyle = '#d62728'; ctx.beginPath(); let pen = false;
+  r.forEach((v, k) => { if (v === null) { pen = false; return; } pen ? ctx.lineTo(X(times[k]), Y(v)) : ctx.moveTo(X(times[k]), Y(v)); pen = true; });
   ctx.stroke();
 }
 function showComparison(res) {
-  state.sim = { metrics: res.simulator_metrics, times_s: res.times_s, result: res };
+  state.sim = { metrics: res.simulator_metrics, shown: definedMetrics(res.simulator_metrics), times_s: res.times_s, result: res };
+  const surrogate = definedMetrics(res.surrogate_metrics);
   $('rmse').hidden = false; drawRmse(res);
   let html = `<p>avg RMSE ${res.avg_rmse.toFixed(4)} (normalized SDF), simulator ${res.simulator_s.toFixed(1)} s, seed ${res.seed}</p>`;
-  html += '<table><tr><th>final</th><th>surrogate</th><th>simulator</th><th>difference</th></tr>';
-  for (const [n, d] of Object.entries(res.final_differences)) {
-    const s = res.surrogate_metrics[n], m = res.simulator_metrics[n];
-    const f = (x) => (x === null || x === undefined ? '–' : x.toFixed(1));
-    html += `<tr><td>${n}</td><td>${f(s[s.length - 1])}</td><td>${f(m[m.length - 1])}</td><td>${f(d)}</td></tr>`;
+  html += '<table><tr><th>final (nm)</th><th>surrogate</th><th>simulator</th><th>difference</th></tr>';
+  for (const n of Object.keys(res.final_differences)) {
+    const s = last(surrogate[n]), m = last(state.sim.shown[n]);
+    html += `<tr><td>${n}</td><td>${nm1(s)}</td><td>${nm1(m)}</td><td>${s !== null && m !== null ? fixed(s - m) : '–'}</td></tr>`;
   }
   html += '</table><button id="show-err">Show the simulator\'s Si surface at this time, coloured by the surrogate\'s error</button>';
   const box = $('comparison'); box.innerHTML = html; box.dataset.done = '1';
-  $('show-err').addEventListener('click', async () => {
-    const g = await fetchGeometry(res.mesh.replace(/step=\d+/, `step=${Math.min(state.step, res.steps)}`));
-    if (!g) return;
-    three.err.geometry = g; three.err.visible = true; three.si.visible = false; render();
-  });
+  $('show-err').addEventListener('click', () => showErrorSurface(res));
   drawChart(); metricsTable();
+}
+async function showErrorSurface(res) {
+  const step = Math.min(state.step, res.steps);
+  try {
+    const r = await fetchPatiently(res.mesh.replace(/step=\d+/, `step=${step}`));
+    if (!r.ok) {
+      throw new Error(r.status === 410 ? 'the server no longer keeps this check\'s trajectories: run “Verify with simulator” again'
+        : `the error surface could not be loaded (HTTP ${r.status})`);
+    }
+    view.showError(parseGLB(await r.arrayBuffer()));
+    $('view3d').dataset.errorShown = String(step);
+  } catch (e) { showError(e.message); }
+}
+
+// --- exports ----------------------------------------------------------------------------------------
+async function exportFile(kind) {
+  const run = state.run; if (!run) return;
+  const id = run.id, step = state.step, ch = $('export-channel').value, f = $('export-format').value;
+  try {
+    let name;
+    if (kind === 'csv') name = await download(`/rollouts/${id}/metrics.csv`, `nemsim_${id}_metrics.csv`);
+    else if (kind === 'h5') name = await download(`/rollouts/${id}/trajectory.h5`, `nemsim_${id}_trajectory.h5`);
+    else if (kind === 'mesh') name = await download(`/rollouts/${id}/mesh?step=${step}&channel=${ch}&format=${f}`, `nemsim_${id}_step${step}_${ch}.${f}`);
+    else {
+      const which = $('export-view').value;
+      name = `nemsim_${id}_step${step}_${which}.png`;
+      saveBlob(which === '3d' ? await view.png(`NEMSim ${run.model_id} · t = ${run.times_s[step].toFixed(1)} s (step ${step})`) : await canvasPng($(which)), name);
+    }
+    $('export-status').textContent = `saved ${name}`;
+  } catch (e) { showError(e.message); }
+}
+function canvasPng(c) {
+  const out = document.createElement('canvas'); out.width = c.width; out.height = c.height;
+  const ctx = out.getContext('2d'); ctx.fillStyle = '#fff'; ctx.fillRect(0, 0, out.width, out.height); ctx.drawImage(c, 0, 0);
+  return new Promise((resolve) => out.toBlob(resolve, 'image/png'));
 }
 
 // --- start ------------------------------------------------------------------------------------------
+function wire() {
+  $('run').addEventListener('click', run);
+  $('reset').addEventListener('click', () => setControls(defaults()));
+  $('time').addEventListener('input', (e) => setStep(+e.target.value));
+  $('play').addEventListener('click', togglePlay);
+  $('pin-a').addEventListener('click', pinA);
+  $('clear-a').addEventListener('click', () => { state.a = null; $('clear-a').disabled = true; $('ab-label').textContent = ''; renderAB(); });
+  $('mech-run').addEventListener('click', () => mechanisms());
+  $('verify').addEventListener('click', verify);
+  $('job-cancel').addEventListener('click', () => state.job && api('DELETE', state.job.location).catch((e) => showError(e.message)));
+  $('recipe-mode').addEventListener('change', (e) => { $('recipe').hidden = !e.target.checked; });
+  $('add-phase').addEventListener('click', () => { state.recipe.push({ duration: 2.5, controls: readControls() }); renderRecipe(); });
+  for (const t of ['controls', 'design']) $(`tab-${t}-btn`).addEventListener('click', () => showTab(t));
+  for (const [id, kind] of [['export-csv', 'csv'], ['export-h5', 'h5'], ['export-mesh', 'mesh'], ['export-png', 'png']]) $(id).addEventListener('click', () => exportFile(kind));
+  window.addEventListener('resize', () => { if (!resizeQueued) { resizeQueued = true; requestAnimationFrame(redrawAll); } });
+}
 async function start() {
   let info;
   for (let i = 0; ; i++) {
@@ -573,20 +598,14 @@ async function start() {
   }
   state.model = info; state.specs = info.controls;
   $('model').textContent = `${info.model_id} · scene ${info.scene.name} · ${info.n_params} parameters · extrapolation: ${info.extrapolation}`;
-  buildControls(); init3d();
+  buildControls();
+  view = createView($('canvas3d'), info.scene, { cutaway: $('cutaway'), legend: $('legend-text'), colourbar: $('colourbar') });
+  state.design = initDesign({
+    model: info, specs: state.specs, defaults: defaults(), fmt, api, followJob, jobs,
+    load: (controls) => { $('recipe-mode').checked = false; $('recipe').hidden = true; setControls(controls); showTab('controls'); run(); },
+  });
+  wire();
   $('run').disabled = false;
-  $('run').addEventListener('click', run);
-  $('reset').addEventListener('click', () => setControls(Object.fromEntries(state.specs.map((s) => [s.name, s.default]))));
-  $('time').addEventListener('input', (e) => setStep(+e.target.value));
-  $('play').addEventListener('click', togglePlay);
-  $('pin-a').addEventListener('click', pinA);
-  $('clear-a').addEventListener('click', () => { state.a = null; $('clear-a').disabled = true; $('ab-label').textContent = ''; renderAB(); });
-  $('mech-run').addEventListener('click', () => mechanisms());
-  $('verify').addEventListener('click', verify);
-  $('job-cancel').addEventListener('click', () => state.job && api('DELETE', state.job.location).catch((e) => showError(e.message)));
-  $('recipe-mode').addEventListener('change', (e) => { $('recipe').hidden = !e.target.checked; });
-  $('add-phase').addEventListener('click', () => { state.recipe.push({ duration: 2.5, controls: readControls() }); renderRecipe(); });
-  window.addEventListener('resize', () => { if (!resizeQueued) { resizeQueued = true; requestAnimationFrame(redrawAll); } });
   state.setStep = setStep;
   document.body.dataset.ready = '1';
 }

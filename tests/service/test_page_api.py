@@ -41,3 +41,23 @@ def test_slices_cover_every_state_through_the_hole_axis(make_client, default_con
     assert sdf[0, 1, 1, centre] < 0 < sdf[0, 1, -2, centre]  # Si at the bottom, vacuum at the top
     r = client.get("/rollouts/nope/slices")
     assert r.status_code == 404 and "unknown rollout id" in r.json()["message"]
+
+
+def test_the_page_modules_import_only_files_the_server_serves(make_client):
+    """The page is ES modules: every import (followed through the page's own modules) is a same-origin file
+    served as JavaScript, so a renamed or missing module cannot leave the page blank."""
+    client = make_client()
+    seen, todo = set(), ["/static/explorer.js"]
+    while todo:
+        path = todo.pop()
+        r = client.get(path)
+        assert r.status_code == 200 and "javascript" in r.headers["content-type"], path
+        seen.add(path)
+        if path.startswith("/static/vendor/"):
+            continue
+        for ref in re.findall(r"""^import [^;]*?from '([^']+)';""", r.text, re.M):
+            assert ref.startswith("/static/"), f"{path} imports {ref}"
+            if ref not in seen:
+                todo.append(ref)
+    own = {f"/static/{name}.js" for name in ("explorer", "api", "plot", "view3d", "design")}
+    assert own <= seen and "/static/vendor/three/three.module.min.js" in seen
