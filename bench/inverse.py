@@ -13,12 +13,17 @@ target recipe itself is simulated with seed 2 too ("oracle": the true recipe jud
 "<method>+refine"): its simulator runs inside the loop use seed 3 (``LOOP_SEED``), so the judging run
 (seed 2) is an independent one and a recipe the loop verified can still miss there (the simulator's seed
 noise). Its design cost includes those simulator runs (in-process, so in the CPU seconds too).
+
+The target machinery (``held_out_unit``, ``reachable_case``, ``unreachable_cases``) is shared with
+``nemsim bench design-cost`` (``bench.design_cost``), which also places held-out recipes near the faces and
+the corners of the control box.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -41,6 +46,57 @@ UNREACHABLE: tuple[tuple[str, dict[str, Any]], ...] = (
 )
 TARGET_SEED, VERIFY_SEED, LOOP_SEED = 1, 2, 3
 REFINE_CHOICES = ("off", "on", "both")
+PLACEMENTS = ("interior", "faces", "corners")  # where held-out recipes lie in the control box
+EDGE = 0.05  # "near" a bound: within this share of the control's range (unit coordinates)
+FinalMetrics = Callable[[np.ndarray, int], dict[str, float]]  # (raw (14,), seed) -> final-step metrics, nm
+
+
+def held_out_unit(n: int, seed: int, placement: str = "interior") -> np.ndarray:
+    """(n, 14) held-out recipes in unit coordinates of the control box (no training design uses ``seed``).
+
+    "interior": ``lhs_unit(n, seed)``, the Latin-hypercube points ``run_bench`` takes. "faces": the same
+    points with 1 to 3 random controls moved to within ``EDGE`` of a bound (near a face or an edge of the
+    box). "corners": every control within ``EDGE`` of its low or high bound, at random (near a vertex).
+    """
+    if placement not in PLACEMENTS:
+        raise ValueError(f"placement must be one of {list(PLACEMENTS)}, got {placement!r}")
+    xi = lhs_unit(n, seed)
+    if placement == "interior":
+        return xi
+    rng = np.random.default_rng([seed, PLACEMENTS.index(placement)])
+    near = rng.uniform(0.0, EDGE, size=xi.shape)  # (n, 14) distance from the bound
+    high = rng.random(xi.shape) < 0.5
+    edge = np.where(high, 1.0 - near, near)
+    if placement == "corners":
+        return edge
+    out = xi.copy()
+    for i in range(n):
+        cols = rng.choice(xi.shape[1], size=int(rng.integers(1, 4)), replace=False)
+        out[i, cols] = edge[i, cols]
+    return out
+
+
+def reachable_case(name: str, raw: np.ndarray, final: FinalMetrics) -> dict[str, Any]:
+    """A reachable target: the final-step metrics (``REACHABLE_METRICS``, default tolerances) of the
+    simulator's run of ``raw`` with ``TARGET_SEED``; the "oracle" is the run with ``VERIFY_SEED`` (the
+    target's own recipe judged as a designed one would be: the simulator's seed noise)."""
+    m = final(raw, TARGET_SEED)
+    return {
+        "name": name,
+        "reachable": True,
+        "spec": {"targets": {k: {"value": round(float(m[k]), 2)} for k in REACHABLE_METRICS}},
+        "recipe": {n: float(v) for n, v in zip(CONTROL_NAMES, raw, strict=True)},
+        "oracle": {k: float(v) for k, v in final(raw, VERIFY_SEED).items()},
+    }
+
+
+def unreachable_cases(n: int = len(UNREACHABLE)) -> list[dict[str, Any]]:
+    """The first ``n`` deliberately unreachable targets (``UNREACHABLE``) as cases."""
+    if not 0 <= n <= len(UNREACHABLE):
+        raise ValueError(f"--unreachable must be in 0..{len(UNREACHABLE)}, got {n}")
+    return [
+        {"name": name, "reachable": False, "spec": {"targets": targets}} for name, targets in UNREACHABLE[:n]
+    ]
 
 
 def run_bench(
@@ -77,7 +133,7 @@ def run_bench(
     ctx = load_inverse_context(checkpoint)
     scene = ctx.scene
     step = scene.n_transitions
-    raw_targets = from_unit(lhs_unit(n_targets, seed))  # (n, 14) held-out recipes
+    raw_targets = from_unit(held_out_unit(n_targets, seed))  # (n, 14) held-out recipes
     cases: list[dict[str, Any]] = []
     t_start, c_start = time.perf_counter(), time.process_time()
     with SimTruth(scene, ctx.loaded.rules, simulator_config(ctx.loaded), progress=progress) as truth:
@@ -85,21 +141,12 @@ def run_bench(
             [(r, TARGET_SEED) for r in raw_targets] + [(r, VERIFY_SEED) for r in raw_targets],
             desc="target runs",
         )
-        for i, raw in enumerate(raw_targets):
-            m = truth.metrics(raw, TARGET_SEED)
-            wanted = {"targets": {k: {"value": round(float(m[k][step]), 2)} for k in REACHABLE_METRICS}}
-            oracle = {k: float(v[step]) for k, v in truth.metrics(raw, VERIFY_SEED).items()}
-            cases.append(
-                {
-                    "name": f"held-out {i + 1}",
-                    "reachable": True,
-                    "spec": wanted,
-                    "recipe": {n: float(v) for n, v in zip(CONTROL_NAMES, raw, strict=True)},
-                    "oracle": oracle,
-                }
-            )
-        for name, targets in UNREACHABLE[:n_unreachable]:
-            cases.append({"name": name, "reachable": False, "spec": {"targets": targets}})
+
+        def final(raw: np.ndarray, seed: int) -> dict[str, float]:
+            return {k: float(v[step]) for k, v in truth.metrics(raw, seed).items()}
+
+        cases += [reachable_case(f"held-out {i + 1}", raw, final) for i, raw in enumerate(raw_targets)]
+        cases += unreachable_cases(n_unreachable)
         bar = None
         if progress:
             from tqdm import tqdm
@@ -154,8 +201,9 @@ def run_bench(
     }
 
 
-def _inverse_run(ctx: Any, spec: Any, method: str, reachable: bool, truth: Any, step: int,
-                refine: Any = None) -> dict[str, Any]:
+def _inverse_run(
+    ctx: Any, spec: Any, method: str, reachable: bool, truth: Any, step: int, refine: Any = None
+) -> dict[str, Any]:
     """One inverse design of ``spec`` with ``method`` (simulator-corrected with a ``refine`` config), its
     top recipe simulated (verification seed) and judged: a reachable target succeeds when the simulator
     meets every tolerance, an unreachable one when the design says unreachable."""

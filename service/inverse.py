@@ -11,6 +11,15 @@ runtime serves rollouts only), then the verification's or the simulator-correcte
 in the same process (`service.sim_child.design_in_child`, beside what a simulator job runs), and writes the
 result as JSON. Progress goes to the job as the child reports it. Intervals come from the checkpoint's
 calibration file (`nemsim.analysis.intervals`), read once per model.
+
+A design's result reports `simulator_calls` (every simulator run it made: verification, corrected rounds)
+and, when the repository holds a committed `nemsim bench design-cost` result for the served checkpoint
+(`benchmarks/<scene>/design_cost/results.json` stamped with its checkpoint id), `expected_calls_to_target`:
+that benchmark's simulator calls per target reached with the surrogate-guided design (its `design`
+strategy: every call it spent on the reachable targets, independent confirmation runs included, over the
+targets it reached), read once per model. Calls per hit rather than the median: it stays finite when
+fewer than half the targets are reached, and it is what a design costs on average when a miss is retried.
+Another checkpoint, or an installation without the benchmarks, has none: the field is then absent.
 """
 
 from __future__ import annotations
@@ -32,7 +41,10 @@ from service.jobs import ChildFailed, Job, run_child
 from service.sim_child import MODEL_FILE, RESULT_FILE
 
 _calibrations: dict[str, Calibration | None] = {}
+_expected_calls: dict[tuple[str, str, str], float | None] = {}
 _lock = threading.Lock()
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"  # the repository's committed results
+DESIGN_LABEL = "design"  # the strategy of `nemsim bench design-cost` that `POST /design` runs
 
 
 def calibration(served: Any) -> Calibration | None:
@@ -42,6 +54,43 @@ def calibration(served: Any) -> Calibration | None:
             path = getattr(served.predictor.loaded, "path", None)
             _calibrations[served.model_id] = calibration_for(path) if path is not None else None
         return _calibrations[served.model_id]
+
+
+def expected_calls_to_target(served: Any, benchmarks: Path = BENCHMARKS) -> float | None:
+    """The committed design-cost benchmark's simulator calls per target reached, for the served checkpoint
+    (module docstring); None when there is no result for it."""
+    key = (served.model_id, str(getattr(served.predictor.scene, "name", None)), str(benchmarks))
+    with _lock:
+        if key not in _expected_calls:
+            _expected_calls[key] = _read_expected_calls(served, benchmarks)
+        return _expected_calls[key]
+
+
+def _read_expected_calls(served: Any, benchmarks: Path) -> float | None:
+    scene = getattr(served.predictor.scene, "name", None)
+    path = benchmarks / str(scene) / "design_cost" / "results.json"
+    try:
+        rep = json.loads(path.read_text())
+        summary = rep["summary"][DESIGN_LABEL]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    cid = served.model_id.rpartition("@")[2]
+    value = summary.get("calls_per_hit") if isinstance(summary, dict) else None
+    if rep.get("checkpoint_id") != cid or not isinstance(value, int | float) or isinstance(value, bool):
+        return None
+    return float(value)
+
+
+def with_call_counts(result: dict[str, Any], served: Any) -> dict[str, Any]:
+    """The design result with ``simulator_calls`` and, when the benchmark has a figure for the served
+    checkpoint, ``expected_calls_to_target``."""
+    out = dict(result)
+    if "simulator_calls" not in out:
+        out["simulator_calls"] = len((out.get("verification") or {}).get("recipes") or [])
+    expected = expected_calls_to_target(served)
+    if expected is not None:
+        out["expected_calls_to_target"] = expected
+    return out
 
 
 def rollout_intervals(served: Any, metrics: dict[str, list[float | None]]) -> dict[str, Any]:
@@ -100,7 +149,7 @@ def design_work(
         "threads": torch.get_num_threads(),  # the server's: the search computes as it would in the server
     }
     try:
-        return run_child(
+        result = run_child(
             job,
             "design",
             inputs,
@@ -110,6 +159,7 @@ def design_work(
         )
     except ChildFailed as exc:  # the job's message: the search's own, as if it ran here
         raise RuntimeError(exc.detail or exc.kind or str(exc)) from None
+    return with_call_counts(result, served)
 
 
 def write_weights(loaded: Any, path: Path) -> None:

@@ -87,7 +87,8 @@ class DesignRequest(BaseModel):
         False, description="run the simulator on the top recipes and report achieved against target"
     )
     verify_top: Annotated[int, Field(ge=1, le=3), BeforeValidator(_json_integer)] | None = Field(
-        None, description="recipes to simulate with verify (default 1; with refine 2, the round-0 recipes)"
+        None,
+        description="recipes to simulate with verify (default 1; with refine the round-0 recipes, default 1)",
     )
     refine: bool | None = Field(
         None,
@@ -98,7 +99,9 @@ class DesignRequest(BaseModel):
         "when verify is true (false: only simulate the top recipes)",
     )
     refine_rounds: Annotated[int, Field(ge=0, le=3), BeforeValidator(_json_integer)] | None = Field(
-        None, description="simulator-corrected rounds at most (default 2; the job stops within about 60 s)"
+        None,
+        description="simulator-corrected rounds at most (default 3; the job stops within about 60 s and "
+        "after 8 simulator runs)",
     )
     sim_seed: Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(_json_integer)] = Field(
         1, description="simulator seed of the verification runs"

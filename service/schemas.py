@@ -394,7 +394,8 @@ class JobCreated(BaseModel):
     status: str
     location: str = Field(description="GET this for the job's status and result")
     controls: dict[str, float] | None = Field(
-        None, description="a simulation's controls, every one of them (the first transition's for a recipe)"
+        default=None,
+        description="a simulation's controls, every one of them (the first transition's for a recipe)",
     )
     defaulted: list[str] = Field(
         default_factory=list, description="controls the request left out, taken from the defaults"

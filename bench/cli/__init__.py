@@ -7,7 +7,7 @@ with its subparsers, and it adds the `bench` group (one module per family of ben
 
 from __future__ import annotations
 
-from bench.cli import inverse, noise, physics, results, serving, sim, stress
+from bench.cli import design_cost, inverse, noise, physics, results, serving, sim, stress
 from nemsim.cli.common import Subparsers
 
 
@@ -31,4 +31,5 @@ def register(sub: Subparsers) -> None:
     physics.register(bench_sub)
     results.register(bench_sub)
     inverse.register(bench_sub)
+    design_cost.register(bench_sub)
     stress.register(sub)

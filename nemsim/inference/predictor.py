@@ -388,8 +388,8 @@ class Predictor:
 
     # --- meshes ---------------------------------------------------------------------------------------
     def mesh(self, field: np.ndarray, fmt: str, metadata: dict[str, Any] | None = None) -> bytes:
-        """File bytes (glb, ply, obj, stl or vtp) of the zero-level surface of one channel's field (D, H, W), in
-        nm, with ``metadata`` as provenance (``nemsim.geometry.mesh``)."""
+        """File bytes (glb, ply, obj, stl or vtp) of the zero-level surface of one channel's field (D, H,
+        W), in nm, with ``metadata`` as provenance (``nemsim.geometry.mesh``)."""
         from nemsim.geometry.mesh import export_mesh, surface_mesh
 
         return export_mesh(surface_mesh(np.asarray(field, dtype=np.float32), self.scene, metadata), fmt)

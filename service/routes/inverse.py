@@ -34,7 +34,10 @@ async def post_design(
     data flag and the search's cost; `status` is `met` or `unreachable` (then the closest recipe and its
     miss). With `verify`, the simulator runs the top recipes and the result reports achieved against target.
     With `refine`, the simulator works inside the design loop (simulator-corrected rounds); the status is
-    then `verified`, `unverified` or `unreachable` and the top recipe is the best simulated one.
+    then `verified`, `unverified` or `unreachable` and the top recipe is the best simulated one. Every
+    result reports `simulator_calls` (the simulator runs the design made) and, when the benchmark
+    `nemsim bench design-cost` has a committed result for the served checkpoint,
+    `expected_calls_to_target` (its simulator calls per target reached).
     """
     try:
         spec = spec_from_dict(body.spec_dict())

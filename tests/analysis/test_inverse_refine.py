@@ -44,7 +44,11 @@ def toy(tiny_scene):
 
     x0 = torch.from_numpy(np.asarray(initial_state(tiny_scene), dtype=np.float32))
     return InverseContext(
-        model=_Toy(), scene=tiny_scene, x0=x0, calibration=None, support=Support.from_record(None),
+        model=_Toy(),
+        scene=tiny_scene,
+        x0=x0,
+        calibration=None,
+        support=Support.from_record(None),
         model_id="toy",
     )
 
@@ -76,8 +80,13 @@ def _spec(depth: float, tol: float = 1.0, k: int = 3):
     centre = np.asarray(from_normalized(np.zeros(14)), dtype=np.float64)
     fixed = {n: float(v) for n, v in zip(CONTROL_NAMES, centre, strict=True) if n != FREE}
     return spec_from_dict(
-        {"targets": {"etch_depth": {"value": depth, "tol": tol}}, "step": STEP, "fixed": fixed, "k": k,
-         "search": SEARCH}
+        {
+            "targets": {"etch_depth": {"value": depth, "tol": tol}},
+            "step": STEP,
+            "fixed": fixed,
+            "k": k,
+            "search": SEARCH,
+        }
     )
 
 
@@ -109,7 +118,9 @@ def test_one_correction_round_removes_a_constant_offset(toy):
     assert cost["simulator_runs"] == len(sim.calls) == EXACT.verify_top + 1
     assert cost["rollouts"] == cost["forward_rollouts"] + cost["gradient_rollouts"] > 0
     assert cost["wall_s"] >= cost["search_wall_s"] > 0 and cost["cpu_s"] > 0
-    assert [v["round"] for v in res["verification"]["recipes"]] == [0, 0, 1]
+    assert [v["round"] for v in res["verification"]["recipes"]] == [0] * EXACT.verify_top + [1]
+    assert {v["run"] for v in res["verification"]["recipes"]} == {"loop"}  # no confirmation simulator
+    assert res["simulator_calls"] == cost["simulator_runs"] and cost["confirmation_runs"] == 0
     assert res["verification"]["seed"] == 3
 
 
@@ -175,8 +186,13 @@ def test_declined_simulations_leave_the_surrogate_result(toy):
 
 @pytest.mark.parametrize(
     "bad, match",
-    [({"rounds": -1}, "rounds"), ({"radius": 0}, "radius"), ({"colour": 1}, "unknown keys"),
-     ({"verify_top": 1.5}, "integers"), ({"budget_s": "x"}, "number")],
+    [
+        ({"rounds": -1}, "rounds"),
+        ({"radius": 0}, "radius"),
+        ({"colour": 1}, "unknown keys"),
+        ({"verify_top": 1.5}, "integers"),
+        ({"budget_s": "x"}, "number"),
+    ],
 )
 def test_refine_config_errors_name_the_field(bad, match):
     with pytest.raises(ValueError, match=match):
@@ -194,8 +210,12 @@ def test_run_inverse_refines_with_the_real_simulator(tiny_checkpoint):
 
     ctx = load_inverse_context(tiny_checkpoint)
     spec = spec_from_dict(
-        {"targets": {"etch_depth": {"value": 8.0, "tol": 2.0}}, "step": 2, "k": 2,
-         "search": {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}}
+        {
+            "targets": {"etch_depth": {"value": 8.0, "tol": 2.0}},
+            "step": 2,
+            "k": 2,
+            "search": {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"},
+        }
     )
     cfg = RefineConfig(verify_top=1, rounds=1, budget_s=1e9, screen=2, starts=1, iterations=1)
     res = run_inverse(ctx, spec, refine=cfg, sim_seed=5)
@@ -231,10 +251,129 @@ def test_bench_run_judges_the_refined_design_with_an_independent_seed(toy):
     refined = _inverse_run(toy, _spec(16.0), "adam", True, truth, STEP, EXACT)
     assert truth.seeds[-1] == VERIFY_SEED and set(truth.seeds[:-1]) == {LOOP_SEED}
     assert refined["success"] and refined["status"] == "verified"
-    assert refined["cost"]["simulator_runs"] == len(truth.seeds) - 1 == 3
+    assert refined["cost"]["simulator_runs"] == len(truth.seeds) - 1 == EXACT.verify_top + 1
     assert abs(refined["achieved"]["etch_depth"] - 16.0) <= 1.0
     cases = [{"reachable": True, "runs": {"adam": plain, "adam+refine": refined}}]
     s = _summary(cases, "adam")
     assert s["reachable_success"] == 0 and s["simulator_runs_mean"] == 0
     s = _summary(cases, "adam+refine")
-    assert s["reachable_success"] == s["loop_verified"] == 1 and s["simulator_runs_mean"] == 3
+    assert (
+        s["reachable_success"] == s["loop_verified"] == 1 and s["simulator_runs_mean"] == EXACT.verify_top + 1
+    )
+
+
+def _narrow_calibration(half_width: float):
+    """Intervals of +-``half_width`` nm around every prediction, at every step and both levels."""
+    from nemsim.analysis.intervals import Calibration
+
+    metrics = ("etch_depth", "top_width", "neck_width", "bottom_width", "bowing", "mask_loss")
+    band = {"lower": [-half_width] * (STEP + 1), "upper": [half_width] * (STEP + 1)}
+    return Calibration(
+        checkpoint_sha256="toy",
+        scene="tiny",
+        levels=(0.8, 0.9),
+        metrics=metrics,
+        offsets={lv: {m: dict(band) for m in metrics} for lv in ("0.8", "0.9")},
+        calibration={"setting": "toy", "split": "val", "cases": 0, "method": "fixed"},
+    )
+
+
+def test_a_loop_run_that_met_must_be_confirmed_and_the_mean_anchors_the_next_round(toy):
+    """Loop simulator: the surrogate exactly; confirmation simulator: 3 nm deeper. Round 0's recipe meets
+    16 +- 2 in its loop run and misses in its confirmation, so it is not the answer; the next round's offset
+    is the mean of the two runs (+1.5 nm) and its recipe meets the target in both runs."""
+    loop, again = FakeSimulator(toy, {}), FakeSimulator(toy, {"etch_depth": 3.0})
+    res = refine_with_simulator(toy, _spec(16.0, tol=2.0), loop, refine=EXACT, confirm=again)
+    ref = res["refinement"]
+    r0 = ref["rounds"][0]["simulated"][0]
+    assert r0["met"] and r0["confirmed"] is False and not r0["claimed"]
+    assert r0["confirmation"]["etch_depth"] == pytest.approx(r0["simulated"]["etch_depth"] + 3.0, abs=1e-3)
+    r1 = ref["rounds"][1]
+    assert r1["offset"]["etch_depth"] == pytest.approx(1.5, abs=1e-3) and r1["anchor"]["runs"] == 2
+    assert r1["shifted_targets"]["etch_depth"] == pytest.approx(14.5, abs=1e-3)
+    assert res["status"] == "verified" and ref["stopped"] == "met" and ref["confirmation"] is True
+    top = res["recipes"][0]
+    assert top["round"] == 1 and top["confirmed"] is True and top["simulator_met"] is True
+    entries = res["verification"]["recipes"]
+    assert [e["run"] for e in entries] == ["loop", "confirmation", "loop", "confirmation"]
+    assert len(loop.calls) == len(again.calls) == 2
+    assert (
+        res["simulator_calls"] == res["cost"]["simulator_runs"] == 4 and res["cost"]["confirmation_runs"] == 2
+    )
+    assert all(abs(e["achieved"]["etch_depth"] - 16.0) <= 2.0 for e in entries[2:])  # both runs of the answer
+
+
+def test_narrow_intervals_claim_the_round_0_recipe_with_one_call(toy):
+    """The top recipe's 80 % interval (+-0.2 nm) lies inside 16 +- 2: its first run is the confirmation,
+    which meets the target, so the design spends one simulator call and never runs the loop simulator."""
+    from dataclasses import replace as dc_replace
+
+    ctx = dc_replace(toy, calibration=_narrow_calibration(0.2))
+    loop, again = FakeSimulator(ctx, {}), FakeSimulator(ctx, {"etch_depth": 0.5})
+    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=EXACT, confirm=again)
+    assert res["status"] == "verified" and res["simulator_calls"] == 1
+    assert loop.calls == [] and len(again.calls) == 1
+    (entry,) = res["verification"]["recipes"]
+    assert entry["run"] == "claim" and entry["met"]
+    assert res["refinement"]["rounds"][0]["simulated"][0]["claimed"] is True
+    # wide intervals (+-3 nm, beyond the tolerance): no claim, the loop run comes first
+    ctx = dc_replace(toy, calibration=_narrow_calibration(3.0))
+    loop, again = FakeSimulator(ctx, {}), FakeSimulator(ctx, {"etch_depth": 0.5})
+    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=EXACT, confirm=again)
+    assert [e["run"] for e in res["verification"]["recipes"]] == ["loop", "confirmation"]
+    assert res["status"] == "verified" and res["simulator_calls"] == 2
+
+
+def test_a_target_beyond_the_intervals_is_unreachable_without_a_simulator_run(toy):
+    """The toy etches at most 22.5 nm in 6 steps; 40 +- 1 nm lies beyond every recipe's 90 % interval
+    (+-0.5 nm), so the design answers unreachable with no run. With wide intervals it simulates."""
+    from dataclasses import replace as dc_replace
+
+    ctx = dc_replace(toy, calibration=_narrow_calibration(0.5))
+    sim = FakeSimulator(ctx, {})
+    res = refine_with_simulator(ctx, _spec(40.0), sim, refine=EXACT)
+    assert res["status"] == "unreachable" and res["refinement"]["stopped"] == "intervals"
+    assert sim.calls == [] and res["simulator_calls"] == 0 and "no simulator run" in res["message"]
+    assert all(v == ["etch_depth"] for v in res["refinement"]["rounds"][0]["beyond_intervals"].values())
+    ctx = dc_replace(toy, calibration=_narrow_calibration(30.0))
+    sim = FakeSimulator(ctx, {})
+    res = refine_with_simulator(ctx, _spec(40.0), sim, refine=EXACT)
+    assert res["status"] == "unreachable" and len(sim.calls) >= 1
+
+
+def test_max_runs_caps_the_simulator_calls(toy):
+    """A 5 nm offset and a 0.3 trust radius take three corrected rounds; two calls stop the loop first."""
+    sim = FakeSimulator(toy, {"etch_depth": 5.0})
+    cfg = RefineConfig(rounds=5, budget_s=1e9, radius=0.3, screen=4, starts=2, iterations=8, max_runs=2)
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=cfg)
+    assert len(sim.calls) == res["simulator_calls"] == 2
+    assert res["refinement"]["stopped"] == "max runs" and res["status"] == "unverified"
+    # with a confirmation simulator a loop run starts only when its confirmation fits too
+    sim, again = FakeSimulator(toy, {"etch_depth": 5.0}), FakeSimulator(toy, {"etch_depth": 5.0})
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=replace_cfg(cfg, max_runs=3), confirm=again)
+    assert res["simulator_calls"] <= 3 and len(sim.calls) == 2 and again.calls == []
+
+
+def replace_cfg(cfg: RefineConfig, **kw) -> RefineConfig:
+    from dataclasses import replace
+
+    return replace(cfg, **kw)
+
+
+def test_the_carried_offset_weighs_runs_by_their_distance_from_the_anchor():
+    """Anchor: one run, offset +2 nm; a recipe one radius away: two runs, offsets +4 and +6 (weight
+    exp(-1/2) each); one ten radii away: offset +100 (weight exp(-50), nothing)."""
+    from nemsim.analysis.inverse.refine import _carried_offset, _Simulated
+
+    def sim(u0: float, offsets: list[float]) -> _Simulated:
+        u = [u0] + [0.0] * 13
+        rec = {"controls_normalized": u, "predicted": {"etch_depth": 10.0}}
+        runs = [{"etch_depth": 10.0 + d} for d in offsets]
+        return _Simulated(0, rec, {"achieved": runs[0]}, runs)
+
+    anchor = sim(0.0, [2.0])
+    others = [sim(0.3, [4.0, 6.0]), sim(3.0, [100.0])]
+    w = np.exp(-0.5)
+    got = _carried_offset(anchor, [anchor, *others], ["etch_depth"], 0.3)["etch_depth"]
+    assert got == pytest.approx((2.0 + w * (4.0 + 6.0)) / (1.0 + 2 * w), abs=1e-6)
+    assert _carried_offset(anchor, [anchor], ["etch_depth"], 0.3)["etch_depth"] == pytest.approx(2.0)

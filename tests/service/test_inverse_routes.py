@@ -55,6 +55,8 @@ def test_design_job_202_progress_and_result(make_client, monkeypatch):
     ver = res["verification"]["recipes"]
     assert len(ver) == 1 and set(ver[0]["achieved"]) >= {"etch_depth", "mask_loss"}
     assert isinstance(ver[0]["met"], bool)
+    assert res["simulator_calls"] == 1  # the one verification run
+    assert "expected_calls_to_target" not in res  # no design-cost benchmark for the test checkpoint
 
 
 def test_refined_design_job_reports_its_rounds(make_client, monkeypatch):
@@ -64,8 +66,14 @@ def test_refined_design_job_reports_its_rounds(make_client, monkeypatch):
     real = route.spec_from_dict
     monkeypatch.setattr(route, "spec_from_dict", lambda d: real({**d, "search": SMALL_SEARCH}))
     client = make_client()
-    body = {"targets": {"etch_depth": {"value": 20, "tol": 5}}, "step": 2, "k": 2, "refine": True,
-            "verify_top": 1, "refine_rounds": 1}
+    body = {
+        "targets": {"etch_depth": {"value": 20, "tol": 5}},
+        "step": 2,
+        "k": 2,
+        "refine": True,
+        "verify_top": 1,
+        "refine_rounds": 1,
+    }
     r = client.post("/design", json=body)
     assert r.status_code == 202, r.text
     done, seen = _poll(client, r.json()["location"], timeout_s=180.0)
@@ -73,15 +81,16 @@ def test_refined_design_job_reports_its_rounds(make_client, monkeypatch):
     assert seen == sorted(seen) and done["progress"] == 1.0
     res = done["result"]
     runs = res["verification"]["recipes"]
-    assert 1 <= len(runs) <= 2 and res["cost"]["simulator_runs"] == len(runs)
+    assert 1 <= len(runs) <= 2 and res["cost"]["simulator_runs"] == len(runs) == res["simulator_calls"]
     assert [v["round"] for v in runs] == list(range(len(runs)))
     assert res["status"] in ("verified", "unverified", "unreachable")
     assert (res["status"] == "verified") == any(v["met"] for v in runs)
     top = res["recipes"][0]
     assert top["verified_by"] == "simulator" and set(top["simulated"]) >= {"etch_depth"}
-    assert res["refinement"]["rounds"][0]["simulated"][0]["simulated"]["etch_depth"] == runs[0]["achieved"][
-        "etch_depth"
-    ]
+    assert (
+        res["refinement"]["rounds"][0]["simulated"][0]["simulated"]["etch_depth"]
+        == runs[0]["achieved"]["etch_depth"]
+    )
 
 
 def test_refined_design_skips_recipes_beyond_the_work_limit(make_client, monkeypatch):
@@ -94,7 +103,11 @@ def test_refined_design_skips_recipes_beyond_the_work_limit(make_client, monkeyp
     done, _ = _poll(client, r.json()["location"])
     res = done["result"]
     assert done["status"] == "done" and res["verification"]["recipes"] == []
-    assert len(res["verification"]["skipped"]) == 2 and "server limit" in res["verification"]["skipped"][0]
+    from nemsim.analysis.inverse import RefineConfig
+
+    skipped = res["verification"]["skipped"]
+    assert len(skipped) == RefineConfig().verify_top and "server limit" in skipped[0]
+    assert res["simulator_calls"] == 0
     assert res["status"] in ("met", "unreachable")  # nothing simulated: the surrogate's word
     assert all(r["verified_by"] == "surrogate" for r in res["recipes"])
 
@@ -159,3 +172,36 @@ def test_rollout_intervals_opt_in(make_client, tiny_checkpoint, tmp_path):
     wide = iv["by_level"]["0.9"]["etch_depth"]
     narrow = iv["by_level"]["0.8"]["etch_depth"]
     assert all(w_lo <= n_lo for w_lo, n_lo in zip(wide["lo"][1:], narrow["lo"][1:], strict=True))
+
+
+class _Served:
+    """What `service.inverse` reads of a served model: its id and its scene's name."""
+
+    def __init__(self, model_id: str, scene: str = "small") -> None:
+        from types import SimpleNamespace
+
+        self.model_id = model_id
+        self.predictor = SimpleNamespace(scene=SimpleNamespace(name=scene))
+
+
+def test_expected_calls_come_from_the_served_checkpoints_benchmark(tmp_path):
+    import json
+
+    from service.inverse import expected_calls_to_target, with_call_counts
+
+    folder = tmp_path / "small" / "design_cost"
+    folder.mkdir(parents=True)
+    rep = {"checkpoint_id": "0123456789ab", "summary": {"design": {"calls_per_hit": 2.5}}}
+    (folder / "results.json").write_text(json.dumps(rep))
+    assert expected_calls_to_target(_Served("m@0123456789ab"), tmp_path) == 2.5
+    assert expected_calls_to_target(_Served("m@ffffffffffff"), tmp_path) is None  # another checkpoint
+    assert expected_calls_to_target(_Served("m@0123456789ab", "tiny"), tmp_path / "x") is None  # none
+    rep["checkpoint_id"] = "aaaaaaaaaaaa"
+    rep["summary"]["design"]["calls_per_hit"] = None  # no target reached
+    (folder / "results.json").write_text(json.dumps(rep))
+    assert expected_calls_to_target(_Served("n@aaaaaaaaaaaa"), tmp_path) is None
+    # the counts a result gets: the design's own figure, else its verification runs
+    out = with_call_counts({"verification": {"recipes": [{}, {}]}}, _Served("t@bbbbbbbbbbbb", "tiny"))
+    assert out["simulator_calls"] == 2 and "expected_calls_to_target" not in out
+    assert with_call_counts({"simulator_calls": 3}, _Served("t@bbbbbbbbbbbb", "tiny"))["simulator_calls"] == 3
+    assert with_call_counts({}, _Served("t@bbbbbbbbbbbb", "tiny"))["simulator_calls"] == 0
