@@ -20,6 +20,11 @@ strategy: every call it spent on the reachable targets, independent confirmation
 targets it reached), read once per model. Calls per hit rather than the median: it stays finite when
 fewer than half the targets are reached, and it is what a design costs on average when a miss is retried.
 Another checkpoint, or an installation without the benchmarks, has none: the field is then absent.
+
+Every rollout also says how far its recipe lies from the training data and what error the committed
+extrapolation benchmark of the served checkpoint (`benchmarks/<scene>/extrapolation/extrapolation.json`,
+stamped with its checkpoint id) measured there, with a verdict ok / warn / reject (`rollout_trust`,
+`nemsim.analysis.trust`); without that benchmark the verdict follows the region alone and says so.
 """
 
 from __future__ import annotations
@@ -32,16 +37,19 @@ from typing import Any
 import numpy as np
 import torch
 
-from nemsim.analysis.intervals import Calibration, calibration_for
+from nemsim.analysis.intervals import Calibration, Support, calibration_for
 from nemsim.analysis.inverse import (
     InverseSpec,
     RefineConfig,
 )
+from nemsim.analysis.trust import assess, place
 from service.jobs import ChildFailed, Job, run_child
 from service.sim_child import MODEL_FILE, RESULT_FILE
 
 _calibrations: dict[str, Calibration | None] = {}
 _expected_calls: dict[tuple[str, str, str], float | None] = {}
+_extrapolation: dict[tuple[str, str, str], dict[str, Any] | None] = {}
+_supports: dict[str, Support] = {}
 _lock = threading.Lock()
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"  # the repository's committed results
 DESIGN_LABEL = "design"  # the strategy of `nemsim bench design-cost` that `POST /design` runs
@@ -64,6 +72,37 @@ def expected_calls_to_target(served: Any, benchmarks: Path = BENCHMARKS) -> floa
         if key not in _expected_calls:
             _expected_calls[key] = _read_expected_calls(served, benchmarks)
         return _expected_calls[key]
+
+
+def rollout_trust(served: Any, raw: np.ndarray, normalized: np.ndarray,
+                  benchmarks: Path = BENCHMARKS) -> dict[str, Any]:
+    """Where the recipe (T, 14) physical / normalized lies and the error measured there (module docstring)."""
+    cal = calibration(served)
+    key = (served.model_id, str(getattr(served.predictor.scene, "name", None)), str(benchmarks))
+    with _lock:
+        if served.model_id not in _supports:
+            _supports[served.model_id] = Support.from_record(cal.support if cal is not None else None)
+        if key not in _extrapolation:
+            _extrapolation[key] = _read_extrapolation(served, benchmarks)
+        support, bench = _supports[served.model_id], _extrapolation[key]
+    return assess(place(normalized, raw, support), bench)
+
+
+def _read_extrapolation(served: Any, benchmarks: Path) -> dict[str, Any] | None:
+    """The summary of the committed extrapolation benchmark of the served checkpoint, or None."""
+    scene = getattr(served.predictor.scene, "name", None)
+    path = benchmarks / str(scene) / "extrapolation" / "extrapolation.json"
+    try:
+        rep = json.loads(path.read_text())
+        summary = dict(rep["summary"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    cid = served.model_id.rpartition("@")[2]
+    if rep.get("checkpoint_id") != cid or not isinstance(summary.get("groups"), dict):
+        return None
+    summary["source"] = (f"benchmarks/{scene}/extrapolation (nemsim bench extrapolation, "
+                         f"model {served.model_id})")
+    return summary
 
 
 def _read_expected_calls(served: Any, benchmarks: Path) -> float | None:

@@ -492,6 +492,12 @@ class RolloutResponse(BaseModel):
     fields: FieldsPayload | None = None
     meshes: list[MeshPayload] = []
     intervals: dict[str, Any] | None = Field(None, description="with intervals: per-step conformal intervals")
+    trust: dict[str, Any] | None = Field(
+        None,
+        description="where the recipe lies (group of the extrapolation benchmark: in-box, corner, zero-flux, "
+        "axis 1.5, axis 2, angle, beyond; its distance past the box and to the nearest training case), the "
+        "error the benchmark measured there and a verdict level ok / warn / reject",
+    )
     timings: Timings
 
 

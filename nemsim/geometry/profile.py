@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Any
 
+import numba
 import numpy as np
 
 if TYPE_CHECKING:
@@ -49,28 +50,42 @@ BOTTOM_MIN_VOX = 1.0  # ... but at least this many voxels above it
 BOW_SKIP_ROWS = 2  # rows below the top Si row where bowing's reference starts (corner rounding, see above)
 
 
+@numba.njit(cache=True, nogil=True)
+def _first_crossings(values: np.ndarray, pos: np.ndarray, out: np.ndarray) -> None:
+    """out[i] = the first vacuum->material crossing of the line values[i] (K, M) at coordinates pos (M,)."""
+    m = values.shape[1]
+    edge = pos[m - 1] + 0.5 * (pos[m - 1] - pos[m - 2])
+    for i in range(values.shape[0]):
+        row = values[i]
+        k = 0
+        while k < m and not row[k] <= 0.0:  # NaN is no material, as in the comparison
+            k += 1
+        if k == m:
+            out[i] = edge
+        elif k == 0:
+            out[i] = pos[0]
+        else:
+            v0 = np.float64(row[k - 1])  # last vacuum sample (> 0)
+            v1 = np.float64(row[k])  # first material sample (<= 0)
+            frac = v0 / (v0 - v1) if v0 - v1 > 0 else 0.0
+            out[i] = pos[k - 1] + frac * (pos[k] - pos[k - 1])
+
+
 def _first_crossing(values: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Position of the first vacuum->material crossing scanning along the last axis.
 
     Args:
-        values: (..., M) SDF samples in scan order.
+        values: (..., M) SDF samples in scan order (any float dtype and strides).
         pos: (M,) their coordinates (monotone, equally spaced, M >= 2).
     Returns:
-        (...) crossing coordinate: pos[0] if the first sample is material; half a step beyond pos[-1]
-        (the domain edge) if no sample is material; else linear interpolation of the zero crossing.
+        (...) float64 crossing coordinate: pos[0] if the first sample is material; half a step beyond pos[-1]
+        (the domain edge) if no sample is material; else linear interpolation of the zero crossing (in
+        float64). One compiled pass over the lines (the vectorized form made several full-size temporaries).
     """
-    inside = values <= 0.0  # (..., M)
-    k = np.argmax(inside, axis=-1)  # first material sample (0 if none)
-    found = np.take_along_axis(inside, k[..., None], axis=-1)[..., 0]
-    km1 = np.maximum(k - 1, 0)
-    v0 = np.take_along_axis(values, km1[..., None], axis=-1)[..., 0]  # last vacuum sample (> 0)
-    v1 = np.take_along_axis(values, k[..., None], axis=-1)[..., 0]  # first material sample (<= 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        frac = np.where(v0 - v1 > 0, v0 / (v0 - v1), 0.0)
-    x = pos[km1] + frac * (pos[k] - pos[km1])
-    x = np.where(k == 0, pos[0], x)
-    edge = pos[-1] + 0.5 * (pos[-1] - pos[-2])
-    return np.where(found, x, edge)
+    lines = np.ascontiguousarray(values).reshape(-1, values.shape[-1])
+    out = np.empty(lines.shape[0], dtype=np.float64)
+    _first_crossings(lines, np.ascontiguousarray(pos, dtype=np.float64), out)
+    return out.reshape(values.shape[:-1])
 
 
 def _interp_at(field: np.ndarray, axis: int, at: float) -> np.ndarray:
@@ -204,13 +219,13 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
     sel = _field_columns_mask(scene)  # (ny, nx)
     m_rows = np.arange(nz, scene.si_top, -1, dtype=np.float64)
     if quadrant:  # the mask top of every quadrant column, reflected to the full map, then the same columns
-        m_cols = np.moveaxis(mask[:, nz : scene.si_top : -1], 1, -1).astype(np.float64)  # (T, c, c, rows)
+        m_cols = np.moveaxis(mask[:, nz : scene.si_top : -1], 1, -1)  # (T, c, c, rows)
         top_q = _first_crossing(m_cols, m_rows)  # (T, c, c)
         top_full = _reflect(np.swapaxes(_reflect(top_q, scene.nx + 2), 1, 2), scene.ny + 2)  # (T, W, H)
         m_top = np.swapaxes(top_full, 1, 2)[:, 1:-1, 1:-1][:, sel].mean(axis=1)  # (T,)
     else:
         m_cols = mask[:, scene.si_top + 1 : nz + 1, 1:-1, 1:-1][:, :, sel]  # (T, rows, K) mask rows
-        m_cols = np.moveaxis(m_cols[:, ::-1], 1, -1).astype(np.float64)  # (T, K, rows) top to bottom
+        m_cols = np.moveaxis(m_cols[:, ::-1], 1, -1)  # (T, K, rows) top to bottom
         m_top = _first_crossing(m_cols, m_rows).mean(axis=1)  # (T,)
     mask_loss = (scene.resist_top + 0.5) - m_top
 

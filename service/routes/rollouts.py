@@ -31,7 +31,7 @@ from starlette.concurrency import run_in_threadpool
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, transform
 from nemsim.inference import MEDIA_TYPES, Refused
 from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
-from service.inverse import rollout_intervals
+from service.inverse import rollout_intervals, rollout_trust
 from service.openapi import ErrorBody
 from service.scheduler import Gates
 from service.schemas import (
@@ -206,6 +206,7 @@ async def post_rollout(
         fields=fields,
         meshes=meshes,
         intervals=rollout_intervals(served, result.metrics) if body.intervals else None,
+        trust=rollout_trust(served, schedule.raw, schedule.normalized),
         timings=Timings(
             total_ms=1e3 * (time.perf_counter() - t_start),
             rollout_ms=0.0 if cached else result.rollout_ms,

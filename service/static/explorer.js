@@ -377,7 +377,36 @@ function rangeNote(ex, clipped) {
   if (err.inside.length) html += `<p class="hint">Inside the range, measured on held-out simulations: ${err.inside.map(([k, t]) => `${esc(k)}: ${t}`).join('; ')}.</p>`;
   return html;
 }
+const TRUST_WHERE = {
+  'in-box': 'inside the trained region, near the recipes the model learned from',
+  corner: 'inside the control box but far from every recipe the model learned from (towards a face or corner)',
+  'zero-flux': 'with some fluxes switched off',
+  'axis 1.5': 'up to half a box half-width outside the trained range',
+  'axis 2': 'up to one box half-width outside the trained range',
+  angle: 'with angular exponents far outside the trained range',
+  beyond: 'more than one box half-width outside the trained range',
+};
+const TRUST_WORD = { ok: '✓ Trusted here', warn: '⚠ Less certain here', reject: '✗ Not to be trusted here' };
+/** The server's verdict on where the recipe lies and the error its extrapolation benchmark measured there. */
+function showTrust(t) {
+  const box = $('trust');
+  box.hidden = !t;
+  if (!t) return;
+  box.className = `level-${t.level}`;
+  let html = `<p><b>${TRUST_WORD[t.level] || esc(t.level)}</b>: this recipe lies ${TRUST_WHERE[t.group] || esc(t.group)}.</p>`;
+  const m = t.measured;
+  if (m) {
+    const nm = (k, label) => (k in m.mae_nm ? `${label} ${fmt(m.mae_nm[k])} nm (simulator seed to seed ${fmt(m.seed_to_seed_nm[k])})` : '');
+    const parts = [nm('etch_depth', 'depth'), nm('top_width', 'top width'), nm('bottom_width', 'bottom width')].filter(Boolean);
+    html += `<p class="hint">Measured there on ${m.cases} simulated recipes: field error ${fmt(m.ratio_to_in_box)}× the in-box error; `
+      + `mean errors ${parts.join(', ')}.</p>`;
+  } else {
+    html += `<p class="hint">${esc(t.reason)}.</p>`;
+  }
+  box.innerHTML = html;
+}
 function showWarnings(data) {
+  showTrust(data.trust);
   const ex = data.extrapolation || [];
   const other = data.warnings.filter((w) => !(ex.length && /outside the training range/.test(w)));
   let html = ex.length ? rangeNote(ex, data.clipped) : '';

@@ -305,3 +305,42 @@ def test_a_rollout_request_normalizes_and_hashes_once(make_client, served, defau
     counts.update(normalize=0, denormalize=0, hash=0)
     assert c.post("/rollout", json={"controls_normalized": [0.137] * 14, "steps": 2}).status_code == 200
     assert counts == {"normalize": 0, "denormalize": 1, "hash": 1}
+
+
+def test_every_answer_says_how_far_from_the_training_data_it_lies(client, default_controls, served, tmp_path):
+    """`trust`: the centre of the box is in-box (ok); half a half-width past an edge is the benchmark's
+    `axis 1.5` group. Without an extrapolation benchmark of the served model nothing is measured (said so);
+    with one stamped with its id, the group's measured error and the verdict come from it."""
+    import json
+
+    from nemsim.controls import CONTROL_INDEX, from_normalized, to_normalized
+    from service.inverse import rollout_trust
+
+    t = client.post("/rollout", json={"controls": default_controls, "steps": 2}).json()["trust"]
+    assert t["group"] == "in-box" and t["level"] == "ok" and t["measured"] is None
+    u = np.zeros(14)
+    u[CONTROL_INDEX["energy_mean_cl_plus"]] = 1.4
+    raw = from_normalized(u)
+    far = {**default_controls, "energy_mean_cl_plus": float(raw[CONTROL_INDEX["energy_mean_cl_plus"]])}
+    t = client.post("/rollout", json={"controls": far, "steps": 2}).json()["trust"]
+    assert t["group"] == "axis 1.5" and t["box_distance"] == pytest.approx(0.4, abs=1e-3)
+    assert t["level"] == "warn" and "no extrapolation benchmark" in t["reason"]
+
+    scene = served.predictor.scene.name
+    groups = {"in-box": 1.0, "axis 1.5": 2.5}
+    summary = {"in_box_avg_rmse": 0.01, "groups": {
+        g: {"n": 4, "avg_rmse": 0.01 * r, "ratio_to_in_box": r, "mae_nm": {"etch_depth": 3.0},
+            "seed_diff_nm": {"etch_depth": 1.0}} for g, r in groups.items()}}
+    path = tmp_path / scene / "extrapolation" / "extrapolation.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps({"checkpoint_id": served.model_id.rpartition("@")[2], "summary": summary}))
+    got = rollout_trust(served, raw[None], to_normalized(raw[None]), benchmarks=tmp_path)
+    assert got["level"] == "warn" and got["measured"]["ratio_to_in_box"] == 2.5
+    assert got["measured"]["mae_nm"] == {"etch_depth": 3.0}
+    assert served.model_id in got["measured"]["source"]
+    other = tmp_path / "other"  # another root: read afresh
+    (other / scene / "extrapolation").mkdir(parents=True)
+    (other / scene / "extrapolation" / "extrapolation.json").write_text(
+        json.dumps({"checkpoint_id": "another", "summary": summary}))
+    not_its_model = rollout_trust(served, raw[None], to_normalized(raw[None]), benchmarks=other)
+    assert not_its_model["measured"] is None

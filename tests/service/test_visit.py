@@ -99,6 +99,9 @@ def visit_runs(page, shots) -> None:
     warning = page.inner_text("#warnings")
     assert "Outside the trained range" in warning and "energy_mean_ar_plus" in warning
     assert "extrapolation" in warning and "held-out simulations" in warning
+    trust = page.locator("#trust")  # the verdict on where the recipe lies, coloured by its level
+    assert trust.is_visible() and "outside the trained range" in trust.inner_text()
+    assert page.evaluate("() => document.querySelector('#trust').className").startswith("level-")
     shots(page.locator("#left"), "controls-and-warning")
     shots(page.locator("#planes"), "cross-section-and-profile-ab")
     shots(page.locator("#right"), "metrics-ab-mechanisms")
