@@ -95,8 +95,10 @@ class DesignRequest(BaseModel):
         description="simulator-corrected design (implies verify): when the top recipes miss in the "
         "simulator, the simulator-minus-surrogate offset at the best one shifts the targets and a local "
         "search around it proposes a new recipe for the simulator, round after round; the top recipe is "
-        "then the best simulated one (`verified_by`), and `refinement` reports every round. Default: on "
-        "when verify is true (false: only simulate the top recipes)",
+        "then the best simulated one (`verified_by`), and `refinement` reports every round. A recipe that "
+        "meets the targets in its run is confirmed by an independent run (seed sim_seed + 1) before it is "
+        "the answer (`status` verified), as the design-cost benchmark measures it; every run counts in "
+        "`simulator_calls`. Default: on when verify is true (false: only simulate the top recipes)",
     )
     refine_rounds: Annotated[int, Field(ge=0, le=3), BeforeValidator(_json_integer)] | None = Field(
         None,
@@ -104,7 +106,7 @@ class DesignRequest(BaseModel):
         "after 8 simulator runs)",
     )
     sim_seed: Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(_json_integer)] = Field(
-        1, description="simulator seed of the verification runs"
+        1, description="simulator seed of the verification runs (a refined design's confirmations: + 1)"
     )
 
     @field_validator("targets")

@@ -44,6 +44,7 @@ EXIT_ORPHANED = 3  # the server was gone before the work started
 WATCHDOG_S = 1.0  # how often the portable watchdog checks the parent
 INPUT_FILE, PROGRESS_FILE, ERROR_FILE = "input.pkl", "progress", "error"
 TASKS = ("simulate", "design")
+CONFIRM_SEED_OFFSET = 1  # a refined design's confirmation runs with the design's simulator seed + this
 SEARCH_SHARE = 0.6  # progress share of a design's search when the job also verifies
 MODEL_FILE, RESULT_FILE = "model.pt", "result.json"  # in a design job's folder
 
@@ -186,32 +187,40 @@ def _design(ctx: Any, o: dict[str, Any], report: Callable[[float], None]) -> dic
     spec = o["spec"]
     sim_max_work = o["sim_max_work"]
 
-    def simulated(raw: np.ndarray, steps: int, progress: Callable[[float], None]) -> np.ndarray:
+    def simulated(raw: np.ndarray, steps: int, progress: Callable[[float], None], seed: int | None = None
+                  ) -> np.ndarray:
         schedule = np.repeat(raw[None], steps, axis=0)  # (T, 14)
+        seed = o["sim_seed"] if seed is None else seed
         try:
-            states = simulate_schedule(ctx.scene, o["sim_config"], schedule, o["sim_seed"], progress)
+            states = simulate_schedule(ctx.scene, o["sim_config"], schedule, seed, progress)
         except Exception as exc:  # noqa: BLE001 -- named as a simulator job's failure is
             raise RuntimeError(f"the simulator failed: {type(exc).__name__}: {exc}") from exc
         return states.astype(np.float32)  # float16 states, as a simulator job's
 
     if o["refine"] is not None:
 
-        def simulate(raw: np.ndarray, steps: int) -> np.ndarray:
-            work = particle_work([(raw, 0)])
-            if work > sim_max_work:
-                raise SimulationSkipped(
-                    f"{work:.3g}x the work of a design-centre run (server limit {sim_max_work:g}x)"
-                )
-            return simulated(raw, steps, lambda _f: None)  # the progress stands still while it simulates
+        def simulator(seed: int) -> Callable[[np.ndarray, int], np.ndarray]:
+            def simulate(raw: np.ndarray, steps: int) -> np.ndarray:
+                work = particle_work([(raw, 0)])
+                if work > sim_max_work:
+                    raise SimulationSkipped(
+                        f"{work:.3g}x the work of a design-centre run (server limit {sim_max_work:g}x)"
+                    )
+                return simulated(raw, steps, lambda _f: None, seed)  # progress stands still meanwhile
 
+            return simulate
+
+        # a recipe met in its loop run is confirmed by an independent run (the next seed) before it is the
+        # answer: the strategy `nemsim bench design-cost` measures as "design"
         return refine_with_simulator(
             ctx,
             spec,
-            simulated_metrics(simulate, ctx.scene),
+            simulated_metrics(simulator(o["sim_seed"]), ctx.scene),
             refine=o["refine"],
             seed=o["seed"],
             sim_seed=o["sim_seed"],
             on_progress=lambda f, _msg: report(0.98 * f),
+            confirm=simulated_metrics(simulator(o["sim_seed"] + CONFIRM_SEED_OFFSET), ctx.scene),
         )
     share = SEARCH_SHARE if o["verify"] else 0.98
     result = search(ctx, spec, seed=o["seed"], on_progress=lambda f, _msg: report(share * f))
