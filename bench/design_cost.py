@@ -97,7 +97,7 @@ class DesignCostConfig:
     unreachable: int = 3
     seed: int = 7  # held-out recipes (``held_out_unit``)
     budget: int = 30  # simulator calls per strategy and target
-    domain: str = "quarter"  # the simulator's domain (``SimConfig.domain``)
+    domain: str = "full"  # the simulator's domain (``SimConfig.domain``): the data's, as POST /design runs
     strategies: tuple[str, ...] = STRATEGIES
     confirm: str = "inside"  # design: confirmation inside the design loop, or of its answer after it
     design_label: str = "design"  # the design's name in the results (variants side by side)

@@ -143,6 +143,20 @@ class _LRU:
         return len(self._recent) + len(self._kept)
 
 
+_ENCODER: list[ThreadPoolExecutor] = []
+_ENCODER_LOCK = threading.Lock()
+
+
+def _encoder() -> ThreadPoolExecutor:
+    """The one thread that encodes computed rollouts' states, shared by every served model of the process
+    and alive as long as it: a thread per model would exit whenever a model is dropped, and a thread's exit
+    runs the thread-local destructors of whatever libraries it touched."""
+    with _ENCODER_LOCK:
+        if not _ENCODER:
+            _ENCODER.append(ThreadPoolExecutor(1, thread_name_prefix="nemsim-encode"))
+        return _ENCODER[0]
+
+
 class ServedModel:
     """The predictor of the served checkpoint plus caches and trajectory buffers. Thread-safe."""
 
@@ -157,7 +171,7 @@ class ServedModel:
         self._buffers: list[torch.Tensor] = []  # idle trajectory buffers (`_take_buffer`)
         self._buffers_lock = threading.Lock()
         # computed rollouts whose states are being encoded (then cached), and which of them were asked for
-        self._encoder = ThreadPoolExecutor(1, thread_name_prefix="nemsim-encode")
+        self._encoder = _encoder()
         self._pending: dict[str, RolloutResult] = {}
         self._pending_used: set[str] = set()
         self._pending_lock = threading.Lock()
@@ -226,7 +240,7 @@ class ServedModel:
 
     def flush(self) -> None:
         """Wait until every rollout computed so far is encoded and in the cache (one encoder thread, in
-        order)."""
+        order; another model's encodings queued before are waited for too)."""
         self._encoder.submit(lambda: None).result()
 
     def _cached(self, rid: str, touch: bool = True) -> RolloutResult | None:
