@@ -10,9 +10,6 @@ No physics here: rollouts, profile metrics and meshes are the predictor's, mecha
   stored compactly and losslessly (`service.compact_states`), so the entry count, not the memory budget,
   bounds the cache: the ids of the last `cache_size` rollouts answered always resolve (while they fit in
   the budget), and rollouts followed up or repeated outlive a flood of one-off ones (`_LRU`);
-* that encoding behind the answer: a computed rollout returns with its metrics while one encoder thread
-  packs its states (`RolloutResult.states` waits for them; a few ms), and the rollout is found by id in
-  the meantime. The states are what a follow-up needs, the metrics what the answer needs;
 * reused trajectory buffers (a fresh trajectory-sized array per rollout costs page faults);
 * cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
   `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
@@ -27,7 +24,6 @@ import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,19 +48,13 @@ class RolloutResult:
     model_id: str
     steps: int
     controls_raw: np.ndarray  # (T, 14) physical units
-    encoded: Future[CompactStates]  # the states, encoded behind the answer (`states`)
+    states: CompactStates  # (T+1, 2, D, H, W) float16, normalized SDF
     metrics: dict[str, list[float | None]]  # name -> (T+1,) values in nm, None where not finite
     times_s: list[float]  # (T+1,)
     rollout_ms: float
     metrics_ms: float
     warnings: tuple[str, ...] = ()  # stability guard findings (non-finite or out-of-range states)
     non_finite_from: int | None = None  # the first step whose state is not finite, None: all finite
-
-    @property
-    def states(self) -> CompactStates:
-        """(T+1, 2, D, H, W) float16 normalized SDF, kept compactly (waits for the encoder when it has not
-        finished yet)."""
-        return self.encoded.result()
 
 
 class _LRU:
@@ -143,20 +133,6 @@ class _LRU:
         return len(self._recent) + len(self._kept)
 
 
-_ENCODER: list[ThreadPoolExecutor] = []
-_ENCODER_LOCK = threading.Lock()
-
-
-def _encoder() -> ThreadPoolExecutor:
-    """The one thread that encodes computed rollouts' states, shared by every served model of the process
-    and alive as long as it: a thread per model would exit whenever a model is dropped, and a thread's exit
-    runs the thread-local destructors of whatever libraries it touched."""
-    with _ENCODER_LOCK:
-        if not _ENCODER:
-            _ENCODER.append(ThreadPoolExecutor(1, thread_name_prefix="nemsim-encode"))
-        return _ENCODER[0]
-
-
 class ServedModel:
     """The predictor of the served checkpoint plus caches and trajectory buffers. Thread-safe."""
 
@@ -170,11 +146,6 @@ class ServedModel:
         self._mechanisms = _LRU(cache_size)
         self._buffers: list[torch.Tensor] = []  # idle trajectory buffers (`_take_buffer`)
         self._buffers_lock = threading.Lock()
-        # computed rollouts whose states are being encoded (then cached), and which of them were asked for
-        self._encoder = _encoder()
-        self._pending: dict[str, RolloutResult] = {}
-        self._pending_used: set[str] = set()
-        self._pending_lock = threading.Lock()
 
     @classmethod
     def from_checkpoint(
@@ -211,7 +182,7 @@ class ServedModel:
         """A cached rollout by id, for a follow-up request (mesh, slices): the rollout counts as used again
         (it outlives one-off rollouts) but does not become one of the `cache_size` most recent, so
         follow-ups of old rollouts never evict the ids of the latest POST /rollout answers."""
-        result = self._cached(rollout_id, touch=False)
+        result = self._rollouts.get(rollout_id, touch=False)
         if result is None:
             raise UnknownRollout(rollout_id)
         return result
@@ -219,7 +190,7 @@ class ServedModel:
     def lookup_rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[str, RolloutResult | None]:
         """(rollout id, the cached result or None) of a schedule or (T, 14) physical controls."""
         rid = self.rollout_id(self.predictor.schedule(controls))
-        return rid, self._cached(rid)
+        return rid, self._rollouts.get(rid)
 
     def compute_rollout(
         self, controls: ControlSchedule | np.ndarray, rollout_id: str | None = None
@@ -229,43 +200,12 @@ class ServedModel:
         one waited for a slot."""
         schedule = self.predictor.schedule(controls)
         rid = rollout_id or self.rollout_id(schedule)
-        cached = self._cached(rid)
+        cached = self._rollouts.get(rid)
         if cached is not None:
             return cached, True
         result = self._compute(rid, schedule)
-        with self._pending_lock:
-            self._pending[rid] = result
-        result.encoded.add_done_callback(lambda _: self._settle(result))
+        self._rollouts.put(rid, result)
         return result, False
-
-    def flush(self) -> None:
-        """Wait until every rollout computed so far is encoded and in the cache (one encoder thread, in
-        order; another model's encodings queued before are waited for too)."""
-        self._encoder.submit(lambda: None).result()
-
-    def _cached(self, rid: str, touch: bool = True) -> RolloutResult | None:
-        """A computed rollout by id: cached, or still being encoded (marked as used, as a cache hit is)."""
-        with self._pending_lock:
-            result = self._pending.get(rid)
-            if result is not None:
-                self._pending_used.add(rid)
-                return result
-        return self._rollouts.get(rid, touch=touch)
-
-    def _settle(self, result: RolloutResult) -> None:
-        """Its states encoded: the rollout moves from the pending ones into the cache (kept as used when it
-        was asked for meanwhile); a failed encoding is logged and the rollout forgotten."""
-        rid = result.id
-        if result.encoded.exception() is None:
-            self._rollouts.put(rid, result)
-        else:
-            log.error("rollout %s: encoding its states failed: %r", rid, result.encoded.exception())
-        with self._pending_lock:
-            self._pending.pop(rid, None)
-            used = rid in self._pending_used
-            self._pending_used.discard(rid)
-        if used:
-            self._rollouts.get(rid, touch=False)
 
     def rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[RolloutResult, bool]:
         """Cached or computed rollout (blocking; no admission control)."""
@@ -277,15 +217,14 @@ class ServedModel:
         buf = self._take_buffer(schedule.steps)  # (>= T+1, 2, D, H, W) float32, or the quadrant's shape
         try:  # a symmetric model's rollout stays on the quadrant (what the cache keeps; a quarter the work)
             pred = self.predictor.rollout(schedule, out=buf, quadrant=True)
-        except BaseException:
+            metrics = {
+                k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
+                for k, vals in pred.metrics.items()
+            }
+            states = CompactStates.encode(buf[: schedule.steps + 1],  # float16, compactly
+                                          full_size=pred.full_size)
+        finally:
             self._give_back(buf)
-            raise
-        # the states are encoded behind the answer; the buffer goes back once they are
-        encoded = self._encoder.submit(self._encode, buf, schedule.steps, pred.full_size)
-        metrics = {
-            k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
-            for k, vals in pred.metrics.items()
-        }
         if pred.warnings:
             log.warning("rollout %s: %s", rid, "; ".join(pred.warnings))
         return RolloutResult(
@@ -293,7 +232,7 @@ class ServedModel:
             model_id=self.model_id,
             steps=schedule.steps,
             controls_raw=schedule.raw,
-            encoded=encoded,
+            states=states,
             metrics=metrics,
             times_s=pred.times_s,
             rollout_ms=1e3 * pred.rollout_s,
@@ -301,12 +240,6 @@ class ServedModel:
             warnings=pred.warnings,
             non_finite_from=pred.non_finite_from,
         )
-
-    def _encode(self, buf: torch.Tensor, steps: int, full_size: int | None) -> CompactStates:
-        try:
-            return CompactStates.encode(buf[: steps + 1], full_size=full_size)  # float16, compactly
-        finally:
-            self._give_back(buf)
 
     def _take_buffer(self, steps: int) -> torch.Tensor:
         """A float32 trajectory buffer of at least steps + 1 states, reused across rollouts: a fresh
