@@ -47,8 +47,7 @@ from service.jobs import ChildFailed, Job, run_child
 from service.sim_child import MODEL_FILE, RESULT_FILE
 
 _calibrations: dict[str, Calibration | None] = {}
-_expected_calls: dict[tuple[str, str, str], float | None] = {}
-_extrapolation: dict[tuple[str, str, str], dict[str, Any] | None] = {}
+_results: dict[tuple[str, str], dict[str, Any] | None] = {}  # committed benchmark results (`_committed`)
 _supports: dict[str, Support] = {}
 _lock = threading.Lock()
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"  # the repository's committed results
@@ -67,57 +66,45 @@ def calibration(served: Any) -> Calibration | None:
 def expected_calls_to_target(served: Any, benchmarks: Path = BENCHMARKS) -> float | None:
     """The committed design-cost benchmark's simulator calls per target reached, for the served checkpoint
     (module docstring); None when there is no result for it."""
-    key = (served.model_id, str(getattr(served.predictor.scene, "name", None)), str(benchmarks))
-    with _lock:
-        if key not in _expected_calls:
-            _expected_calls[key] = _read_expected_calls(served, benchmarks)
-        return _expected_calls[key]
+    rep = _committed(served, benchmarks, "design_cost/results.json")
+    summary = rep.get("summary", {}).get(DESIGN_LABEL) if rep else None
+    value = summary.get("calls_per_hit") if isinstance(summary, dict) else None
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
 def rollout_trust(served: Any, raw: np.ndarray, normalized: np.ndarray,
                   benchmarks: Path = BENCHMARKS) -> dict[str, Any]:
     """Where the recipe (T, 14) physical / normalized lies and the error measured there (module docstring)."""
     cal = calibration(served)
-    key = (served.model_id, str(getattr(served.predictor.scene, "name", None)), str(benchmarks))
     with _lock:
         if served.model_id not in _supports:
             _supports[served.model_id] = Support.from_record(cal.support if cal is not None else None)
-        if key not in _extrapolation:
-            _extrapolation[key] = _read_extrapolation(served, benchmarks)
-        support, bench = _supports[served.model_id], _extrapolation[key]
+        support = _supports[served.model_id]
+    rep = _committed(served, benchmarks, "extrapolation/extrapolation.json")
+    summary = rep.get("summary") if rep else None
+    bench = None
+    if isinstance(summary, dict) and isinstance(summary.get("groups"), dict):
+        scene = served.predictor.scene.name
+        bench = {**summary, "source": f"benchmarks/{scene}/extrapolation (nemsim bench extrapolation, "
+                                      f"model {served.model_id})"}
     return assess(place(normalized, raw, support), bench)
 
 
-def _read_extrapolation(served: Any, benchmarks: Path) -> dict[str, Any] | None:
-    """The summary of the committed extrapolation benchmark of the served checkpoint, or None."""
+def _committed(served: Any, benchmarks: Path, name: str) -> dict[str, Any] | None:
+    """The committed benchmark result ``benchmarks/<scene>/<name>`` when it is stamped with the served
+    checkpoint's id, else None; read once per (model, file)."""
     scene = getattr(served.predictor.scene, "name", None)
-    path = benchmarks / str(scene) / "extrapolation" / "extrapolation.json"
-    try:
-        rep = json.loads(path.read_text())
-        summary = dict(rep["summary"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    cid = served.model_id.rpartition("@")[2]
-    if rep.get("checkpoint_id") != cid or not isinstance(summary.get("groups"), dict):
-        return None
-    summary["source"] = (f"benchmarks/{scene}/extrapolation (nemsim bench extrapolation, "
-                         f"model {served.model_id})")
-    return summary
-
-
-def _read_expected_calls(served: Any, benchmarks: Path) -> float | None:
-    scene = getattr(served.predictor.scene, "name", None)
-    path = benchmarks / str(scene) / "design_cost" / "results.json"
-    try:
-        rep = json.loads(path.read_text())
-        summary = rep["summary"][DESIGN_LABEL]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    cid = served.model_id.rpartition("@")[2]
-    value = summary.get("calls_per_hit") if isinstance(summary, dict) else None
-    if rep.get("checkpoint_id") != cid or not isinstance(value, int | float) or isinstance(value, bool):
-        return None
-    return float(value)
+    path = benchmarks / str(scene) / name
+    key = (served.model_id, str(path))
+    with _lock:
+        if key not in _results:
+            try:
+                rep = json.loads(path.read_text())
+            except (OSError, ValueError):
+                rep = None
+            cid = served.model_id.rpartition("@")[2]
+            _results[key] = rep if isinstance(rep, dict) and rep.get("checkpoint_id") == cid else None
+        return _results[key]
 
 
 def with_call_counts(result: dict[str, Any], served: Any) -> dict[str, Any]:

@@ -102,7 +102,7 @@ def assess(placement: Placement, benchmark: dict[str, Any] | None) -> dict[str, 
         "mae_nm": {m: round(float(stats["mae_nm"][m]), 2) for m in REPORTED_METRICS if m in stats["mae_nm"]},
         "seed_to_seed_nm": {m: round(float(stats["seed_diff_nm"][m]), 2)
                             for m in REPORTED_METRICS if m in stats.get("seed_diff_nm", {})},
-        "source": benchmark.get("source", "nemsim bench extrapolation") if benchmark else None,
+        "source": (benchmark or {}).get("source", "nemsim bench extrapolation"),
     }
     out["reason"] = (f"the benchmark's {placement.group} recipes ({int(stats['n'])}) erred {ratio:.2g}x "
                      "the in-box error")

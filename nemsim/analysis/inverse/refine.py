@@ -294,22 +294,15 @@ def refine_with_simulator(
     beyond = (
         {} if predicted_met else {r["rank"]: _beyond(r, spec, cfg.unreachable_level) for r in res0["recipes"]}
     )
+
+    def finish(stopped: str, met: bool) -> dict[str, Any]:
+        progress(1.0, "done")
+        return _assemble(res0, spec, loop, rounds, searches, stopped, met, cfg, sim_seed,
+                         time.perf_counter() - t0, time.process_time() - c0 + _children_cpu() - ch0)
+
     if beyond and all(beyond.values()):
         rounds[0]["beyond_intervals"] = {str(k): v for k, v in beyond.items()}
-        progress(1.0, "done")
-        return _assemble(
-            res0,
-            spec,
-            loop,
-            rounds,
-            searches,
-            "intervals",
-            predicted_met,
-            cfg,
-            sim_seed,
-            time.perf_counter() - t0,
-            time.process_time() - c0 + _children_cpu() - ch0,
-        )
+        return finish("intervals", predicted_met)
     # round 0: the surrogate's best recipes, a claim when the intervals lie inside the tolerances
     top = res0["recipes"][: cfg.verify_top]
     for i, rec in enumerate(top):
@@ -322,21 +315,7 @@ def refine_with_simulator(
             if loop.verified() is not None:
                 break
     stopped = _rounds(ctx, spec, cfg, loop, rounds, searches, res0, seed, t0, span, progress, should_stop)
-    predicted_met = predicted_met or any(r["search"]["status"] == "met" for r in rounds)
-    progress(1.0, "done")
-    return _assemble(
-        res0,
-        spec,
-        loop,
-        rounds,
-        searches,
-        stopped,
-        predicted_met,
-        cfg,
-        sim_seed,
-        time.perf_counter() - t0,
-        time.process_time() - c0 + _children_cpu() - ch0,
-    )
+    return finish(stopped, predicted_met or any(r["search"]["status"] == "met" for r in rounds))
 
 
 def _rounds(
