@@ -377,14 +377,20 @@ class Predictor:
         return profile_metrics_batch(states, self.scene)
 
     def warm_up(self, steps: int) -> None:
-        """One short rollout so the first request does not pay for allocation / graph compilation."""
+        """One short rollout so the first request does not pay for allocation / graph compilation; on CUDA
+        graphs also the scene's whole constant-control rollout (its graph captured, its fused call compiled
+        for the layout the whole rollout feeds it)."""
         if steps <= 0:
             return
         from nemsim.evaluation.rollout import rollout
 
         u = torch.zeros(1, steps, len(CONTROL_NAMES))
+        x0 = torch.from_numpy(self.x0)[None]  # (1, 2, D, H, W)
+        whole = getattr(self.runtime, "rollout", None)
         with torch.inference_mode():
-            rollout(self.runtime, torch.from_numpy(self.x0)[None], u, steps, keep=False)  # type: ignore[arg-type]
+            rollout(self.runtime, x0, u, steps, keep=False)  # type: ignore[arg-type]
+            if whole is not None:
+                whole(x0, u[:, 0], int(self.scene.n_transitions), copy=False)
 
     # --- meshes ---------------------------------------------------------------------------------------
     def mesh(self, field: np.ndarray, fmt: str, metadata: dict[str, Any] | None = None) -> bytes:

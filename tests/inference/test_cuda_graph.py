@@ -1,9 +1,10 @@
 """``nemsim.inference.cuda_graph``: CUDA-graph replay against PyTorch eager.
 
-On a CUDA machine (tests marked ``gpu``): the graphed rollouts (one replay per call through
-``nemsim.evaluation.rollout.rollout``, and the whole rollout as one replay) agree with the eager rollout
-within max |Δ| < 1e-5 in fp32 over the whole trajectory, on `tiny` (a k = 4 model after a few Adam steps,
-controls changing mid-rollout) and on `small` (the served checkpoint), at batch 1 and 4.
+On a CUDA machine (tests marked ``gpu``): the graphed rollouts of the eager kernels (one replay per call
+through ``nemsim.evaluation.rollout.rollout``, and the whole rollout as one replay) agree with the eager
+rollout within max |Δ| < 1e-5 in fp32 over the whole trajectory (the default fused capture within 1e-4),
+on `tiny` (a k = 4 model after a few Adam steps, controls changing mid-rollout) and on `small` (the served
+checkpoint), at batch 1 and 4.
 Without CUDA: the runtime refuses to build and ``compile_model(model, "cuda")`` falls back to eager torch
 with the reason; and the runtime's bookkeeping (static buffers, one graph per batch size, the control cache
 reloaded on a control change, the whole-rollout loop) runs on the CPU with the capture replaced by
@@ -99,6 +100,9 @@ class _Replayed(CUDAGraphRuntime):
 
     captures = 0
 
+    def __init__(self, model, fuse: bool = False, **kwargs) -> None:  # unfused: no compile on the CPU
+        super().__init__(model, fuse=fuse, **kwargs)
+
     @staticmethod
     def _resolve_device(model, device):
         return torch.device("cpu")
@@ -148,6 +152,24 @@ def test_replayed_whole_rollout_matches_eager(tiny_k4):
     assert runtime.describe()["rollout_graphs"] == [(2, 7)]
 
 
+def test_a_fused_call_that_fails_is_captured_unfused(tiny_k4):
+    """A fused call that cannot be compiled or captured leaves the graph path: the eager kernels are
+    captured instead, and the reason is kept."""
+    model, x0 = tiny_k4
+    runtime = _Replayed(model, fuse=True)
+
+    def broken(x, tree):
+        raise RuntimeError("no Triton here")
+
+    runtime._call = broken
+    x, u = x0[None], _controls(1, 6, None)
+    got = rollout(runtime, x, u)  # type: ignore[arg-type]
+    assert (got - rollout(model, x, u)).abs().max() <= 1e-6
+    described = runtime.describe()
+    assert described["fuse"] is False and "no Triton here" in described["fuse_fallback_reason"]
+    assert runtime.backend == "cuda" and runtime.fallback_reason is None and described["graphs"] == [1]
+
+
 def test_refuses_a_cache_of_another_batch(tiny_k4):
     model, x0 = tiny_k4
     runtime = _Replayed(model)
@@ -175,7 +197,7 @@ def _agree(model, x0: torch.Tensor, batch: int, steps: int, change_at: int | Non
     x = x0[None].repeat(batch, 1, 1, 1, 1).to(dev)
     u = _controls(batch, steps, change_at, seed=batch).to(dev)
     want = rollout(TorchRuntime(model), x, u)  # type: ignore[arg-type]
-    runtime = CUDAGraphRuntime(model)
+    runtime = CUDAGraphRuntime(model, fuse=False)  # the eager kernels: bit for bit
     diffs = {"calls": float((rollout(runtime, x, u) - want).abs().max())}  # type: ignore[arg-type]
     if change_at is None:
         diffs["whole"] = float((runtime.rollout(x, u[:, 0], steps) - want).abs().max())  # the capture
@@ -212,6 +234,26 @@ def test_graphed_rollout_agrees_with_eager_small(batch, strict_fp32):
 
 @gpu
 @needs_cuda
+def test_fused_capture_agrees_with_eager(tiny_k4, strict_fp32):
+    """The default fused capture changes the order of the float32 arithmetic, not what is computed: the
+    rollouts (per call and whole) agree with eager to float32 rounding."""
+    model, x0 = tiny_k4
+    dev = torch.device("cuda")
+    model = copy.deepcopy(model).to(dev)
+    x = x0[None].repeat(2, 1, 1, 1, 1).to(dev)
+    u = _controls(2, 12, None, seed=7).to(dev)
+    want = rollout(TorchRuntime(model), x, u)  # type: ignore[arg-type]
+    runtime = CUDAGraphRuntime(model)
+    calls = rollout(runtime, x, u)  # type: ignore[arg-type]
+    whole = runtime.rollout(x, u[:, 0], 12)
+    assert runtime.backend == "cuda" and runtime.fallback_reason is None, runtime.describe()
+    assert runtime.describe()["fuse"] is True and runtime.fuse_fallback_reason is None
+    assert float((calls - want).abs().max()) < 1e-4
+    assert float((whole - want).abs().max()) < 1e-4
+
+
+@gpu
+@needs_cuda
 def test_compile_model_cuda_backend(tiny_k4):
     from nemsim.inference.runtime import compile_model
 
@@ -239,7 +281,7 @@ def test_uncapturable_model_falls_back_to_eager(tiny_k4, monkeypatch, strict_fp3
         return real(m, x, cache)
 
     monkeypatch.setattr(cuda_graph, "model_predict", syncing)
-    runtime = CUDAGraphRuntime(model)
+    runtime = CUDAGraphRuntime(model, fuse=False)
     x = x0[None].cuda()
     u = _controls(1, 6, None).cuda()
     got = rollout(runtime, x, u)  # type: ignore[arg-type]
@@ -248,7 +290,7 @@ def test_uncapturable_model_falls_back_to_eager(tiny_k4, monkeypatch, strict_fp3
     # the failed capture left the allocator usable: the cache empties, and another model captures
     monkeypatch.undo()
     torch.cuda.empty_cache()
-    again = CUDAGraphRuntime(model)
+    again = CUDAGraphRuntime(model, fuse=False)
     assert (rollout(again, x, u) - got).abs().max() < TOL  # type: ignore[arg-type]
     assert again.backend == "cuda" and again.describe()["graphs"] == [1]
 
@@ -292,3 +334,14 @@ def test_predictor_rolls_constant_controls_as_one_graph(tiny_checkpoint):
     a, b = fast.rollout(recipe, out=out), ref.rollout(recipe)
     assert np.abs(a.states - b.states).max() <= 1e-6
     assert fast.runtime.describe()["rollout_graphs"] == [(1, 6)]  # the recipe went call by call
+
+
+def test_predictor_warm_up_captures_the_scene_rollout(tiny_checkpoint):
+    """``Predictor.warm_up`` on a CUDA-graph runtime captures the whole constant-control rollout of the
+    scene's length, so a service's first request replays it instead of capturing (and compiling)."""
+    from nemsim.inference import Predictor
+
+    fast = Predictor.from_checkpoint(tiny_checkpoint, backend="torch")
+    fast.runtime = _Replayed(fast.loaded.model)
+    fast.warm_up(2)
+    assert fast.runtime.describe()["rollout_graphs"] == [(1, fast.scene.n_transitions)]
