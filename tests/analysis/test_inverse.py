@@ -81,6 +81,26 @@ def test_rollout_to_is_differentiable_and_matches_the_rollout(ctx):
     assert torch.allclose(x.detach(), ref, atol=1e-5)
 
 
+def test_the_search_rolls_out_through_openvino_bf16_and_torch_on_request(ctx):
+    """The search's no-gradient rollouts: OpenVINO bf16 by default, within bf16 rounding of the f32 model;
+    ``torch-f32`` gives ``rollout_to`` exactly; another name is refused."""
+    import dataclasses
+
+    pytest.importorskip("openvino")
+    g = torch.Generator().manual_seed(3)
+    u = torch.rand(3, 14, generator=g) * 2 - 1
+    with torch.no_grad():
+        ref = rollout_to(ctx.model, ctx.x0, u, 6)
+    fast = dataclasses.replace(ctx, search_runtime="openvino-bf16")
+    got = fast.final_states(u, 6)
+    assert fast._search_runtime().backend == "openvino"
+    assert got.shape == ref.shape and float((got - ref).abs().max()) < 0.05
+    plain = dataclasses.replace(ctx, search_runtime="torch-f32")
+    assert torch.equal(plain.final_states(u, 6), ref) and plain._search_runtime() is None
+    with pytest.raises(ValueError, match="search_runtime"):
+        dataclasses.replace(ctx, search_runtime="cuda").final_states(u, 6)
+
+
 def _prediction(ctx, raw, step):
     with torch.no_grad():
         x = rollout_to(

@@ -3,8 +3,9 @@
 In normalized control coordinates (eq:supp_control_normalization: log10 fluxes, the box [-1, 1] is the
 training range), only over the free controls (``fixed`` ones are held), inside ``bounds`` (default the
 training box):
-  1. screening: ``screen`` scrambled-Sobol recipes, rolled out in batches without gradients, scored by the
-     objective (``spec.objective``) on their exact metrics;
+  1. screening: ``screen`` scrambled-Sobol recipes, rolled out in batches without gradients (through the
+     context's search runtime, ``InverseContext.final_states``), scored by the objective
+     (``spec.objective``) on their exact metrics;
   2. refinement, ``method="adam"``: the ``starts`` best screened recipes (at least ``min_separation``
      apart) follow Adam on the soft metrics (``nemsim.geometry.soft_profile``) of a differentiable rollout,
      projected onto the bounds after every step, with a cosine learning-rate decay; every iterate's exact
@@ -110,8 +111,7 @@ class _Evaluator:
         for s in range(0, len(u), self.batch):
             self.check()
             ub = torch.as_tensor(u[s : s + self.batch], dtype=torch.float32)
-            with torch.no_grad():
-                x = rollout_to(self.ctx.model, self.ctx.x0, ub, self.step)
+            x = self.ctx.final_states(ub, self.step)
             self.cost.forward_rollouts += len(ub)
             for k, v in profile_metrics_batch(x.numpy(), self.ctx.scene).items():
                 out.setdefault(k, []).append(v)
