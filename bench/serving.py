@@ -85,6 +85,7 @@ def bench_service(
         "checkpoint": Path(checkpoint).name,  # the file name: reports carry no machine paths
         "model_id": model_id,
         "steps": steps,
+        "machine": _machine(settings.runtime_backend),
         "uncached": {
             **_percentiles([wall for wall, _ in uncached]),
             "cpu_ms_per_request": 1e3 * (cpu1 - cpu0) / n,
@@ -96,6 +97,19 @@ def bench_service(
             "cpu_ms_per_request": 1e3 * (cpu2 - cpu1) / n_cached,
         },
     }
+
+
+def _machine(backend: str) -> dict[str, Any]:
+    """Where the figures were measured: the CPU, the rollout runtime and, on CUDA, the GPU."""
+    from bench.machine import cpu_name
+
+    out: dict[str, Any] = {"cpu": cpu_name(), "cpu_count": os.cpu_count(), "runtime_backend": backend}
+    if backend == "cuda":
+        import torch
+
+        if torch.cuda.is_available():
+            out["gpu"] = torch.cuda.get_device_name()
+    return out
 
 
 def _post(client: Any, body: dict[str, Any]) -> tuple[float, float]:

@@ -37,7 +37,7 @@ DESCRIPTION = (
     "--extra-data data/small-quarter.h5 --truth-cache runs/truth-cache "
     "--probe-report benchmarks/small/physics/physics.json --out runs/learn/measure; nemsim learn run "
     "--checkpoint checkpoints/nemsim-small.pt --data data/small.h5 --splits data/splits "
-    "--extra-data data/small-quarter.h5 --config configs/small/quarter-unroll.train.yaml --train-steps 300 "
+    "--extra-data data/small-quarter.h5 --config configs/small/rollout-quarter.train.yaml --train-steps 300 "
     "--rounds 4 --batch 16 --workers 2 --out runs/learn (rerun the same command to resume)"
 )
 
@@ -177,7 +177,7 @@ def register(sub: Subparsers) -> None:
         "--config",
         required=True,
         type=Path,
-        help="TrainConfig YAML of each round's fine-tuning, e.g. configs/small/quarter-unroll.train.yaml "
+        help="TrainConfig YAML of each round's fine-tuning, e.g. configs/small/rollout-quarter.train.yaml "
         "(its `model:` part is ignored: the checkpoint's architecture is kept)",
     )
     r.add_argument(

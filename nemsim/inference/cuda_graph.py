@@ -37,9 +37,9 @@ Fused kernels (``fuse``, the default): the captured call is ``torch.compile``'s 
 kernels for the elementwise and reduction work around the convolutions), compiled once per input shape
 and layout on first use (20-30 s on an H100 machine; ``Predictor.warm_up`` pays it before a service is
 ready). A replay is bound by its kernel count, not its arithmetic, and fusing cut the 100-step `small`
-rollout from 14.2 to 11.7 ms at batch 1 and from 0.49 to 0.37 ms per trajectory at batch 64 on one H100
+rollout from 12.8 to 10.1 ms at batch 1 and from 0.46 to 0.34 ms per trajectory at batch 64 on one H100
 (``benchmarks/gpu/rollout.md``). The fused kernels sum in another order: the states agree with eager to
-float32 rounding (max |Δ| 4e-4 to 8e-4 over 100 steps, trajectory RMSE 2e-5), not bit for bit;
+float32 rounding (max |Δ| 5e-4 to 9e-4 over 100 steps, trajectory RMSE 2e-5), not bit for bit;
 ``fuse=False`` captures the eager kernels themselves (bit-identical to eager). A fused call that cannot be
 compiled or captured (no Triton, say) is captured unfused, with the reason logged and kept in
 ``fuse_fallback_reason``. cuDNN's timed algorithm choice (``torch.backends.cudnn.benchmark``) changed
@@ -180,7 +180,6 @@ class CUDAGraphRuntime(Runtime):
 
     def _model_call(self, x: torch.Tensor, tree: Any) -> torch.Tensor:
         return model_predict(self.model, x, tree)  # (B, k, 2, D, H, W)
-
 
     def _capture(self, body: Callable[[], torch.Tensor],
                  warmup: int) -> tuple[Callable[[], None], torch.Tensor]:
