@@ -51,6 +51,23 @@ from nemsim.inference.eager import (  # noqa: F401 -- re-exported: the runtime A
 )
 
 log = logging.getLogger(__name__)
+_CORE: Any = None
+_CORE_LOCK = threading.Lock()
+
+
+def openvino_core() -> Any:
+    """The process's one ``openvino.Core``, made on first use and kept: its CPU plugin is loaded once and
+    never unloaded. With a Core per runtime the plugin library was loaded and unloaded as runtimes came and
+    went while its worker threads lived on, and long test processes that made and dropped many runtimes
+    crashed inside the dynamic loader; one Core rules that pattern out. A Core is safe to share between
+    threads."""
+    global _CORE
+    with _CORE_LOCK:
+        if _CORE is None:
+            import openvino as ov
+
+            _CORE = ov.Core()
+        return _CORE
 
 def openvino_available() -> bool:
     try:
@@ -153,7 +170,7 @@ class OpenVINORuntime(Runtime):
         self.precision = precision
         self.threads = int(threads)
         self._ov = ov
-        self._core = ov.Core()
+        self._core = openvino_core()
         self._compiled: dict[tuple, Any] = {}
         self._lock = threading.Lock()
         self._idle: dict[tuple, list[Any]] = {}  # shape key -> infer requests not in use

@@ -124,6 +124,27 @@ def test_one_correction_round_removes_a_constant_offset(toy):
     assert res["verification"]["seed"] == 3
 
 
+def test_a_corrected_search_whose_best_was_run_tries_its_next_best(toy, monkeypatch):
+    """A round whose corrected search ranks an already simulated recipe first simulates the best one not yet
+    run, instead of stopping: here the real search's recipe, which meets the target."""
+    from nemsim.analysis.inverse import refine as rf
+
+    real = rf._corrected_search
+
+    def best_already_run(ctx, spec, cfg, sims, rnd, **kwargs):
+        res, record = real(ctx, spec, cfg, sims, rnd, **kwargs)
+        ran = dict(res["recipes"][0], controls_normalized=[float(v) for v in sims[0].u])
+        return {**res, "recipes": [ran, *res["recipes"]]}, record
+
+    monkeypatch.setattr(rf, "_corrected_search", best_already_run)
+    sim = FakeSimulator(toy, {"etch_depth": 5.0})
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=EXACT, sim_seed=3)
+    ref = res["refinement"]
+    assert ref["stopped"] == "met" and len(ref["rounds"]) == 2 and res["status"] == "verified"
+    assert len(sim.calls) == EXACT.verify_top + 1
+    assert not np.allclose(sim.calls[-1], sim.calls[0])
+
+
 def test_the_trust_region_bounds_each_round(toy):
     """A radius of 0.3 normalized units moves the depth by at most 0.3 * 9 nm per round: a 5 nm offset
     takes two rounds, and each round's recipe stays inside the region around its anchor."""

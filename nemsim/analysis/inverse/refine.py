@@ -28,7 +28,8 @@ What the calibrated intervals (``nemsim.analysis.intervals``) decide before any 
 
 It stops when a recipe is verified (met, and confirmed when ``confirm`` is given), after ``rounds`` rounds,
 when the next run would pass ``max_runs`` simulator calls (confirmations count), when the next round's
-estimated wall time would pass ``budget_s``, or when the corrected search returns a recipe already run.
+estimated wall time would pass ``budget_s``, or when every recipe the corrected search reports was run
+already (its best run already, the next best not yet run is simulated).
 Status: ``verified``, ``unverified`` (some search predicted the targets met, no simulated recipe was
 verified) or ``unreachable`` (no search predicted them met); ``refinement`` records every round and why
 the loop stopped; ``cost.simulator_runs`` counts every call.
@@ -364,15 +365,22 @@ def _rounds(
         )
         searches.append(res["cost"])
         rounds.append(record)
-        new = res["recipes"][0]
-        if any(np.linalg.norm(np.asarray(new["controls_normalized"]) - s.u) <= 1e-6 for s in loop.sims):
-            return "converged"  # the corrected search's best was simulated already: nothing new to try
+        fresh = [r for r in res["recipes"] if not _simulated(r, loop.sims)]
+        if not fresh:
+            return "converged"  # every recipe the corrected search reports was simulated already
+        new = fresh[0]  # its best not yet run (the best itself may be: its run already counted)
         progress(base + 0.7 * width, f"simulating round-{rnd} recipe")
         s = loop.run(_restate(new, spec), rnd)
         if s is not None:
             record["simulated"].append(_sim_record(s, names))
         last_round_s = time.perf_counter() - r0
     return "met" if loop.verified() is not None else "rounds"
+
+
+def _simulated(recipe: dict[str, Any], sims: list[_Simulated]) -> bool:
+    """Whether ``recipe`` (a search result's) was simulated already."""
+    u = np.asarray(recipe["controls_normalized"])
+    return any(np.linalg.norm(u - s.u) <= 1e-6 for s in sims)
 
 
 def _corrected_search(
