@@ -57,6 +57,9 @@ class InverseContext:
 
     def _search_runtime(self) -> Any:
         """The OpenVINO runtime of the search (compiled once), or None: PyTorch's ``rollout_to``."""
+        if self.search_runtime not in ("openvino-bf16", "torch-f32"):
+            raise ValueError(
+                f"search_runtime must be 'openvino-bf16' or 'torch-f32', got {self.search_runtime!r}")
         if self._runtime is None:
             self._runtime = False
             if self.search_runtime == "openvino-bf16" and callable(getattr(self.model, "precompute", None)):
@@ -69,9 +72,6 @@ class InverseContext:
                     else:
                         log.info("inverse design: the search rolls out in torch f32: %s",
                                  runtime.fallback_reason)
-            elif self.search_runtime not in ("openvino-bf16", "torch-f32"):
-                raise ValueError(f"search_runtime must be 'openvino-bf16' or 'torch-f32', got "
-                                 f"{self.search_runtime!r}")
         return self._runtime or None
 
 
