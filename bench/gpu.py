@@ -45,6 +45,7 @@ from __future__ import annotations
 import argparse
 import copy
 import csv
+import functools
 import json
 import logging
 import math
@@ -239,7 +240,7 @@ def _rollouts_at(eager: Any, graphed: Any, options: dict[str, Any], x0: Any, dev
             xq = xo = fold(symmetrize(x)).contiguous()
             fns["graph_whole_quadrant"] = lambda: graphed.rollout(xq, u, steps)
         for name, rt in options.items():
-            fns[f"graph_whole_{name}"] = lambda rt=rt: rt.rollout(xo, u, steps)
+            fns[f"graph_whole_{name}"] = functools.partial(rt.rollout, xo, u, steps)
     row: dict[str, Any] = {}
     with torch.no_grad():
         trajs = {}
