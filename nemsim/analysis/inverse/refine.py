@@ -365,7 +365,7 @@ def _rounds(
         )
         searches.append(res["cost"])
         rounds.append(record)
-        fresh = [r for r in res["recipes"] if not _simulated(r, loop.sims)]
+        fresh = [r for r in res["recipes"] if _run_of(r, loop.sims) is None]
         if not fresh:
             return "converged"  # every recipe the corrected search reports was simulated already
         new = fresh[0]  # its best not yet run (the best itself may be: its run already counted)
@@ -377,10 +377,10 @@ def _rounds(
     return "met" if loop.verified() is not None else "rounds"
 
 
-def _simulated(recipe: dict[str, Any], sims: list[_Simulated]) -> bool:
-    """Whether ``recipe`` (a search result's) was simulated already."""
+def _run_of(recipe: dict[str, Any], sims: list[_Simulated]) -> _Simulated | None:
+    """The simulated recipe among ``sims`` that is ``recipe`` (a search result's), or None."""
     u = np.asarray(recipe["controls_normalized"])
-    return any(np.linalg.norm(u - s.u) <= 1e-6 for s in sims)
+    return next((s for s in sims if np.linalg.norm(u - s.u) <= 1e-6), None)
 
 
 def _corrected_search(
@@ -515,7 +515,7 @@ def _assemble(
     for rec in res0["recipes"]:
         if len(recipes) == spec.k:
             break
-        if best is None or np.linalg.norm(np.asarray(rec["controls_normalized"]) - best.u) > 1e-6:
+        if best is None or _run_of(rec, [best]) is None:
             recipes.append(_labelled(rec, sims))
     for rank, r in enumerate(recipes, 1):
         r["rank"] = rank
@@ -559,9 +559,7 @@ def _assemble(
 def _labelled(rec: dict[str, Any], sims: list[_Simulated]) -> dict[str, Any]:
     """A recipe with what the simulator said of it (``verified_by``, the mean of its runs, its verdict)."""
     out = dict(rec)
-    hit = next(
-        (s for s in sims if np.linalg.norm(np.asarray(rec["controls_normalized"]) - s.u) <= 1e-6), None
-    )
+    hit = _run_of(rec, sims)
     out["verified_by"] = "simulator" if hit is not None else "surrogate"
     if hit is not None:
         out["simulated"] = hit.entry["achieved"]
