@@ -25,6 +25,7 @@ Output paths the user names get their missing parent directories created (``comm
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import typing
@@ -260,4 +261,20 @@ def entry() -> int:
     from nemsim.cli.allocator import reexec_tuned
 
     reexec_tuned()
-    return main()
+    return exit_process(main())
+
+
+def exit_process(code: int) -> int:
+    """End a command's process with ``code``. An interrupted one (Ctrl-C, SIGTERM) has closed its files on
+    the way out already, so it exits without the interpreter's shutdown, which joins every worker pool's
+    manager thread and can wait forever on one whose workers were just terminated (``concurrent.futures``
+    feeding a queue that no process reads any more)."""
+    if code == EXIT_INTERRUPTED:
+        import os
+
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        logging.shutdown()
+        os._exit(code)
+    return code

@@ -3,6 +3,6 @@ re-executes into this), e.g. under ``torchrun -m nemsim.cli train ARGS``."""
 
 import sys
 
-from nemsim.cli import main
+from nemsim.cli import exit_process, main
 
-sys.exit(main())
+sys.exit(exit_process(main()))
