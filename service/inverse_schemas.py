@@ -100,9 +100,9 @@ class DesignRequest(BaseModel):
         "the answer (`status` verified), as the design-cost benchmark measures it; every run counts in "
         "`simulator_calls`. Default: on when verify is true (false: only simulate the top recipes)",
     )
-    refine_rounds: Annotated[int, Field(ge=0, le=3), BeforeValidator(_json_integer)] | None = Field(
+    refine_rounds: Annotated[int, Field(ge=0, le=5), BeforeValidator(_json_integer)] | None = Field(
         None,
-        description="simulator-corrected rounds at most (default 3; the job stops within about 60 s and "
+        description="simulator-corrected rounds at most (default 5; the job stops within about 60 s and "
         "after 8 simulator runs)",
     )
     sim_seed: Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(_json_integer)] = Field(

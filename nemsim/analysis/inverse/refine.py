@@ -68,7 +68,7 @@ REFINE_WITH_VERIFY = True
 @dataclass(frozen=True)
 class RefineConfig:
     verify_top: int = 1  # round-0 recipes simulated (module docstring: why one)
-    rounds: int = 3  # corrected rounds at most (0: verify round 0 only)
+    rounds: int = 5  # corrected rounds at most (0: verify round 0 only; 5: benchmarks/small/design_cost)
     budget_s: float = 60.0  # wall seconds of the whole design; a round starts only if its estimate fits
     max_runs: int = 8  # simulator calls of the design at most, confirmations included
     radius: float = 0.35  # trust-region half-width around the anchor, normalized units (the box is 2 wide)
