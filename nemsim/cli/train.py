@@ -227,11 +227,35 @@ def _stage_jobs(args: argparse.Namespace, recipe: typing.Any) -> dict[str, typin
 
 
 def _run_nemsim(words: list[str]) -> int:
-    """Run one `nemsim` command line in its own process (a recipe's data command); its exit code."""
+    """Run one `nemsim` command line in its own process (a recipe's data command); its exit code. A SIGTERM
+    of this process is passed on to the command, which stops as it would itself (``generate`` keeps its
+    finished cases), and then ends the recipe like Ctrl-C: no data command outlives the recipe."""
+    import signal
     import subprocess
     import sys
+    import threading
 
-    return subprocess.run([sys.executable, "-m", "nemsim.cli", *words], check=False).returncode
+    proc = subprocess.Popen([sys.executable, "-m", "nemsim.cli", *words])
+    terminated: list[int] = []
+
+    def forward(signum: int, frame: object) -> None:
+        terminated.append(signum)
+        proc.send_signal(signal.SIGTERM)
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, forward) if main_thread else None
+    try:
+        code = proc.wait()
+    except KeyboardInterrupt:  # Ctrl-C reached the command too (one process group): let it finish stopping
+        proc.send_signal(signal.SIGTERM)
+        proc.wait()
+        raise
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    if terminated:
+        raise KeyboardInterrupt(f"terminated by signal {terminated[0]}")
+    return code
 
 
 def _cmd_recipe(args: argparse.Namespace) -> int:

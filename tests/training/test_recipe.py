@@ -81,7 +81,7 @@ def test_malformed_recipes_are_one_line_exit_2(tmp_path, tiny_data, capsys):
     assert "required: --data, --setting" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name", ["nemsim-small.yaml"])
+@pytest.mark.parametrize("name", ["nemsim-small.yaml", "nemsim-small-union.yaml"])
 def test_shipped_recipes_parse(name):
     """The committed recipe (the served model, from nothing) is a valid recipe whose data commands and stage
     arguments parse, and whose config files and warm start exist."""
@@ -123,3 +123,75 @@ def test_recipe_data_commands_run_in_order_and_resume(tmp_path):
                        (["generate"], "list of command-line words")):
         with pytest.raises(ValueError, match=words):
             recipe_from_dict({**raw, "data": bad})
+
+
+def test_a_terminated_recipe_stops_its_data_command(tmp_path):
+    """SIGTERM to `nemsim train --recipe` while a data command runs: the command (here `generate`) stops
+    too, keeping its finished cases, and the recipe exits 130; nothing outlives it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import h5py
+
+    out = tmp_path / "g.h5"
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text(yaml.safe_dump({
+        "scene": "tiny", "stages": [{"name": "a", "args": []}],
+        "data": [["generate", "--scene", "tiny", "--n", "40", "--no-progress", "--out", str(out)]],
+    }))
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "nemsim.cli", "train", "--recipe", str(recipe), "--out",
+                             str(tmp_path / "run")], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    child = None
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and proc.poll() is None:  # wait for the command's first written case
+            kids = _children(proc.pid)
+            child = kids[0] if kids else child
+            if child is not None and out.exists():
+                try:
+                    with h5py.File(out, "r", locking=False) as f:
+                        if f["complete"][()].sum() >= 1:
+                            break
+                except (OSError, KeyError):
+                    pass
+            time.sleep(0.2)
+        assert proc.poll() is None and child is not None, "the recipe finished before it could be stopped"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if child is not None and _alive(child):
+            os.kill(child, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    assert not _alive(child), "the data command outlived the recipe"
+    with h5py.File(out, "r") as f:
+        assert 1 <= int(f["complete"][()].sum()) < 40
+
+
+def _children(pid: int) -> list[int]:
+    """Pids of the live direct children of ``pid`` (Linux /proc)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and _alive(int(entry.name)):
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
