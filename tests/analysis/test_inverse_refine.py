@@ -210,6 +210,8 @@ def test_declined_simulations_leave_the_surrogate_result(toy):
     [
         ({"rounds": -1}, "rounds"),
         ({"radius": 0}, "radius"),
+        ({"shrink": 0}, "shrink"),
+        ({"shrink": 1.5}, "shrink"),
         ({"colour": 1}, "unknown keys"),
         ({"verify_top": 1.5}, "integers"),
         ({"budget_s": "x"}, "number"),
@@ -373,6 +375,26 @@ def test_max_runs_caps_the_simulator_calls(toy):
     sim, again = FakeSimulator(toy, {"etch_depth": 5.0}), FakeSimulator(toy, {"etch_depth": 5.0})
     res = refine_with_simulator(toy, _spec(16.0), sim, refine=replace_cfg(cfg, max_runs=3), confirm=again)
     assert res["simulator_calls"] <= 3 and len(sim.calls) == 2 and again.calls == []
+
+
+def test_the_trust_region_shrinks_while_the_anchor_stays(toy):
+    """Every run after the first lands farther off (offset 5, 15, 25 nm): the first stays the anchor, and
+    each corrected round searches a region ``shrink`` times the last one's."""
+    sim = FakeSimulator(toy, {"etch_depth": 5.0})
+    real = sim.__call__
+
+    class Growing:
+        calls = sim.calls
+
+        def __call__(self, raw, step):
+            out = real(raw, step)
+            return {**out, "etch_depth": out["etch_depth"] + 10.0 * (len(sim.calls) - 1)}
+
+    cfg = RefineConfig(rounds=3, budget_s=1e9, radius=0.8, shrink=0.5, screen=4, starts=2, iterations=8)
+    res = refine_with_simulator(toy, _spec(16.0), Growing(), refine=cfg)
+    rounds = res["refinement"]["rounds"][1:]
+    assert [r["anchor"]["round"] for r in rounds] == [0] * len(rounds) and len(rounds) >= 2
+    assert [r["radius"] for r in rounds] == [0.8 * 0.5**i for i in range(len(rounds))]
 
 
 def replace_cfg(cfg: RefineConfig, **kw) -> RefineConfig:
