@@ -251,7 +251,7 @@ def _run_nemsim(words: list[str]) -> int:
         proc.wait()
         raise
     finally:
-        if main_thread:
+        if main_thread and previous is not None:
             signal.signal(signal.SIGTERM, previous)
     if terminated:
         raise KeyboardInterrupt(f"terminated by signal {terminated[0]}")

@@ -13,7 +13,7 @@ exceed the tolerances. The loop (an output-space trust region with an additive b
            anchor, warm-started from every simulated recipe; its top recipe is simulated. Each run since
            the anchor's that did not replace it halves the region (``shrink``): the offset was measured at
            the anchor and holds best near it, as in any trust-region method whose model was wrong on the
-           last step (on the design-cost benchmark's 22 targets: 18 met against 16 with a fixed region).
+           last step (``nemsim bench design-cost`` measures what it buys: benchmarks/small/design_cost).
 
 Confirmation (optional ``confirm``, a second simulator with its own seed): a recipe that meets every
 tolerance in its loop run is run again by ``confirm`` and is the answer only if that independent run meets
