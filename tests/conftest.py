@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -99,3 +100,36 @@ def hole_state(scene, radius_vox, depth_vox, *, mask_top=None, bow=0.0, bow_dept
 @pytest.fixture
 def make_hole():
     return hole_state
+
+
+class Procs:
+    """Linux /proc views of processes, for the tests that stop a command and look for what outlived it."""
+
+    @staticmethod
+    def alive(pid: int) -> bool:
+        """Whether ``pid`` runs (a zombie does not)."""
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            return False
+        return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+    @staticmethod
+    def children(pid: int) -> set[int]:
+        """Pids of the live direct children of ``pid``."""
+        out = set()
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit():
+                continue
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.add(int(entry.name))
+        return out
+
+
+@pytest.fixture
+def procs():
+    return Procs

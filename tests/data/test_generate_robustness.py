@@ -37,34 +37,10 @@ def _env() -> dict:
     return env
 
 
-def _children(pid: int) -> set[int]:
-    """Pids of the live direct children of ``pid`` (Linux /proc)."""
-    out = set()
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat.rsplit(")", 1)[1].split()
-        if int(fields[1]) == pid and fields[0] != "Z":
-            out.add(int(entry.name))
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
-
-
 @pytest.mark.slow  # two spawned workers must start and finish a case first (~10-30 s)
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["TERM", "KILL"])
-def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path, sig):
+def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path, sig, procs):
     """TERM: the parent cleans up (exit 130, file closed). KILL: the workers' watchdog ends them."""
     out = tmp_path / "g.h5"
     cmd = [sys.executable, "-m", "nemsim.cli", "generate", "--scene", "tiny", "--n", "40", "--workers", "2",
@@ -75,7 +51,7 @@ def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path,
         deadline = time.time() + 120
         workers: set[int] = set()
         while time.time() < deadline and proc.poll() is None:  # wait for a written case: workers busy
-            workers |= _children(proc.pid)
+            workers |= procs.children(proc.pid)
             if out.exists() and len(workers) >= 2:
                 try:
                     with h5py.File(out, "r", locking=False) as f:
@@ -85,7 +61,7 @@ def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path,
                     pass
             time.sleep(0.2)
         assert proc.poll() is None, "generate finished before it could be stopped"
-        workers |= _children(proc.pid)
+        workers |= procs.children(proc.pid)
         assert len(workers) >= 2
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=30)
@@ -93,10 +69,10 @@ def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path,
         if proc.poll() is None:
             proc.kill()
             for pid in workers:  # do not leave a failing run's workers behind
-                if _alive(pid):
+                if procs.alive(pid):
                     os.kill(pid, signal.SIGKILL)
     time.sleep(1.5)  # the workers' watchdog polls once a second
-    assert not [p for p in workers if _alive(p)], "workers outlived the generate process"
+    assert not [p for p in workers if procs.alive(p)], "workers outlived the generate process"
     if sig == signal.SIGKILL:
         assert proc.returncode == -signal.SIGKILL
         return

@@ -125,7 +125,7 @@ def test_recipe_data_commands_run_in_order_and_resume(tmp_path):
             recipe_from_dict({**raw, "data": bad})
 
 
-def test_a_terminated_recipe_stops_its_data_command(tmp_path):
+def test_a_terminated_recipe_stops_its_data_command(tmp_path, procs):
     """SIGTERM to `nemsim train --recipe` while a data command runs: the command (here `generate`) stops
     too, keeping its finished cases, and the recipe exits 130; nothing outlives it."""
     import os
@@ -150,8 +150,8 @@ def test_a_terminated_recipe_stops_its_data_command(tmp_path):
     try:
         deadline = time.time() + 120
         while time.time() < deadline and proc.poll() is None:  # wait for the command's first written case
-            kids = _children(proc.pid)
-            child = kids[0] if kids else child
+            kids = procs.children(proc.pid)
+            child = min(kids) if kids else child
             if child is not None and out.exists():
                 try:
                     with h5py.File(out, "r", locking=False) as f:
@@ -166,32 +166,11 @@ def test_a_terminated_recipe_stops_its_data_command(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-        if child is not None and _alive(child):
+        if child is not None and procs.alive(child):
             os.kill(child, signal.SIGKILL)
     assert proc.returncode == 130, err
     assert "interrupted" in err
-    assert not _alive(child), "the data command outlived the recipe"
+    assert not procs.alive(child), "the data command outlived the recipe"
     with h5py.File(out, "r") as f:
         assert 1 <= int(f["complete"][()].sum()) < 40
 
-
-def _children(pid: int) -> list[int]:
-    """Pids of the live direct children of ``pid`` (Linux /proc)."""
-    out = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit() and _alive(int(entry.name)):
-            try:
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid:
-                out.append(int(entry.name))
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
