@@ -102,8 +102,9 @@ def make_hole():
     return hole_state
 
 
-class Procs:
-    """Linux /proc views of processes, for the tests that stop a command and look for what outlived it."""
+class Stops:
+    """For the tests that stop a running command: Linux /proc views of its processes, and how many cases
+    its trajectory file has finished."""
 
     @staticmethod
     def alive(pid: int) -> bool:
@@ -130,6 +131,20 @@ class Procs:
         return out
 
 
+    @staticmethod
+    def cases_written(path: Path) -> int:
+        """Finished cases of a trajectory file being written (0 while it cannot be read yet)."""
+        import h5py
+
+        if not path.exists():
+            return 0
+        try:
+            with h5py.File(path, "r", locking=False) as f:
+                return int(f["complete"][()].sum())
+        except (OSError, KeyError):
+            return 0
+
+
 @pytest.fixture
-def procs():
-    return Procs
+def stops():
+    return Stops

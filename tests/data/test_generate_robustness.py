@@ -40,7 +40,7 @@ def _env() -> dict:
 @pytest.mark.slow  # two spawned workers must start and finish a case first (~10-30 s)
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["TERM", "KILL"])
-def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path, sig, procs):
+def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path, sig, stops):
     """TERM: the parent cleans up (exit 130, file closed). KILL: the workers' watchdog ends them."""
     out = tmp_path / "g.h5"
     cmd = [sys.executable, "-m", "nemsim.cli", "generate", "--scene", "tiny", "--n", "40", "--workers", "2",
@@ -51,17 +51,12 @@ def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path,
         deadline = time.time() + 120
         workers: set[int] = set()
         while time.time() < deadline and proc.poll() is None:  # wait for a written case: workers busy
-            workers |= procs.children(proc.pid)
-            if out.exists() and len(workers) >= 2:
-                try:
-                    with h5py.File(out, "r", locking=False) as f:
-                        if f["complete"][()].sum() >= 1:
-                            break
-                except (OSError, KeyError):
-                    pass
+            workers |= stops.children(proc.pid)
+            if len(workers) >= 2 and stops.cases_written(out) >= 1:
+                break
             time.sleep(0.2)
         assert proc.poll() is None, "generate finished before it could be stopped"
-        workers |= procs.children(proc.pid)
+        workers |= stops.children(proc.pid)
         assert len(workers) >= 2
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=30)
@@ -69,10 +64,10 @@ def test_a_stopped_generate_leaves_no_workers_and_keeps_finished_cases(tmp_path,
         if proc.poll() is None:
             proc.kill()
             for pid in workers:  # do not leave a failing run's workers behind
-                if procs.alive(pid):
+                if stops.alive(pid):
                     os.kill(pid, signal.SIGKILL)
     time.sleep(1.5)  # the workers' watchdog polls once a second
-    assert not [p for p in workers if procs.alive(p)], "workers outlived the generate process"
+    assert not [p for p in workers if stops.alive(p)], "workers outlived the generate process"
     if sig == signal.SIGKILL:
         assert proc.returncode == -signal.SIGKILL
         return

@@ -125,7 +125,7 @@ def test_recipe_data_commands_run_in_order_and_resume(tmp_path):
             recipe_from_dict({**raw, "data": bad})
 
 
-def test_a_terminated_recipe_stops_its_data_command(tmp_path, procs):
+def test_a_terminated_recipe_stops_its_data_command(tmp_path, stops):
     """SIGTERM to `nemsim train --recipe` while a data command runs: the command (here `generate`) stops
     too, keeping its finished cases, and the recipe exits 130; nothing outlives it."""
     import os
@@ -150,15 +150,10 @@ def test_a_terminated_recipe_stops_its_data_command(tmp_path, procs):
     try:
         deadline = time.time() + 120
         while time.time() < deadline and proc.poll() is None:  # wait for the command's first written case
-            kids = procs.children(proc.pid)
+            kids = stops.children(proc.pid)
             child = min(kids) if kids else child
-            if child is not None and out.exists():
-                try:
-                    with h5py.File(out, "r", locking=False) as f:
-                        if f["complete"][()].sum() >= 1:
-                            break
-                except (OSError, KeyError):
-                    pass
+            if child is not None and stops.cases_written(out) >= 1:
+                break
             time.sleep(0.2)
         assert proc.poll() is None and child is not None, "the recipe finished before it could be stopped"
         proc.send_signal(signal.SIGTERM)
@@ -166,11 +161,11 @@ def test_a_terminated_recipe_stops_its_data_command(tmp_path, procs):
     finally:
         if proc.poll() is None:
             proc.kill()
-        if child is not None and procs.alive(child):
+        if child is not None and stops.alive(child):
             os.kill(child, signal.SIGKILL)
     assert proc.returncode == 130, err
     assert "interrupted" in err
-    assert not procs.alive(child), "the data command outlived the recipe"
+    assert not stops.alive(child), "the data command outlived the recipe"
     with h5py.File(out, "r") as f:
         assert 1 <= int(f["complete"][()].sum()) < 40
 
