@@ -39,7 +39,7 @@ def test_probes_against_a_live_server(tiny_checkpoint):
     assert p["fuzz"]["error_bodies_leaking"] == 0, p["fuzz"]["leak_examples"]
     assert p["load"]["server_errors_5xx"] == 0 and p["load"]["mesh_404_last_32"] == 0
     assert p["slowloris"]["dropped_at_once"] > 0 and p["slowloris"]["server_alive"]
-    assert p["silent_sockets"]["other_client"]["failures"] == 0
+    assert p["silent_sockets"]["other_client"]["failures"] == 0, p["silent_sockets"]["other_client"]
     assert p["job_beside_rollouts"]["rollouts_during_job"]["n"] > 0
     assert p["sigterm"]["children_before"] == 1
     assert p["sigterm"]["children_left"] == 0 and p["sigterm"]["job_folders_left"] == 0
