@@ -130,7 +130,6 @@ class Stops:
                 out.add(int(entry.name))
         return out
 
-
     @staticmethod
     def cases_written(path: Path) -> int:
         """Finished cases of a trajectory file being written (0 while it cannot be read yet)."""
