@@ -69,6 +69,7 @@ def openvino_core() -> Any:
             _CORE = ov.Core()
         return _CORE
 
+
 def openvino_available() -> bool:
     try:
         import openvino  # noqa: F401

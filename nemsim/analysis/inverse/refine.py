@@ -421,7 +421,7 @@ def _corrected_search(
         ),
     )
     warm = np.stack([anchor.u] + [s.u for s in sims if s is not anchor])  # (W, 14)
-    stale = len(sims) - 1 - sims.index(anchor)  # runs since the anchor's that did not replace it
+    stale = next(i for i, s in enumerate(reversed(sims)) if s is anchor)  # later runs that did not replace it
     radius = cfg.radius * cfg.shrink**stale
     region = LocalRegion(anchor=anchor.u, radius=radius, warm=warm)
     res = search(ctx, round_spec, seed=seed, on_progress=on_progress, should_stop=should_stop, local=region)
