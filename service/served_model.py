@@ -11,6 +11,11 @@ No physics here: rollouts, profile metrics and meshes are the predictor's, mecha
   bounds the cache: the ids of the last `cache_size` rollouts answered always resolve (while they fit in
   the budget), and rollouts followed up or repeated outlive a flood of one-off ones (`_LRU`);
 * reused trajectory buffers (a fresh trajectory-sized array per rollout costs page faults);
+* the compact cache entry is encoded after the answer: a rollout's metrics are ready before its states are
+  stored, so `compute_rollout` returns as soon as the states are rounded to float16 (a quarter of an
+  encoding's time), and one worker thread encodes them while the response goes out (about a sixth of an
+  uncached `POST /rollout` on `small`). Until then the rollout is pending: its id resolves, and whatever
+  reads its states (`RolloutResult.states`: fields, meshes, comparisons) waits for the encoding;
 * cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
   `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
   computations through its own gates (`service.scheduler`). This class does no admission control.
@@ -24,6 +29,7 @@ import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,13 +54,18 @@ class RolloutResult:
     model_id: str
     steps: int
     controls_raw: np.ndarray  # (T, 14) physical units
-    states: CompactStates  # (T+1, 2, D, H, W) float16, normalized SDF
+    encoded: Future[CompactStates]  # the states being stored (`states` waits for them)
     metrics: dict[str, list[float | None]]  # name -> (T+1,) values in nm, None where not finite
     times_s: list[float]  # (T+1,)
     rollout_ms: float
     metrics_ms: float
     warnings: tuple[str, ...] = ()  # stability guard findings (non-finite or out-of-range states)
     non_finite_from: int | None = None  # the first step whose state is not finite, None: all finite
+
+    @property
+    def states(self) -> CompactStates:
+        """The states (T+1, 2, D, H, W) float16, normalized SDF, stored compactly (waits for the encoding)."""
+        return self.encoded.result()
 
 
 class _LRU:
@@ -98,8 +109,9 @@ class _LRU:
             self._shrink()
             return value
 
-    def put(self, key: Any, value: Any) -> None:
-        weight = self.weigh(value)
+    def put(self, key: Any, value: Any, weight: int | None = None) -> None:
+        """Keep `value` under `key`; `weight`: its bytes (default: `weigh(value)`)."""
+        weight = self.weigh(value) if weight is None else weight
         if self.size <= 0 or (self.max_bytes is not None and weight > self.max_bytes):
             return
         with self._lock:
@@ -141,11 +153,14 @@ class ServedModel:
         self.model_id = predictor.model_id
         # cache_bytes: the budget of the rollout cache (the compact states dominate); meshes get a quarter
         # of it on top
-        self._rollouts = _LRU(cache_size, cache_bytes, lambda r: r.states.nbytes)
+        self._rollouts = _LRU(cache_size, cache_bytes)  # weighed by the compact states' bytes (`_store`)
         self._meshes = _LRU(4 * cache_size, None if cache_bytes is None else cache_bytes // 4, len)
         self._mechanisms = _LRU(cache_size)
         self._buffers: list[torch.Tensor] = []  # idle trajectory buffers (`_take_buffer`)
         self._buffers_lock = threading.Lock()
+        # rollouts answered whose states are still being encoded (module docstring): id -> result
+        self._pending: dict[str, RolloutResult] = {}
+        self._encoder = ThreadPoolExecutor(1, thread_name_prefix="nemsim-encode")
 
     @classmethod
     def from_checkpoint(
@@ -182,7 +197,7 @@ class ServedModel:
         """A cached rollout by id, for a follow-up request (mesh, slices): the rollout counts as used again
         (it outlives one-off rollouts) but does not become one of the `cache_size` most recent, so
         follow-ups of old rollouts never evict the ids of the latest POST /rollout answers."""
-        result = self._rollouts.get(rollout_id, touch=False)
+        result = self._rollouts.get(rollout_id, touch=False) or self._pending.get(rollout_id)
         if result is None:
             raise UnknownRollout(rollout_id)
         return result
@@ -190,7 +205,7 @@ class ServedModel:
     def lookup_rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[str, RolloutResult | None]:
         """(rollout id, the cached result or None) of a schedule or (T, 14) physical controls."""
         rid = self.rollout_id(self.predictor.schedule(controls))
-        return rid, self._rollouts.get(rid)
+        return rid, self._rollouts.get(rid) or self._pending.get(rid)
 
     def compute_rollout(
         self, controls: ControlSchedule | np.ndarray, rollout_id: str | None = None
@@ -200,12 +215,25 @@ class ServedModel:
         one waited for a slot."""
         schedule = self.predictor.schedule(controls)
         rid = rollout_id or self.rollout_id(schedule)
-        cached = self._rollouts.get(rid)
+        cached = self._rollouts.get(rid) or self._pending.get(rid)
         if cached is not None:
             return cached, True
-        result = self._compute(rid, schedule)
-        self._rollouts.put(rid, result)
-        return result, False
+        return self._compute(rid, schedule), False
+
+    def _store(self, result: RolloutResult, states: np.ndarray, full_size: int | None) -> None:
+        """On the encoder thread: encode a pending rollout's float16 states, put it in the cache, then
+        resolve `result.encoded` (so whoever waited on it finds the rollout cached). A failed encoding is
+        logged and the rollout forgotten; reading its states raises the error."""
+        try:
+            compact = CompactStates.encode(states, full_size=full_size)
+        except BaseException as exc:
+            log.error("rollout %s: storing its states failed: %r", result.id, exc)
+            self._pending.pop(result.id, None)
+            result.encoded.set_exception(exc)
+            return
+        self._rollouts.put(result.id, result, weight=compact.nbytes)
+        self._pending.pop(result.id, None)
+        result.encoded.set_result(compact)
 
     def rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[RolloutResult, bool]:
         """Cached or computed rollout (blocking; no admission control)."""
@@ -221,18 +249,17 @@ class ServedModel:
                 k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
                 for k, vals in pred.metrics.items()
             }
-            states = CompactStates.encode(buf[: schedule.steps + 1],  # float16, compactly
-                                          full_size=pred.full_size)
+            states = buf[: schedule.steps + 1].half().numpy()  # what the cache keeps; frees the buffer
         finally:
             self._give_back(buf)
         if pred.warnings:
             log.warning("rollout %s: %s", rid, "; ".join(pred.warnings))
-        return RolloutResult(
+        result = RolloutResult(
             id=rid,
             model_id=self.model_id,
             steps=schedule.steps,
             controls_raw=schedule.raw,
-            states=states,
+            encoded=Future(),
             metrics=metrics,
             times_s=pred.times_s,
             rollout_ms=1e3 * pred.rollout_s,
@@ -240,6 +267,9 @@ class ServedModel:
             warnings=pred.warnings,
             non_finite_from=pred.non_finite_from,
         )
+        self._pending[rid] = result  # answered now, cached once its states are stored (`_store`)
+        self._encoder.submit(self._store, result, states, pred.full_size)
+        return result
 
     def _take_buffer(self, steps: int) -> torch.Tensor:
         """A float32 trajectory buffer of at least steps + 1 states, reused across rollouts: a fresh

@@ -49,7 +49,8 @@ async def get_slices(
     rollout, for the explorer page: normalized SDF quantized to bytes, round((sdf + 1) * 127.5)."""
     result = cached_rollout(served, rollout_id)
     y = int(round(served.scene.opening_centre[1])) + 1  # +1: the field is padded by one voxel
-    states = await run_in_threadpool(result.states.decode)  # (T+1, 2, D, H, W): off the event loop
+    # (T+1, 2, D, H, W), off the event loop (reading the states waits while they are being stored)
+    states = await run_in_threadpool(lambda: result.states.decode())
     planes = np.asarray(states[:, :, :, y, :], dtype=np.float32)  # (T+1, 2, D, W)
     q = np.round((np.clip(planes, -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
     return SlicesResponse(

@@ -247,6 +247,40 @@ def test_served_trajectory_is_the_rollout(served, default_controls):
     assert len(s._buffers) == 1  # one rollout at a time: one buffer, reused
 
 
+def test_the_answer_does_not_wait_for_the_states_to_be_stored(served, default_controls, monkeypatch):
+    """A rollout is answered before its compact cache entry is encoded: while encoding, its id resolves (a
+    repeat recomputes nothing) and reading its states waits for them; once stored it is cached, bit for
+    bit the states of the rollout."""
+    import threading
+
+    from service.compact_states import CompactStates
+    from service.served_model import ServedModel
+
+    s = ServedModel(served.predictor, cache_size=4)
+    encode, release = CompactStates.encode, threading.Event()
+
+    def held(states, full_size=None):
+        assert release.wait(30)
+        return encode(states, full_size=full_size)
+
+    monkeypatch.setattr(CompactStates, "encode", held)
+    raw = np.tile(np.array(list(default_controls.values())), (4, 1))
+    result, cached = s.rollout(raw)  # returns although the encoding is held
+    assert not cached and not result.encoded.done() and len(result.metrics["etch_depth"]) == 5
+    assert s.get_rollout(result.id) is result and s.rollout(raw) == (result, True)
+    assert len(s._rollouts) == 0  # pending, not yet in the cache
+    read = threading.Thread(target=lambda: result.states)
+    read.start()
+    read.join(0.2)
+    assert read.is_alive()  # a reader waits for the states
+    release.set()
+    read.join(30)
+    states = result.states.decode()
+    assert len(s._rollouts) == 1 and s.get_rollout(result.id) is result
+    ref = s.predictor.rollout(s.predictor.schedule(raw)).states  # (T+1, 2, D, H, W) float32
+    np.testing.assert_array_equal(states, np.asarray(ref).astype(np.float16))
+
+
 def test_non_finite_prediction_is_a_4xx_never_a_200(served, default_controls):
     """A model whose rollout turns NaN (weights damaged after the load-time check) answers 422 naming the
     step, never 200 with a warning; the server stays up."""

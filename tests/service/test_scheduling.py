@@ -186,7 +186,7 @@ def test_rollout_cache_is_bounded_in_bytes(served, default_controls):
     budget = sizes[1] + sizes[2]
     s = ServedModel(served.predictor, cache_size=100, cache_bytes=budget)
     for r in rows:
-        s.rollout(r)
+        s.rollout(r)[0].encoded.result()  # stored: cached (or not) by now
     assert s._rollouts.bytes <= budget and len(s._rollouts) == 2
     assert s.rollout(rows[2])[1] is True and s.rollout(rows[0])[1] is False
 
