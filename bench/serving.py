@@ -91,6 +91,7 @@ def bench_service(
             "cpu_ms_per_request": 1e3 * (cpu1 - cpu0) / n,
             "rollout_p50_ms": float(np.percentile([r for _, r in uncached], 50)) * 1e3,
             "outside_rollout_share_p50": float(np.percentile(outside, 50)),
+            "outside_rollout_p50_ms": float(np.percentile([w - r for w, r in uncached], 50)) * 1e3,
         },
         "cached": {
             **_percentiles([wall for wall, _ in cached]),

@@ -127,7 +127,7 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
         f"POST /rollout, {report['steps']} steps, metrics only, model {report['model_id']} "
         "(in-process ASGI):\n"
         f"  uncached: p50 {u['p50_ms']:.1f} ms  p95 {u['p95_ms']:.1f} ms  (n={u['n']}); model rollout p50 "
-        f"{u['rollout_p50_ms']:.1f} ms, share of the latency outside it p50 "
+        f"{u['rollout_p50_ms']:.1f} ms; outside it p50 {u['outside_rollout_p50_ms']:.1f} ms, share "
         f"{u['outside_rollout_share_p50']:.2f}; "
         f"CPU {u['cpu_ms_per_request']:.1f} ms per request\n"
         f"  cached:   p50 {c['p50_ms']:.2f} ms  p95 {c['p95_ms']:.2f} ms  (n={c['n']}); "

@@ -42,6 +42,8 @@ def test_bench_service(tiny_checkpoint, tmp_path, capsys):
     assert "uncached: p50" in text and "cached:" in text
     report = json.loads(out.read_text())
     assert report["uncached"]["n"] == 2 and report["cached"]["n"] == 120
+    u = report["uncached"]
+    assert 0 < u["outside_rollout_p50_ms"] <= u["p50_ms"]  # per request 0 < wall - rollout <= wall
     assert report["cached"]["p50_ms"] < report["uncached"]["p50_ms"] * 10
 
 
