@@ -27,6 +27,7 @@ the model from nothing, and a rerun continues wherever it stopped.
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 import time
@@ -163,6 +164,9 @@ def run_recipe(recipe: Recipe, out: Path, run_stage: RunStage, echo: Callable[[s
         echo(f"{head}: {start}{warm} -> {stage_out}")
         t0 = time.monotonic()
         summary = run_stage(stage, stage_out, prev)
+        # the stage's training set (tens of GB when held in memory) sits in reference cycles of its training
+        # loop: free it now, not whenever a collection happens, or the next stage's decodes beside it
+        gc.collect()
         minutes = (time.monotonic() - t0) / 60
         record = {"stage": stage.name, "args": list(stage.args),
                   "init_from": None if prev is None else str(prev), "summary": summary}

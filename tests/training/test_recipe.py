@@ -57,6 +57,36 @@ def test_stages_run_in_order_warm_started_then_skip_or_resume(tmp_path, tiny_dat
     assert "resumed from" in (second / "train.log").read_text() and (second / STAGE_RECORD).is_file()
 
 
+def test_a_stage_frees_its_training_set_before_the_next_loads_its_own(tmp_path, tiny_data, monkeypatch):
+    """Stages run in one process: a finished stage's in-memory training set (13.9 GB for the union recipe
+    on `small`) must be gone before the next stage decodes its own, or two of them coexist."""
+    import gc
+    import weakref
+
+    import nemsim.training.run as run
+
+    config = tmp_path / "memory.train.yaml"
+    config.write_text("in_memory: true\n")
+    made, alive = run._memory_set, []
+
+    def memory_set(sets, cfg):
+        alive.append(sum(ref() is not None for ref in refs))  # sets of earlier stages still in memory
+        out = made(sets, cfg)
+        refs.append(weakref.ref(out))
+        return out
+
+    refs: list[weakref.ref] = []
+    monkeypatch.setattr(run, "_memory_set", memory_set)
+    gc.disable()  # as when no collection happens to run between the stages
+    try:
+        memory = ["--config", str(config)]
+        recipe = _recipe(tmp_path, tiny_data, first=memory, second=memory)
+        assert main(["train", "--recipe", str(recipe), "--out", str(tmp_path / "runs"), "--no-progress"]) == 0
+    finally:
+        gc.enable()
+    assert alive == [0, 0]
+
+
 def test_malformed_recipes_are_one_line_exit_2(tmp_path, tiny_data, capsys):
     out = str(tmp_path / "runs")
     cases = [
