@@ -56,7 +56,9 @@ def _state(s: socket.socket) -> str:
 
 class _Prober(threading.Thread):
     """Another client: GET /health (and, with `rollouts`, uncached POST /rollout) in turn, a new
-    connection each time, from loopback address `source`, until `stop` is set."""
+    connection each time, from loopback address `source`, until `stop` is set; `pause_s` between rounds, so
+    it stays within the server's default rate limit (20 requests/s per client): a client sending as fast as
+    it can is throttled (429) by design, and that says nothing about the sockets under test."""
 
     def __init__(
         self, server: LiveServer, source: str, *, rollouts: bool, steps: int, seed: int, pause_s: float = 0.25
@@ -81,8 +83,7 @@ class _Prober(threading.Thread):
                 if self.rollouts:
                     body = {"controls": random_controls(self.rng), "steps": self.steps}
                     self._one(http, "POST", "/rollout", body, self.rollout)
-                else:
-                    self.stop.wait(self.pause_s)
+                self.stop.wait(self.pause_s)
 
     def _one(self, http: httpx.Client, method: str, path: str, body: Any, times: list[float]) -> None:
         t0 = time.perf_counter()
