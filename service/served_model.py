@@ -197,7 +197,7 @@ class ServedModel:
         """A cached rollout by id, for a follow-up request (mesh, slices): the rollout counts as used again
         (it outlives one-off rollouts) but does not become one of the `cache_size` most recent, so
         follow-ups of old rollouts never evict the ids of the latest POST /rollout answers."""
-        result = self._rollouts.get(rollout_id, touch=False) or self._pending.get(rollout_id)
+        result = self._find(rollout_id, touch=False)
         if result is None:
             raise UnknownRollout(rollout_id)
         return result
@@ -205,7 +205,11 @@ class ServedModel:
     def lookup_rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[str, RolloutResult | None]:
         """(rollout id, the cached result or None) of a schedule or (T, 14) physical controls."""
         rid = self.rollout_id(self.predictor.schedule(controls))
-        return rid, self._rollouts.get(rid) or self._pending.get(rid)
+        return rid, self._find(rid)
+
+    def _find(self, rid: str, *, touch: bool = True) -> RolloutResult | None:
+        """The rollout `rid` if cached or pending (answered, its states still being stored), else None."""
+        return self._rollouts.get(rid, touch=touch) or self._pending.get(rid)
 
     def compute_rollout(
         self, controls: ControlSchedule | np.ndarray, rollout_id: str | None = None
@@ -215,7 +219,7 @@ class ServedModel:
         one waited for a slot."""
         schedule = self.predictor.schedule(controls)
         rid = rollout_id or self.rollout_id(schedule)
-        cached = self._rollouts.get(rid) or self._pending.get(rid)
+        cached = self._find(rid)
         if cached is not None:
             return cached, True
         return self._compute(rid, schedule), False

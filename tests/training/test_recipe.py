@@ -67,7 +67,7 @@ def test_a_stage_frees_its_training_set_before_the_next_loads_its_own(tmp_path, 
 
     config = tmp_path / "memory.train.yaml"
     config.write_text("in_memory: true\n")
-    made, alive = run._memory_set, []
+    made, alive, refs = run._memory_set, [], []
 
     def memory_set(sets, cfg):
         alive.append(sum(ref() is not None for ref in refs))  # sets of earlier stages still in memory
@@ -75,7 +75,6 @@ def test_a_stage_frees_its_training_set_before_the_next_loads_its_own(tmp_path, 
         refs.append(weakref.ref(out))
         return out
 
-    refs: list[weakref.ref] = []
     monkeypatch.setattr(run, "_memory_set", memory_set)
     gc.disable()  # as when no collection happens to run between the stages
     try:
