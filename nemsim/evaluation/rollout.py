@@ -36,7 +36,8 @@ import torch
 from torch import nn
 
 from nemsim.model.monotone import projection_of
-from nemsim.symmetry import fold, quarter_model_size, symmetrize, symmetrize_diagonal_, unfold
+from nemsim.model.unpack import Finish
+from nemsim.symmetry import fold, quarter_model_size, symmetrize, unfold
 
 StepCallback = Callable[[int, torch.Tensor], None]
 
@@ -128,6 +129,9 @@ def rollout(
     # while this call's are predicted (the next input, and on_step's contract)
     spare = None if keep else [x0.new_empty((B, k, *x0.shape[1:])) for _ in range(2)]
     into = getattr(model, "predict_into", None) if fast and depth_window is None else None
+    # what follows each call's states: the monotone projection, after a quarter-domain model's diagonal mean
+    # where ``predict`` has not done it (fused with writing the states where the model can, ``Finish``)
+    finish = Finish(diagonal=quarter and (into is not None or not fast), projection=project)
     cache = None
     x = x0
     t = calls = 0
@@ -137,21 +141,20 @@ def rollout(
         calls += 1
         if not fast:
             dst[:, 0] = model(x, u[:, t])  # (B, 2, D, H, W)
+            finish.apply_(dst)
         else:
             if changed[t]:
                 cache = model.precompute(u[:, t])  # type: ignore[operator]
             if into is not None:
-                into(x, cache, dst)  # (B, n, 2, D, H, W) written in place
-            elif depth_window is not None:
-                dst.copy_(depth_window.predict(x, cache)[:, :n])  # type: ignore[arg-type]
-            elif k == 1:
-                dst[:, 0] = model.step(x, cache)  # type: ignore[operator]
+                into(x, cache, dst, finish)  # (B, n, 2, D, H, W) written and finished in place
             else:
-                dst.copy_(model.predict(x, cache)[:, :n])  # type: ignore[operator]
-        if quarter and (into is not None or not fast):  # predict symmetrizes itself; the rest here
-            symmetrize_diagonal_(dst)
-        if project is not None:
-            project.project_chunk_(dst)
+                if depth_window is not None:
+                    dst.copy_(depth_window.predict(x, cache)[:, :n])  # type: ignore[arg-type]
+                elif k == 1:
+                    dst[:, 0] = model.step(x, cache)  # type: ignore[operator]
+                else:
+                    dst.copy_(model.predict(x, cache)[:, :n])  # type: ignore[operator]
+                finish.apply_(dst)  # (no diagonal mean here: ``predict`` symmetrizes itself)
         for j in range(n):
             x = dst[:, j]  # (B, 2, D, H, W)
             t += 1

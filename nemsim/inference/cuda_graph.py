@@ -68,6 +68,7 @@ from nemsim.inference.eager import (
     model_precompute,
     model_predict,
 )
+from nemsim.model.unpack import NO_FINISH, Finish
 from nemsim.symmetry import quarter_model_size
 
 log = logging.getLogger(__name__)
@@ -235,9 +236,14 @@ class CUDAGraphRuntime(Runtime):
         return self.predict_into(x, cache, out)
 
     @torch.no_grad()
-    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
+    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor,
+                     finish: Finish = NO_FINISH) -> torch.Tensor:
         """The first n = out.shape[1] <= k states written into out (B, n, 2, D, H, W) (any device): copy x
-        into the graph's static input, replay, copy the states out."""
+        into the graph's static input, replay, copy the states out; then ``finish`` them (on the device, a
+        few kernels per call)."""
+        return finish.apply_(self._write_into(x, cache, out))
+
+    def _write_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
         cache = self._as_cache(cache, x)
         _check_out(out, x, self.k)
         n = out.shape[1]

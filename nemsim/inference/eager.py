@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from nemsim.evaluation.rollout import steps_per_call
+from nemsim.model.unpack import NO_FINISH, Finish
 
 Backend = Literal["torch", "openvino", "cuda"]
 Precision = Literal["f32", "bf16"]
@@ -80,12 +81,14 @@ class Runtime:
     def predict(self, x: torch.Tensor, cache: Any) -> torch.Tensor:
         raise NotImplementedError
 
-    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
-        """The first n = out.shape[1] <= k predicted states written into out (B, n, 2, D, H, W), which is
+    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor,
+                     finish: Finish = NO_FINISH) -> torch.Tensor:
+        """The first n = out.shape[1] <= k predicted states written into out (B, n, 2, D, H, W), then
+        ``finish``ed (``nemsim.model.unpack.Finish``; fused with the writing where a runtime can); out is
         returned (``rollout`` passes a slice of its trajectory buffer)."""
         _check_out(out, x, self.k)
         out.copy_(self.predict(x, cache)[:, : out.shape[1]])
-        return out
+        return finish.apply_(out)
 
     def step(self, x: torch.Tensor, cache: Any) -> torch.Tensor:
         """One transition (B, 2, D, H, W); only for k = 1 (use ``predict`` for k states per call)."""
@@ -127,14 +130,15 @@ class TorchRuntime(Runtime):
             return model_predict(self.model, x, cache).float()
 
     @torch.no_grad()
-    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
-        """fp32: the model's own ``predict_into`` where it has one (NEMSim writes the states in one fused
-        pass, ``nemsim.model.unpack``); otherwise the copy of ``predict``."""
+    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor,
+                     finish: Finish = NO_FINISH) -> torch.Tensor:
+        """fp32: the model's own ``predict_into`` where it has one (NEMSim writes and finishes the states
+        in one fused pass, ``nemsim.model.unpack``); otherwise the copy of ``predict``."""
         into = getattr(self.model, "predict_into", None)
         if self.precision != "f32" or into is None:
-            return super().predict_into(x, cache, out)
+            return super().predict_into(x, cache, out, finish)
         _check_out(out, x, self.k)
-        return into(x, cache, out)
+        return into(x, cache, out, finish)
 
 
 def _check_out(out: torch.Tensor, x: torch.Tensor, k: int) -> None:

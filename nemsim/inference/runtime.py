@@ -49,6 +49,7 @@ from nemsim.inference.eager import (  # noqa: F401 -- re-exported: the runtime A
     model_precompute,
     model_predict,
 )
+from nemsim.model.unpack import NO_FINISH, Finish, write_states
 
 log = logging.getLogger(__name__)
 _CORE: Any = None
@@ -261,9 +262,11 @@ class OpenVINORuntime(Runtime):
         res = torch.empty((x.shape[0], self.k, *x.shape[1:]), dtype=torch.float32)  # (B, k, 2, D, H, W)
         return self.predict_into(x, cache, res)
 
-    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor) -> torch.Tensor:
+    def predict_into(self, x: torch.Tensor, cache: Any, out: torch.Tensor,
+                     finish: Finish = NO_FINISH) -> torch.Tensor:
         """The first n = out.shape[1] <= k states copied straight from the request's output buffer into out
-        (B, n, 2, D, H, W): no intermediate copy; x is read in place when it is contiguous float32."""
+        (B, n, 2, D, H, W): no intermediate copy; x is read in place when it is contiguous float32. Then
+        ``finish``ed: in the same pass where the graph's output is the decoder's packed residuals."""
         if not isinstance(cache, _OVCache):
             raise TypeError(f"cache must come from this runtime's precompute(), got {type(cache).__name__}")
         if x.shape[0] != cache.batch:
@@ -272,7 +275,7 @@ class OpenVINORuntime(Runtime):
         n = out.shape[1]
         if self._fallback is not None:
             out.copy_(self._fallback.predict(x, cache.torch_cache)[:, :n])
-            return out
+            return finish.apply_(out)
         try:
             key, req = self._acquire(x, cache)
         except Exception as exc:  # noqa: BLE001 -- an export failure falls back to the reference path
@@ -281,10 +284,10 @@ class OpenVINORuntime(Runtime):
             self._fallback = TorchRuntime(self.model, self.precision, self.threads)
             self.backend = "torch"
             out.copy_(self._fallback.predict(x, cache.torch_cache)[:, :n])
-            return out
+            return finish.apply_(out)
         try:
             if self._unpack:
-                return self._infer_packed(req, x, cache, out)
+                return self._infer_packed(req, x, cache, out, finish)
             ov = self._ov
             # inputs and output are the caller's memory (no copies by the Python bindings): x as it is when
             # contiguous float32 (the rollout's buffer), out when it takes all k states contiguously
@@ -301,15 +304,14 @@ class OpenVINORuntime(Runtime):
             req.wait()
             if not direct:
                 out.detach().numpy()[...] = dst[:, :n]
-            return out
+            return finish.apply_(out)
         finally:
             self._release(key, req)
 
-    def _infer_packed(self, req: Any, x: torch.Tensor, cache: _OVCache, out: torch.Tensor) -> torch.Tensor:
+    def _infer_packed(self, req: Any, x: torch.Tensor, cache: _OVCache, out: torch.Tensor,
+                      finish: Finish) -> torch.Tensor:
         """One call of a packed-residual graph: the states written into out by ``write_states`` (gate, + x,
-        clamp in one pass) from the request's own output buffer, while the request is held."""
-        from nemsim.model.unpack import write_states
-
+        clamp and ``finish`` in one pass) from the request's own output buffer, while the request is held."""
         ov = self._ov
         xin = x.detach().float().contiguous()  # (B, 2, D, H, W), held until the call has returned
         req.set_input_tensor(0, ov.Tensor(xin.numpy(), shared_memory=True))
@@ -319,7 +321,7 @@ class OpenVINORuntime(Runtime):
         req.wait()
         r = torch.from_numpy(req.get_output_tensor(0).data).float()  # (B, 16k, D'/2, H'/2, W'/2)
         gate = cache.torch_cache.get("gate") if isinstance(cache.torch_cache, dict) else None
-        return write_states(xin, r, gate, bool(getattr(self.config, "clamp_output", True)), out)
+        return write_states(xin, r, gate, bool(getattr(self.config, "clamp_output", True)), out, finish)
 
     def _scratch(self, req: Any, batch: int) -> Any:
         """The request's own output array (B, k, 2, D, H, W) float32 for calls that keep fewer than k states

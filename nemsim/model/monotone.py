@@ -154,13 +154,13 @@ def _project_chunk_cpu(states: np.ndarray, m: np.ndarray, eps: np.ndarray) -> No
                     for y in range(H):
                         for x in range(W):
                             mv = m[b, c, z, y, x]
-                            v = _maximum(states[b, j, c, z, y, x], mv - eps[c, y, x])
+                            v = nan_maximum(states[b, j, c, z, y, x], mv - eps[c, y, x])
                             states[b, j, c, z, y, x] = v
-                            m[b, c, z, y, x] = _maximum(mv, v)
+                            m[b, c, z, y, x] = nan_maximum(mv, v)
 
 
 @numba.njit(inline="always")
-def _maximum(a: float, b: float) -> float:
+def nan_maximum(a: float, b: float) -> float:
     """``torch.maximum`` of two scalars: NaN when either is NaN (a non-finite prediction stays visible)."""
     return a if (a >= b or a != a) else b
 

@@ -63,6 +63,7 @@ from nemsim.model.mrc import MechanismResponseCompiler, MRCConfig
 from nemsim.model.rule_buffers import RuleBuffers
 from nemsim.model.saturation import CONTROL_SATURATION, check_saturation, saturate_controls
 from nemsim.model.transport import TransportConfig, species_weights, transport_field
+from nemsim.model.unpack import NO_FINISH, Finish, write_states
 from nemsim.model.window import WindowRun, splice_latent
 from nemsim.symmetry import fold, mirror_pad, symmetrize, unfold
 
@@ -286,20 +287,19 @@ class NEMSim(nn.Module):
         }
         return x_next, aux
 
-    def predict_into(self, x: torch.Tensor, cache: dict[str, Any], out: torch.Tensor) -> torch.Tensor:
-        """``predict(x, cache)[:, :n]`` written into out (B, n, 2, D, H, W), n <= k (``rollout``'s fast path).
-        Outside autograd and autocast, on float32 CPU tensors, the decoder's packed output becomes the
-        states in one fused pass (``nemsim.model.unpack``: the same states, several full-size passes
-        fewer); otherwise it is a copy of ``predict``."""
+    def predict_into(self, x: torch.Tensor, cache: dict[str, Any], out: torch.Tensor,
+                     finish: Finish = NO_FINISH) -> torch.Tensor:
+        """``predict(x, cache)[:, :n]`` written into out (B, n, 2, D, H, W), n <= k, and ``finish``ed
+        (``rollout``'s fast path). Outside autograd and autocast, on float32 CPU tensors, the decoder's
+        packed output becomes the finished states in one fused pass (``nemsim.model.unpack``: the same
+        states, several full-size passes fewer); otherwise it is a copy of ``predict``."""
         fused = (not torch.is_grad_enabled() and not torch.is_autocast_enabled("cpu")
                  and x.device.type == "cpu" and x.dtype == out.dtype == torch.float32
                  and not self._full_input(x))
         if not fused:
-            return out.copy_(self.predict(x, cache)[:, : out.shape[1]])
-        from nemsim.model.unpack import write_states
-
+            return finish.apply_(out.copy_(self.predict(x, cache)[:, : out.shape[1]]))
         return write_states(x, self.predict_packed(x, cache).float(), cache.get("gate"),
-                            self.config.clamp_output, out)
+                            self.config.clamp_output, out, finish)
 
     def predict_packed(self, x: torch.Tensor, cache: dict[str, Any]) -> torch.Tensor:
         """The decoder's packed residuals of a call (``ResidualDecoder.packed``, padded half grid):

@@ -9,47 +9,115 @@ once and writing each state once, straight into the caller's buffer. It computes
 operations in the same order as ``predict`` (gate·r, then + x_t, then clamp), so the states are identical
 (tests/model/test_unpack.py). The OpenVINO runtime exports the network up to r and calls it too.
 
+The rollout's own passes over a call's states follow in the same pass (``Finish``): a quarter-domain
+model's diagonal mean (``nemsim.symmetry.symmetrize_diagonal_``) and the monotone projection
+(``nemsim.model.monotone``), each plane of a state finished while it is still in the cache. Three compiled
+passes over every state took a quarter of a 100-step `small` rollout; the fused one computes the same
+float32 operations in the same order, so the states are identical (tests/model/test_unpack.py).
+
 Used by ``NEMSim.predict_into`` (``rollout``'s fast path) only outside autograd and autocast; training and
 bf16 inference keep the PyTorch path.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import numba
 import numpy as np
 import torch
 
+from nemsim.model.monotone import nan_maximum
+
+if TYPE_CHECKING:
+    from nemsim.model.monotone import MonotoneProjection
+
+
+@dataclass(frozen=True)
+class Finish:
+    """What a rollout does to a call's states once they are written (module docstring): ``diagonal``, the
+    mean of each (c, c) plane with its transpose (a quarter-domain model's diagonal mirror), then
+    ``projection``'s monotone projection, state after state (None: none)."""
+
+    diagonal: bool = False
+    projection: MonotoneProjection | None = None
+
+    def __bool__(self) -> bool:
+        return self.diagonal or self.projection is not None
+
+    def apply_(self, states: torch.Tensor) -> torch.Tensor:
+        """The finish of states (B, n, 2, D, H, W) in place, pass after pass (paths that do not fuse it)."""
+        from nemsim.symmetry import symmetrize_diagonal_
+
+        if self.diagonal:
+            symmetrize_diagonal_(states)
+        if self.projection is not None:
+            self.projection.project_chunk_(states)
+        return states
+
+
+NO_FINISH = Finish()
+
 
 @numba.njit(cache=True, nogil=True)
-def _write_states(x: np.ndarray, r: np.ndarray, gate: np.ndarray, clamp: bool, out: np.ndarray) -> None:
+def _write_states(x: np.ndarray, r: np.ndarray, gate: np.ndarray, clamp: bool, diagonal: bool,
+                  m: np.ndarray, eps: np.ndarray, out: np.ndarray) -> None:
     """out[b, j, c, z, y, w] = clamp(x[b, c, z, y, w] + gate[b]·r[b, (2j+c)·8 + 4(z%2) + 2(y%2) + w%2,
-    z//2, y//2, w//2]) for j < out.shape[1]: x (B, 2, D, H, W), r (B, 16k, d, h, w) with 2d >= D, ..."""
+    z//2, y//2, w//2]) for j < out.shape[1]: x (B, 2, D, H, W), r (B, 16k, d, h, w) with 2d >= D, ...
+    Then, plane by plane (``Finish``): with ``diagonal`` each (y, w), (w, y) pair replaced by its mean (H ==
+    W); with m (B, 2, D, H, W), the running maximum (else size 0), the projection onto >= m - eps[c, y, w],
+    m updated, state after state."""
     B, n = out.shape[0], out.shape[1]
     D, H, W = x.shape[2], x.shape[3], x.shape[4]
+    project = m.shape[0] > 0
+    half = np.float32(0.5)
     for b in range(B):
         g = gate[b]
-        for c in range(2):
-            for z in range(D):
-                zi = z >> 1
-                for y in range(H):
-                    yi = y >> 1
-                    row = 4 * (z & 1) + 2 * (y & 1)
-                    for j in range(n):  # x's row stays in cache across the k states
-                        ch = (2 * j + c) * 8 + row
+        for j in range(n):
+            for c in range(2):
+                ch = (2 * j + c) * 8
+                for z in range(D):
+                    zi = z >> 1
+                    plane = out[b, j, c, z]
+                    for y in range(H):
+                        yi = y >> 1
+                        row = ch + 4 * (z & 1) + 2 * (y & 1)
                         for w in range(W):
-                            v = x[b, c, z, y, w] + g * r[b, ch + (w & 1), zi, yi, w >> 1]
+                            v = x[b, c, z, y, w] + g * r[b, row + (w & 1), zi, yi, w >> 1]
                             if clamp:
                                 v = min(max(v, np.float32(-1.0)), np.float32(1.0))
-                            out[b, j, c, z, y, w] = v
+                            plane[y, w] = v
+                    if diagonal:
+                        for y in range(H):
+                            for w in range(y + 1, W):
+                                v = half * (plane[y, w] + plane[w, y])
+                                plane[y, w] = v
+                                plane[w, y] = v
+                    if project:
+                        for y in range(H):
+                            for w in range(W):
+                                mv = m[b, c, z, y, w]
+                                v = nan_maximum(plane[y, w], mv - eps[c, y, w])
+                                plane[y, w] = v
+                                m[b, c, z, y, w] = nan_maximum(mv, v)
 
 
 def write_states(x: torch.Tensor, r: torch.Tensor, gate: torch.Tensor | None, clamp: bool,
-                 out: torch.Tensor) -> torch.Tensor:
+                 out: torch.Tensor, finish: Finish = NO_FINISH) -> torch.Tensor:
     """Write the first n = out.shape[1] predicted states into out (B, n, 2, D, H, W), float32 CPU (any
     strides), from x (B, 2, D, H, W) and the decoder's packed residuals r (B, 16k, d, h, w); gate (B,) or
-    None."""
+    None; ``finish`` done in the same pass."""
     if any(t.dtype != torch.float32 for t in (x, r, out)):
         raise ValueError("write_states needs float32 tensors")
     g = torch.ones(x.shape[0]) if gate is None else gate.detach().float().reshape(-1)
-    _write_states(x.detach().numpy(), r.detach().numpy(), g.numpy(), bool(clamp), out.detach().numpy())
+    if finish.diagonal and x.shape[-1] != x.shape[-2]:
+        raise ValueError(f"the diagonal mean needs square planes, got {tuple(x.shape[-2:])}")
+    proj = finish.projection
+    if proj is None:
+        m, eps = np.empty((0, 2, 1, 1, 1), np.float32), np.empty((2, 1, 1), np.float32)
+    else:  # the running maximum of x's rollout: float32 on the CPU like x
+        m, eps = proj.running_max.numpy(), proj.eps[0, :, 0].contiguous().numpy()
+    _write_states(x.detach().numpy(), r.detach().numpy(), g.numpy(), bool(clamp), finish.diagonal, m, eps,
+                  out.detach().numpy())
     return out

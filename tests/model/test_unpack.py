@@ -68,6 +68,32 @@ def test_rollout_fused_matches_the_copy_path(tiny_scene, monkeypatch):
     assert torch.equal(fused, copied) and (fused[:, -1] - x0).abs().max() > 1e-2
 
 
+def test_quarter_rollout_fused_finish_matches_the_pass_by_pass_path(tiny_scene, monkeypatch):
+    """A quarter-domain rollout writes each call's states, their diagonal mean and the monotone projection in
+    one pass (``Finish``); ``predict`` (which symmetrizes itself) and the projection as a second pass give
+    the same states exactly, and both move the state and project something."""
+    from bench.stress import initial_state
+    from nemsim.model.surrogate import NEMSim
+    from nemsim.registry import build_model
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+
+    torch.manual_seed(0)
+    model = build_model("nemsim", tiny_scene, compile_rules(load_rules()),
+                        {"steps_per_call": 3, "flux_gate": True, "domain": "quarter",
+                         "decoder_out_scale": 1.0}).eval()
+    x0 = torch.as_tensor(initial_state(tiny_scene))[None].repeat(2, 1, 1, 1, 1)
+    u = torch.rand(2, 8, 14, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    with torch.inference_mode():
+        fused = rollout(model, x0, u)
+        unprojected = rollout(model, x0, u, monotone=False)
+        monkeypatch.delattr(NEMSim, "predict_into")
+        passes = rollout(model, x0, u)
+    assert torch.equal(fused, passes)
+    assert (fused[:, -1] - x0).abs().max() > 1e-2
+    assert not torch.equal(fused, unprojected)  # the projection acted: the comparison covers it
+
+
 def test_write_states_refuses_other_dtypes():
     x = torch.zeros(1, 2, 4, 4, 4)
     with pytest.raises(ValueError, match="float32"):
