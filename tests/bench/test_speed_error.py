@@ -101,6 +101,9 @@ def test_speed_error_report(speed_error_out):
     assert rep["speed"]["equal_accuracy"]["speedup"] == best["equal_accuracy"]["speedup_wall"]
     assert sum(r["fastest"] for r in models) == 1 and models[0]["keeps_error"] is True
     assert models[0]["params"] > 0
+    for r in models:  # timed into a reused buffer; the fresh-allocation time beside it
+        assert _finite(r["wall_s_fresh_output"]) and r["wall_s_fresh_output"] > 0
+    assert all(r["wall_s_fresh_output"] is None for r in sims)
     # the untrained model is far from the simulator: worse than every budget, so the equal-accuracy time is
     # the cheapest budget's, an upper bound
     assert models[0]["avg_rmse"] > max(r["avg_rmse"] for r in sims)
@@ -117,6 +120,7 @@ def test_speed_error_table_and_plot(speed_error_out):
                   *(f"nemsim {r}" for r in RUNTIMES)):  # fmt: skip
         assert label in md
     assert "<=" in md  # the untrained model's equal-accuracy speed-up is a bound
+    assert "freshly allocated trajectory" in md and "nemsim torch-f32 " in md.split("freshly allocated")[1]
     assert "The quarter-domain simulator was not measured (skipped): domain 'quarter'" in md
     assert "simulator quarter" not in md and "### Speed-ups against" not in md
     png = (speed_error_out / "speed_error.png").read_bytes()
