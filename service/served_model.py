@@ -12,9 +12,9 @@ No physics here: rollouts, profile metrics and meshes are the predictor's, mecha
   the budget), and rollouts followed up or repeated outlive a flood of one-off ones (`_LRU`);
 * reused trajectory buffers (a fresh trajectory-sized array per rollout costs page faults);
 * the compact cache entry is encoded after the answer: a rollout's metrics are ready before its states are
-  stored, so `compute_rollout` returns as soon as the states are rounded to float16 (a quarter of an
-  encoding's time), and one worker thread encodes them while the response goes out (about a sixth of an
-  uncached `POST /rollout` on `small`). Until then the rollout is pending: its id resolves, and whatever
+  stored, so `compute_rollout` returns with them, and one worker thread rounds the states to float16 and
+  encodes them while the response goes out (about a sixth of an uncached `POST /rollout` on `small`),
+  then gives the trajectory buffer back. Until then the rollout is pending: its id resolves, and whatever
   reads its states (`RolloutResult.states`: fields, meshes, comparisons) waits for the encoding;
 * cache look-ups apart from computations (`lookup_rollout` / `compute_rollout`, `cached_mesh` / `mesh`,
   `cached_mechanisms` / `mechanisms`), so the app answers cache hits on the event loop and admits the
@@ -224,12 +224,16 @@ class ServedModel:
             return cached, True
         return self._compute(rid, schedule), False
 
-    def _store(self, result: RolloutResult, states: np.ndarray, full_size: int | None) -> None:
-        """On the encoder thread: encode a pending rollout's float16 states, put it in the cache, then
-        resolve `result.encoded` (so whoever waited on it finds the rollout cached). A failed encoding is
-        logged and the rollout forgotten; reading its states raises the error."""
+    def _store(self, result: RolloutResult, buf: torch.Tensor, full_size: int | None) -> None:
+        """On the encoder thread: encode a pending rollout's states (its first steps + 1 of the trajectory
+        buffer `buf`, float32, rounded to float16 on the way), give the buffer back, put the rollout in the
+        cache, then resolve `result.encoded` (so whoever waited on it finds the rollout cached). A failed
+        encoding is logged and the rollout forgotten; reading its states raises the error."""
         try:
-            compact = CompactStates.encode(states, full_size=full_size)
+            try:
+                compact = CompactStates.encode(buf[: result.steps + 1], full_size=full_size)
+            finally:
+                self._give_back(buf)
         except BaseException as exc:
             log.error("rollout %s: storing its states failed: %r", result.id, exc)
             self._pending.pop(result.id, None)
@@ -253,9 +257,9 @@ class ServedModel:
                 k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
                 for k, vals in pred.metrics.items()
             }
-            states = buf[: schedule.steps + 1].half().numpy()  # what the cache keeps; frees the buffer
-        finally:
+        except BaseException:
             self._give_back(buf)
+            raise
         if pred.warnings:
             log.warning("rollout %s: %s", rid, "; ".join(pred.warnings))
         result = RolloutResult(
@@ -272,7 +276,7 @@ class ServedModel:
             non_finite_from=pred.non_finite_from,
         )
         self._pending[rid] = result  # answered now, cached once its states are stored (`_store`)
-        self._encoder.submit(self._store, result, states, pred.full_size)
+        self._encoder.submit(self._store, result, buf, pred.full_size)  # the buffer is its until encoded
         return result
 
     def _take_buffer(self, steps: int) -> torch.Tensor:

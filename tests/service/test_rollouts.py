@@ -269,6 +269,7 @@ def test_the_answer_does_not_wait_for_the_states_to_be_stored(served, default_co
     assert not cached and not result.encoded.done() and len(result.metrics["etch_depth"]) == 5
     assert s.get_rollout(result.id) is result and s.rollout(raw) == (result, True)
     assert len(s._rollouts) == 0  # pending, not yet in the cache
+    assert s._buffers == []  # its trajectory buffer is the encoder's until its states are stored
     read = threading.Thread(target=lambda: result.states)
     read.start()
     read.join(0.2)
@@ -277,6 +278,7 @@ def test_the_answer_does_not_wait_for_the_states_to_be_stored(served, default_co
     read.join(30)
     states = result.states.decode()
     assert len(s._rollouts) == 1 and s.get_rollout(result.id) is result
+    assert len(s._buffers) == 1  # given back once encoded
     ref = s.predictor.rollout(s.predictor.schedule(raw)).states  # (T+1, 2, D, H, W) float32
     np.testing.assert_array_equal(states, np.asarray(ref).astype(np.float16))
 
