@@ -129,8 +129,7 @@ def rollout(
     # while this call's are predicted (the next input, and on_step's contract)
     spare = None if keep else [x0.new_empty((B, k, *x0.shape[1:])) for _ in range(2)]
     into = getattr(model, "predict_into", None) if fast and depth_window is None else None
-    # what follows each call's states: the monotone projection, after a quarter-domain model's diagonal mean
-    # where ``predict`` has not done it (fused with writing the states where the model can, ``Finish``)
+    # each call's states: a quadrant's diagonal mean where ``predict`` does not do it, then the projection
     finish = Finish(diagonal=quarter and (into is not None or not fast), projection=project)
     cache = None
     x = x0
@@ -145,16 +144,15 @@ def rollout(
         else:
             if changed[t]:
                 cache = model.precompute(u[:, t])  # type: ignore[operator]
-            if into is not None:
-                into(x, cache, dst, finish)  # (B, n, 2, D, H, W) written and finished in place
+            if into is not None:  # (B, n, 2, D, H, W) written and finished in place, in one pass
+                into(x, cache, dst, finish)
+            elif depth_window is not None:
+                finish.apply_(dst.copy_(depth_window.predict(x, cache)[:, :n]))  # type: ignore[arg-type]
+            elif k == 1:
+                dst[:, 0] = model.step(x, cache)  # type: ignore[operator]
+                finish.apply_(dst)
             else:
-                if depth_window is not None:
-                    dst.copy_(depth_window.predict(x, cache)[:, :n])  # type: ignore[arg-type]
-                elif k == 1:
-                    dst[:, 0] = model.step(x, cache)  # type: ignore[operator]
-                else:
-                    dst.copy_(model.predict(x, cache)[:, :n])  # type: ignore[operator]
-                finish.apply_(dst)  # (no diagonal mean here: ``predict`` symmetrizes itself)
+                finish.apply_(dst.copy_(model.predict(x, cache)[:, :n]))  # type: ignore[operator]
         for j in range(n):
             x = dst[:, j]  # (B, 2, D, H, W)
             t += 1
