@@ -1,4 +1,5 @@
-"""`nemsim bench physics|responses|extrapolation|monotone-eps`: a surrogate judged against the simulator."""
+"""`nemsim bench physics|responses|extrapolation|learning-curve|monotone-eps`: a surrogate judged against the
+simulator."""
 
 from __future__ import annotations
 
@@ -20,6 +21,68 @@ from nemsim.cli.common import (
 def register(bench_sub: Subparsers) -> None:
     _add_physics(bench_sub)
     _add_extrapolation(bench_sub)
+    _add_learning_curve(bench_sub)
+
+
+def _add_learning_curve(bench_sub: Subparsers) -> None:
+    p = bench_sub.add_parser(
+        "learning-curve",
+        help="active learning against Latin hypercubes: edge errors against simulator cases spent",
+        description=(
+            "Judge the starting checkpoint and every trained round of `nemsim learn run` directories "
+            "(one per arm, e.g. the default acquisition and --acquisition lhs at the same budget) with the "
+            "physics and extrapolation benchmarks on the same simulator runs: box-corner, interior and "
+            "1.5-half-width errors and the slopes against the simulator cases each arm spent. Writes "
+            "learning_curve.md, .json and .png to --out. Example: nemsim bench learning-curve --run "
+            "active=runs/lc/active --run lhs=runs/lc/lhs --cache-dir runs/truth-cache "
+            "--out runs/bench/learning_curve"
+        ),
+    )
+    p.add_argument("--run", action="append", required=True, metavar="LABEL=DIR",
+                   help="an arm: its label and `nemsim learn run` output directory (repeatable)")
+    add_truth_options(p)
+    p.add_argument("--out", default="runs/bench/learning_curve", metavar="DIR",
+                   help="output directory (default runs/bench/learning_curve)")
+    p.set_defaults(handler=_cmd_bench_learning_curve)
+
+
+def _cmd_bench_learning_curve(args: argparse.Namespace) -> int:
+    from bench import extrapolation as ex
+    from bench import learning_curve as lc
+    from bench import physics
+    from bench.stress import initial_state
+
+    arms = {}
+    for item in args.run:
+        label, sep, run_dir = item.partition("=")
+        if not sep or not label.strip() or not Path(run_dir).is_dir():
+            raise UserError(f"--run {item!r}: expected LABEL=DIR with an existing directory")
+        arms[label.strip()] = run_dir
+    try:
+        starts = {lc.arm_points(d)[0] for d in arms.values()}
+        seeds = parse_seeds(args.seeds)
+    except (FileNotFoundError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    start = load_checkpoint_arg(sorted(starts)[0], args)
+    phys_cfg, ex_cfg = physics.PhysicsConfig(seeds=seeds), ex.ExtrapolationConfig(seeds=seeds)
+    with sim_truth(args, start) as truth:
+        x0 = initial_state(start.scene)
+
+        def judge(checkpoint: str | Path) -> tuple[dict, dict]:
+            model = load_checkpoint_arg(checkpoint, args).model
+            print(f"judging {checkpoint}")  # noqa: T201
+            return (physics.run_physics(model, truth, x0, phys_cfg),
+                    ex.run_extrapolation(model, truth, x0, ex_cfg))  # fmt: skip
+
+        try:
+            rep = lc.run_learning_curve(arms, judge)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        rep["simulator_cost"] = sim_cost(truth)
+    paths = lc.write_outputs(rep, args.out)
+    print(lc.format_markdown(rep))  # noqa: T201
+    print("wrote " + ", ".join(paths.values()))  # noqa: T201
+    return 0
 
 
 def _add_physics(bench_sub: Subparsers) -> None:
