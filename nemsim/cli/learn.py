@@ -80,7 +80,8 @@ def _add_score_options(p: argparse.ArgumentParser) -> None:
         "--second-checkpoint",
         type=Path,
         help="the model --checkpoint was trained from, for the acquisition 'checkpoint' (for "
-        "checkpoints/nemsim-small.pt: checkpoints/nemsim-small-full.pt)",
+        "checkpoints/nemsim-small.pt, built by configs/nemsim-small.yaml: its first stage, "
+        "runs/nemsim-small/k10/best.pt)",
     )
 
 
@@ -383,8 +384,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if config.acquisition == "checkpoint" and args.second_checkpoint is None:
         raise UserError(
             "the acquisition 'checkpoint' (the default) compares the model with the one it was "
-            "trained from: give --second-checkpoint (for checkpoints/nemsim-small.pt: "
-            "checkpoints/nemsim-small-full.pt), or choose another --acquisition"
+            "trained from: give --second-checkpoint (for checkpoints/nemsim-small.pt: its recipe's first "
+            "stage, runs/nemsim-small/k10/best.pt), or choose another --acquisition"
         )
     states = run_learning(job, echo=lambda line: print(f"nemsim learn: {line}", flush=True))  # noqa: T201
     print(f"nemsim learn: {len(states)} rounds; the model: {states[-1]['checkpoint']}")  # noqa: T201
