@@ -43,9 +43,6 @@ class Finish:
     diagonal: bool = False
     projection: MonotoneProjection | None = None
 
-    def __bool__(self) -> bool:
-        return self.diagonal or self.projection is not None
-
     def apply_(self, states: torch.Tensor) -> torch.Tensor:
         """The finish of states (B, n, 2, D, H, W) in place, pass after pass (paths that do not fuse it)."""
         from nemsim.symmetry import symmetrize_diagonal_
