@@ -145,11 +145,18 @@ def _unfold_planes(q: np.ndarray, out: np.ndarray) -> None:
 @numba.njit(cache=True, nogil=True)
 def _symmetrize_planes(a: np.ndarray) -> None:
     """a[p, i, j] = a[p, j, i] = 0.5 * (a[p, i, j] + a[p, j, i]) for every plane p, in place."""
-    c = a.shape[1]
-    half = np.float32(0.5)
     for p in range(a.shape[0]):
-        for i in range(c):
-            for j in range(i + 1, c):
-                v = half * (a[p, i, j] + a[p, j, i])
-                a[p, i, j] = v
-                a[p, j, i] = v
+        symmetrize_plane_(a[p])
+
+
+@numba.njit(inline="always")
+def symmetrize_plane_(a: np.ndarray) -> None:
+    """One (c, c) plane replaced by its mean with its transpose, in place (shared with the fused writer
+    ``nemsim.model.unpack``)."""
+    c = a.shape[0]
+    half = np.float32(0.5)
+    for i in range(c):
+        for j in range(i + 1, c):
+            v = half * (a[i, j] + a[j, i])
+            a[i, j] = v
+            a[j, i] = v

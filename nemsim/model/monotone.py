@@ -146,17 +146,24 @@ class MonotoneProjection:
 def _project_chunk_cpu(states: np.ndarray, m: np.ndarray, eps: np.ndarray) -> None:
     """states (B, n, C, D, H, W) projected in order onto x >= M - eps, M (B, C, D, H, W) updated, in place;
     eps (C, H, W)."""
-    B, n, C, D, H, W = states.shape
+    B, n, C, D = states.shape[:4]
     for b in range(B):
         for j in range(n):
             for c in range(C):
                 for z in range(D):
-                    for y in range(H):
-                        for x in range(W):
-                            mv = m[b, c, z, y, x]
-                            v = nan_maximum(states[b, j, c, z, y, x], mv - eps[c, y, x])
-                            states[b, j, c, z, y, x] = v
-                            m[b, c, z, y, x] = nan_maximum(mv, v)
+                    project_plane_(states[b, j, c, z], m[b, c, z], eps[c])
+
+
+@numba.njit(inline="always")
+def project_plane_(plane: np.ndarray, m: np.ndarray, eps: np.ndarray) -> None:
+    """One (H, W) plane of a state projected onto >= m - eps and its running maximum m updated, in place
+    (the projection's arithmetic, shared with the fused writer ``nemsim.model.unpack``)."""
+    for y in range(plane.shape[0]):
+        for x in range(plane.shape[1]):
+            mv = m[y, x]
+            v = nan_maximum(plane[y, x], mv - eps[y, x])
+            plane[y, x] = v
+            m[y, x] = nan_maximum(mv, v)
 
 
 @numba.njit(inline="always")

@@ -28,7 +28,8 @@ import numba
 import numpy as np
 import torch
 
-from nemsim.model.monotone import nan_maximum
+from nemsim.model.monotone import project_plane_
+from nemsim.symmetry import symmetrize_diagonal_, symmetrize_plane_
 
 if TYPE_CHECKING:
     from nemsim.model.monotone import MonotoneProjection
@@ -45,8 +46,6 @@ class Finish:
 
     def apply_(self, states: torch.Tensor) -> torch.Tensor:
         """The finish of states (B, n, 2, D, H, W) in place, pass after pass (paths that do not fuse it)."""
-        from nemsim.symmetry import symmetrize_diagonal_
-
         if self.diagonal:
             symmetrize_diagonal_(states)
         if self.projection is not None:
@@ -68,7 +67,6 @@ def _write_states(x: np.ndarray, r: np.ndarray, gate: np.ndarray, clamp: bool, d
     B, n = out.shape[0], out.shape[1]
     D, H, W = x.shape[2], x.shape[3], x.shape[4]
     project = m.shape[0] > 0
-    half = np.float32(0.5)
     for b in range(B):
         g = gate[b]
         for j in range(n):
@@ -86,18 +84,9 @@ def _write_states(x: np.ndarray, r: np.ndarray, gate: np.ndarray, clamp: bool, d
                                 v = min(max(v, np.float32(-1.0)), np.float32(1.0))
                             plane[y, w] = v
                     if diagonal:
-                        for y in range(H):
-                            for w in range(y + 1, W):
-                                v = half * (plane[y, w] + plane[w, y])
-                                plane[y, w] = v
-                                plane[w, y] = v
+                        symmetrize_plane_(plane)
                     if project:
-                        for y in range(H):
-                            for w in range(W):
-                                mv = m[b, c, z, y, w]
-                                v = nan_maximum(plane[y, w], mv - eps[c, y, w])
-                                plane[y, w] = v
-                                m[b, c, z, y, w] = nan_maximum(mv, v)
+                        project_plane_(plane, m[b, c, z], eps[c])
 
 
 def write_states(x: torch.Tensor, r: torch.Tensor, gate: torch.Tensor | None, clamp: bool,
