@@ -59,6 +59,14 @@ def arm_points(run_dir: str | Path) -> tuple[str, list[tuple[int, Path]]]:
     return str(start), points
 
 
+def common_start(found: Any) -> str:
+    """The checkpoint every arm's points (``arm_points``) start from; ValueError if they differ."""
+    starts = {start for start, _ in found}
+    if len(starts) != 1:
+        raise ValueError(f"the arms start from different checkpoints {sorted(starts)}: no common curve")
+    return starts.pop()
+
+
 def summarize(physics: dict[str, Any], extrapolation: dict[str, Any]) -> dict[str, Any]:
     """The module docstring's figures of one model from its physics and extrapolation reports."""
     held = physics["heldout"]
@@ -86,10 +94,7 @@ def run_learning_curve(arms: dict[str, str | Path], judge: Any) -> dict[str, Any
     """The report: per arm its points [{cases, checkpoint, **summarize}], the shared start first.
     ``judge(checkpoint) -> (physics report, extrapolation report)``."""
     found = {label: arm_points(d) for label, d in arms.items()}
-    starts = {start for start, _ in found.values()}
-    if len(starts) != 1:
-        raise ValueError(f"the arms start from different checkpoints {sorted(starts)}: no common curve")
-    start = starts.pop()
+    start = common_start(found.values())
     start_point = {"cases": 0, "checkpoint": start, **summarize(*judge(start))}
     report: dict[str, Any] = {"start": start, "arms": {}}
     for label, (_, points) in found.items():

@@ -59,11 +59,11 @@ def _cmd_bench_learning_curve(args: argparse.Namespace) -> int:
             raise UserError(f"--run {item!r}: expected LABEL=DIR with an existing directory")
         arms[label.strip()] = run_dir
     try:
-        starts = {lc.arm_points(d)[0] for d in arms.values()}
+        start_path = lc.common_start(lc.arm_points(d) for d in arms.values())
         seeds = parse_seeds(args.seeds)
     except (FileNotFoundError, ValueError) as exc:
         raise UserError(str(exc)) from None
-    start = load_checkpoint_arg(sorted(starts)[0], args)
+    start = load_checkpoint_arg(start_path, args)
     phys_cfg, ex_cfg = physics.PhysicsConfig(seeds=seeds), ex.ExtrapolationConfig(seeds=seeds)
     with sim_truth(args, start) as truth:
         x0 = initial_state(start.scene)
