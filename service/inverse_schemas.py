@@ -97,8 +97,10 @@ class DesignRequest(BaseModel):
         "search around it proposes a new recipe for the simulator, round after round; the top recipe is "
         "then the best simulated one (`verified_by`), and `refinement` reports every round. A recipe that "
         "meets the targets in its run is confirmed by an independent run (seed sim_seed + 1) before it is "
-        "the answer (`status` verified), as the design-cost benchmark measures it; every run counts in "
-        "`simulator_calls`. Default: on when verify is true (false: only simulate the top recipes)",
+        "the answer (`status` verified), as the design-cost benchmark measures it; the round-0 recipe, "
+        "predicted to meet them before any run, runs with that seed straight away (a claim, `claimed`). "
+        "Every run counts in `simulator_calls`. Default: on when verify is true (false: only simulate the "
+        "top recipes)",
     )
     refine_rounds: Annotated[int, Field(ge=0, le=5), BeforeValidator(_json_integer)] | None = Field(
         None,

@@ -13,6 +13,7 @@ from nemsim.analysis.inverse import (
     search,
     spec_from_dict,
 )
+from nemsim.analysis.inverse.spec import edge_term, objective
 from nemsim.controls import CONTROL_NAMES, INT_INDICES, from_normalized, lhs_design, to_normalized
 from nemsim.geometry.profile import profile_metrics_batch
 from nemsim.geometry.soft_profile import soft_profile_metrics
@@ -190,3 +191,32 @@ def test_cma_refinement_counts_its_rollouts_and_keeps_the_bounds(ctx):
     assert cost["forward_rollouts"] >= 4 + 8
     assert len(cost["objective_trace"]) >= 3  # screening + one entry per generation
     assert lo * (1 - 1e-9) <= res["recipes"][0]["controls"]["flux_cl"] <= hi * (1 + 1e-9)
+
+
+def test_the_edge_term_by_hand():
+    """E(u) = sum of (max(|u_j| - a, 0) / (1 - a))^2: controls at 0, 0.8, 0.9, 1 and -1 with a = 0.8 give
+    0 + 0 + 0.25 + 1 + 1; its gradient pushes each control past a back toward the centre."""
+    u = np.zeros(14)
+    u[1:5] = 0.8, 0.9, 1.0, -1.0
+    assert edge_term(u, 0.8) == pytest.approx(2.25)
+    t = torch.tensor(u, dtype=torch.float64, requires_grad=True)
+    edge_term(t, 0.8).backward()
+    assert t.grad[:5].tolist() == pytest.approx([0.0, 0.0, 5.0, 10.0, -10.0])
+    with pytest.raises(ValueError, match="edge_start"):
+        spec_from_dict({"targets": {"etch_depth": 10}, "search": {"edge_start": 1.0}})
+
+
+def test_the_edge_weight_steers_the_search_inward_and_leaves_the_objective_alone(ctx):
+    """A target every recipe meets (15 +- 1000 nm): without the edge term (weight 0) the search ranks by J
+    alone; with a heavy one its top recipe lies inside the inner box, and the reported objective is still
+    J. The default weight is 0.25."""
+    body = {"targets": {"etch_depth": {"value": 15.0, "tol": 1000}}, "step": 2, "k": 1}
+    plain = search(ctx, spec_from_dict({**body, "search": {**SMALL_SEARCH, "edge_weight": 0.0}}), seed=3)
+    plain = plain["recipes"][0]
+    spec = spec_from_dict({**body, "search": {**SMALL_SEARCH, "edge_weight": 100.0}})
+    inner = search(ctx, spec, seed=3)["recipes"][0]
+    e_plain = edge_term(np.asarray(plain["controls_normalized"]), 0.8)
+    e_inner = edge_term(np.asarray(inner["controls_normalized"]), 0.8)
+    assert e_inner < 0.05 and e_inner <= e_plain and e_plain > 0.5
+    assert spec_from_dict(body).search.edge_weight == 0.25
+    assert inner["objective"] == pytest.approx(objective(inner["predicted"], spec), abs=1e-4)

@@ -4,6 +4,8 @@ place of the Monte Carlo simulator; then the in-process path on the tiny checkpo
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -302,11 +304,12 @@ def _narrow_calibration(half_width: float):
 
 
 def test_a_loop_run_that_met_must_be_confirmed_and_the_mean_anchors_the_next_round(toy):
-    """Loop simulator: the surrogate exactly; confirmation simulator: 3 nm deeper. Round 0's recipe meets
-    16 +- 2 in its loop run and misses in its confirmation, so it is not the answer; the next round's offset
-    is the mean of the two runs (+1.5 nm) and its recipe meets the target in both runs."""
+    """Loop simulator: the surrogate exactly; confirmation simulator: 3 nm deeper; no claim. Round 0's recipe
+    meets 16 +- 2 in its loop run and misses in its confirmation, so it is not the answer; the next round's
+    offset is the mean of the two runs (+1.5 nm) and its recipe meets the target in both runs."""
     loop, again = FakeSimulator(toy, {}), FakeSimulator(toy, {"etch_depth": 3.0})
-    res = refine_with_simulator(toy, _spec(16.0, tol=2.0), loop, refine=EXACT, confirm=again)
+    no_claim = replace(EXACT, claim_level=1.0)
+    res = refine_with_simulator(toy, _spec(16.0, tol=2.0), loop, refine=no_claim, confirm=again)
     ref = res["refinement"]
     r0 = ref["rounds"][0]["simulated"][0]
     assert r0["met"] and r0["confirmed"] is False and not r0["claimed"]
@@ -327,13 +330,15 @@ def test_a_loop_run_that_met_must_be_confirmed_and_the_mean_anchors_the_next_rou
 
 
 def test_narrow_intervals_claim_the_round_0_recipe_with_one_call(toy):
-    """The top recipe's 80 % interval (+-0.2 nm) lies inside 16 +- 2: its first run is the confirmation,
-    which meets the target, so the design spends one simulator call and never runs the loop simulator."""
+    """Claims at level 0.8: the top recipe's 80 % interval (+-0.2 nm) lies inside 16 +- 2: its first run is
+    the confirmation, which meets the target, so the design spends one simulator call and never runs the
+    loop simulator."""
     from dataclasses import replace as dc_replace
 
+    at_80 = replace(EXACT, claim_level=0.8)
     ctx = dc_replace(toy, calibration=_narrow_calibration(0.2))
     loop, again = FakeSimulator(ctx, {}), FakeSimulator(ctx, {"etch_depth": 0.5})
-    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=EXACT, confirm=again)
+    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=at_80, confirm=again)
     assert res["status"] == "verified" and res["simulator_calls"] == 1
     assert loop.calls == [] and len(again.calls) == 1
     (entry,) = res["verification"]["recipes"]
@@ -342,9 +347,32 @@ def test_narrow_intervals_claim_the_round_0_recipe_with_one_call(toy):
     # wide intervals (+-3 nm, beyond the tolerance): no claim, the loop run comes first
     ctx = dc_replace(toy, calibration=_narrow_calibration(3.0))
     loop, again = FakeSimulator(ctx, {}), FakeSimulator(ctx, {"etch_depth": 0.5})
-    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=EXACT, confirm=again)
+    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=at_80, confirm=again)
     assert [e["run"] for e in res["verification"]["recipes"]] == ["loop", "confirmation"]
     assert res["status"] == "verified" and res["simulator_calls"] == 2
+    # level 0: the interval is the prediction itself, inside 16 +- 2 whatever the calibration: a claim
+    loop, again = FakeSimulator(ctx, {}), FakeSimulator(ctx, {"etch_depth": 0.5})
+    at_0 = replace(EXACT, claim_level=0.0)
+    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=at_0, confirm=again)
+    assert [e["run"] for e in res["verification"]["recipes"]] == ["claim"] and res["simulator_calls"] == 1
+    # level 1: the interval is unbounded, never inside, even with the narrow calibration
+    ctx = dc_replace(toy, calibration=_narrow_calibration(0.2))
+    loop, again = FakeSimulator(ctx, {}), FakeSimulator(ctx, {"etch_depth": 0.5})
+    res = refine_with_simulator(ctx, _spec(16.0, tol=2.0), loop, refine=replace(EXACT, claim_level=1.0),
+                                confirm=again)
+    assert [e["run"] for e in res["verification"]["recipes"]] == ["loop", "confirmation"]
+
+
+def test_a_claim_that_misses_is_the_next_round_s_anchor(toy):
+    """The default claim (level 0: the prediction meets the target). A claim whose run misses costs no
+    extra call: that run anchors round 1 as a loop run would (offset +3 nm), and round 1's recipe is
+    verified by a loop run and its confirmation: three calls in all."""
+    loop, again = FakeSimulator(toy, {"etch_depth": 3.0}), FakeSimulator(toy, {"etch_depth": 3.0})
+    res = refine_with_simulator(toy, _spec(16.0, tol=1.0), loop, refine=EXACT, confirm=again)
+    assert [e["run"] for e in res["verification"]["recipes"]] == ["claim", "loop", "confirmation"]
+    r1 = res["refinement"]["rounds"][1]
+    assert r1["offset"]["etch_depth"] == pytest.approx(3.0, abs=1e-3) and r1["anchor"]["round"] == 0
+    assert res["status"] == "verified" and res["simulator_calls"] == 3 and res["recipes"][0]["round"] == 1
 
 
 def test_a_target_beyond_the_intervals_is_unreachable_without_a_simulator_run(toy):
@@ -373,7 +401,8 @@ def test_max_runs_caps_the_simulator_calls(toy):
     assert res["refinement"]["stopped"] == "max runs" and res["status"] == "unverified"
     # with a confirmation simulator a loop run starts only when its confirmation fits too
     sim, again = FakeSimulator(toy, {"etch_depth": 5.0}), FakeSimulator(toy, {"etch_depth": 5.0})
-    res = refine_with_simulator(toy, _spec(16.0), sim, refine=replace_cfg(cfg, max_runs=3), confirm=again)
+    no_claim = replace_cfg(cfg, max_runs=3, claim_level=1.0)
+    res = refine_with_simulator(toy, _spec(16.0), sim, refine=no_claim, confirm=again)
     assert res["simulator_calls"] <= 3 and len(sim.calls) == 2 and again.calls == []
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from bench.design_cost import (
+    RECHECK_SEED,
     BOConfig,
     BudgetSpent,
     DesignCostConfig,
@@ -18,6 +19,7 @@ from bench.design_cost import (
     compare,
     format_markdown,
     random_order,
+    recheck_hit,
     report,
     run_design_cost,
     run_random,
@@ -26,7 +28,7 @@ from bench.design_cost import (
 )
 from bench.inverse import EDGE, LOOP_SEED, VERIFY_SEED, held_out_unit
 from nemsim.analysis.inverse import Target
-from nemsim.controls import lhs_unit, to_normalized
+from nemsim.controls import CONTROL_NAMES, lhs_unit, to_normalized
 
 STEP = 3
 SEARCH = {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}
@@ -75,6 +77,27 @@ def test_the_ledger_counts_every_call_and_hits_only_on_a_confirmation():
     out = ledger.result()
     assert out["calls"] == 3 and out["confirmations"] == 2 and out["calls_to_target"] == 3
     assert ledger.fresh_cpu_s == pytest.approx(0.75) and ledger.fresh_wall_s == pytest.approx(1.5)
+    assert out["hit_controls"] == [0.5] * 14  # the confirming call's recipe
+
+
+def test_a_hit_is_rechecked_once_with_its_own_seed_outside_the_budget():
+    """depth 10 with seed 4, 20 otherwise: a hit at 10 +- 2 is rechecked once (seed 4) and meets; a target
+    of 20 +- 2 does not; a miss, or a record already rechecked, runs nothing. The design's answer
+    (``controls``) stands in for ``hit_controls``."""
+    runs = FakeRuns(lambda xi, seed: {"etch_depth": 10.0 if seed == RECHECK_SEED else 20.0})
+    spec = {"targets": {"etch_depth": {"value": 10.0}}}
+    hit = {"hit": True, "hit_controls": [0.5] * 14}
+    assert recheck_hit(hit, spec, runs) and hit["recheck"] == {"met": True, "metrics": {"etch_depth": 10.0}}
+    assert [s for _, s in runs.calls] == [RECHECK_SEED]
+    assert not recheck_hit(hit, spec, runs) and len(runs.calls) == 1  # once
+    design = {"hit": True, "controls": dict(zip(CONTROL_NAMES, [0.5] * 14, strict=True))}
+    assert recheck_hit(design, {"targets": {"etch_depth": {"value": 20.0}}}, runs)
+    assert design["recheck"]["met"] is False and np.array_equal(runs.calls[-1][0], np.full(14, 0.5))
+    assert not recheck_hit({"hit": False, "hit_controls": [0.5] * 14}, spec, runs) and len(runs.calls) == 2
+    cases = [{"reachable": True, "strategies": {"design": {**_rec(2, 2), **design}}},
+             {"reachable": True, "strategies": {"design": _rec(None, 3)}}]
+    s = summarise(cases, "design", 30, {"cpu_s": 1.0, "wall_s": 1.0})
+    assert (s["rechecked"], s["recheck_met"]) == (1, 0)
 
 
 def test_random_search_stops_at_the_first_confirmed_candidate():
@@ -157,6 +180,7 @@ def test_the_benchmark_on_tiny_runs_resumes_and_reports(tiny_checkpoint, tmp_pat
             confirms = [i + 1 for i, c in enumerate(r["log"]) if c["kind"] == "confirm" and c["met"]]
             assert r["calls_to_target"] == (confirms[0] if confirms else None)  # the first confirmed hit
             assert r["hit"] == (r["calls_to_target"] is not None)
+            assert ("recheck" in r) == r["hit"]  # every hit run once more, outside the budget
         assert case["strategies"]["design"]["settings"]["confirm"] == "inside"
     assert "design vs random" in rep["comparisons"]
     assert rep["simulator"]["domain"] == "full" and rep["simulator"]["runs"] >= 4

@@ -7,6 +7,16 @@ within tolerances. The objective a search minimizes is
 
 the second term for an optional secondary goal (``secondary_weight`` w; sign + to minimize metric m_s,
 - to maximize). A target is met when |m - value| <= tol.
+
+A search ranks and steers its recipes by J(u) + e * E(u) (``search_score``), E(u) = sum over controls of
+(max(|u_j| - a, 0) / (1 - a))^2 in normalized controls, a = ``edge_start``: 0 inside the inner box, 1 per
+control on a face of the training box, e = ``edge_weight``. Many recipes meet four targets with 14
+controls, and the surrogate's error grows toward the faces and corners of the box
+(benchmarks/small/extrapolation), so among equally good recipes the search prefers the inner ones; a
+target that needs a face still gets it, at a small cost in J. Met and the reported objective stay J alone.
+With e = 0.25 the simulator met the search's top recipe in its first run for 17 of 22 held-out targets,
+against 14 with e = 0, and the simulator-corrected design met 19 of 22 on two sets of targets
+(benchmarks/small/design_cost).
 """
 
 from __future__ import annotations
@@ -15,6 +25,8 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal
+
+import numpy as np
 
 from nemsim.controls import check_control, control_index
 from nemsim.geometry.soft_profile import SOFT_METRICS
@@ -50,6 +62,8 @@ class SearchConfig:
     cma_evals: int = 200  # CMA-ES forward rollouts (about the gradient stage's cost)
     cma_sigma: float = 0.3
     secondary_weight: float = 0.1
+    edge_weight: float = 0.25  # e of the search score (module docstring; benchmarks/small/design_cost)
+    edge_start: float = 0.8  # a: where the edge term starts, normalized units
 
 
 @dataclass(frozen=True)
@@ -187,8 +201,10 @@ def _search_config(s: dict[str, Any]) -> SearchConfig:
         raise ValueError("search: screen, starts and batch must be >= 1 and iterations >= 0")
     if search.cma_evals < 1 or not 0 < search.cma_sigma <= 2 or not 0 < search.lr <= 10:
         raise ValueError("search: cma_evals must be >= 1, cma_sigma in (0, 2] and lr in (0, 10]")
-    if search.min_separation < 0 or search.secondary_weight < 0:
-        raise ValueError("search: min_separation and secondary_weight must be >= 0")
+    if search.min_separation < 0 or search.secondary_weight < 0 or search.edge_weight < 0:
+        raise ValueError("search: min_separation, secondary_weight and edge_weight must be >= 0")
+    if not 0 <= search.edge_start < 1:
+        raise ValueError(f"search.edge_start must be in [0, 1), got {search.edge_start}")
     return search
 
 
@@ -274,6 +290,21 @@ def objective(metrics: dict[str, Any], spec: InverseSpec) -> Any:
         sign = 1.0 if goal == "min" else -1.0
         total = total + sign * spec.search.secondary_weight * metrics[m] / SECONDARY_SCALE_NM
     return total
+
+
+def edge_term(u: Any, start: float) -> Any:
+    """E(u) = sum over controls of (max(|u_j| - start, 0) / (1 - start))^2; numpy or torch (..., 14)."""
+    x = abs(u) - start
+    x = x.clamp(min=0.0) if hasattr(x, "clamp") else np.maximum(x, 0.0)  # torch or numpy
+    return ((x / (1.0 - start)) ** 2).sum(-1)
+
+
+def search_score(metrics: dict[str, Any], u: Any, spec: InverseSpec) -> Any:
+    """J(u) + e * E(u) (module docstring): what a search minimizes; numpy or torch (B,)."""
+    j = objective(metrics, spec)
+    if not spec.search.edge_weight:
+        return j
+    return j + spec.search.edge_weight * edge_term(u, spec.search.edge_start)
 
 
 def misses(metrics: dict[str, float], spec: InverseSpec) -> dict[str, dict[str, Any]]:

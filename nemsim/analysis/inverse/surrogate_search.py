@@ -35,7 +35,15 @@ import torch
 
 from nemsim.analysis.intervals import Calibration
 from nemsim.analysis.inverse.context import InverseContext, rollout_to
-from nemsim.analysis.inverse.spec import InverseSpec, Progress, SearchCancelled, misses, objective
+from nemsim.analysis.inverse.spec import (
+    InverseSpec,
+    Progress,
+    SearchCancelled,
+    edge_term,
+    misses,
+    objective,
+    search_score,
+)
 from nemsim.controls import (
     CONTROL_NAMES,
     CONTROL_SPECS,
@@ -210,7 +218,7 @@ def search(
         _cma(evaluate, spec, pool, lo, hi, free, fixed, seed, check, progress, trace)
 
     # 3. candidates: round integer controls, roll out again, rank
-    scores = np.array([float(objective(m, spec)) for m in pool.metrics])
+    scores = np.array([float(search_score(m, u, spec)) for m, u in zip(pool.metrics, pool.u, strict=True)])
     order = list(np.argsort(scores))
     picks = _pick_distinct(order, pool.u, max(spec.k + 2, 2 * spec.k), cfg.min_separation / 4)
     u_final = _round_ints(np.stack([pool.u[i] for i in picks]))
@@ -254,7 +262,7 @@ def _adam(
     trace: list[float],
 ) -> None:
     cfg = spec.search
-    scores = np.array([float(objective(m, spec)) for m in pool.metrics])
+    scores = np.array([float(search_score(m, u, spec)) for m, u in zip(pool.metrics, pool.u, strict=True)])
     starts = _pick_distinct(list(np.argsort(scores)), pool.u, cfg.starts, cfg.min_separation)
     u0 = torch.as_tensor(np.stack([pool.u[i] for i in starts]), dtype=torch.float32)  # (S, 14)
     lo_t, hi_t = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
@@ -268,7 +276,7 @@ def _adam(
         x = rollout_to(ctx.model, ctx.x0, p, step)  # (S, 2, D, H, W)
         cost.gradient_rollouts += p.shape[0]
         soft = soft_profile_metrics(x, ctx.scene)
-        loss = objective(soft, spec)
+        loss = search_score(soft, p, spec)
         exact = profile_metrics_batch(x.detach().numpy(), ctx.scene)
         pool.add(p.detach().numpy(), exact)
         trace.append(round(float(np.min(objective(exact, spec))), 4))
@@ -313,7 +321,7 @@ def _cma(
             "search.method 'cma' needs the optional package cma (pip install 'nemsim[design]')"
         ) from None
     cfg = spec.search
-    scores = np.array([float(objective(m, spec)) for m in pool.metrics])
+    scores = np.array([float(search_score(m, u, spec)) for m, u in zip(pool.metrics, pool.u, strict=True)])
     x0 = pool.u[int(np.argmin(scores))][free]
     es = cma.CMAEvolutionStrategy(
         x0,
@@ -334,9 +342,9 @@ def _cma(
         u[:, free] = np.clip(xs, lo[free], hi[free])
         m = evaluate(u)
         pool.add(u, m)
-        scores = objective(m, spec)  # (P,)
+        scores = search_score(m, u, spec)  # (P,)
         es.tell(list(xs), [float(v) for v in scores])
-        trace.append(round(float(np.min(scores)), 4))
+        trace.append(round(float(np.min(objective(m, spec))), 4))
         used += len(xs)
         progress(0.25 + 0.65 * min(used / cfg.cma_evals, 1.0), f"CMA-ES {used}/{cfg.cma_evals} rollouts")
 
@@ -369,7 +377,13 @@ def _final_recipes(
             "training_data": ctx.support.describe(u[i]),
         }
         out.append(rec)
-    out.sort(key=lambda r: (sum(not v["met"] for v in r["targets"].values()), r["objective"]))
+    e, a = spec.search.edge_weight, spec.search.edge_start
+    out.sort(
+        key=lambda r: (
+            sum(not v["met"] for v in r["targets"].values()),
+            r["objective"] + e * float(edge_term(np.asarray(r["controls_normalized"]), a)),
+        )
+    )
     keep: list[dict[str, Any]] = []
     for r in out:
         pts = np.asarray(r["controls_normalized"])
