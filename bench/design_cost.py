@@ -32,8 +32,8 @@ rounds or simulator calls (``RefineConfig``) are used up. The design's wall-time
 (``budget_s`` = inf unless ``--refine`` sets it), so that its outcome does not depend on the load of a
 shared machine; the table reports its time per design instead.
 
-Budget (default 30 calls): ten times the issue's target median for the design (3 calls), so a ">= 10x fewer
-calls" comparison is decided inside the budget; the usual BO budgets in 14 dimensions (tens of points per
+Budget (default 30 calls): ten times a median of 3 calls for the design, so a ">= 10x fewer calls"
+comparison is decided inside the budget; the usual BO budgets in 14 dimensions (tens of points per
 dimension) would cost hours of CPU per target here.
 
 CPU sharing: simulator runs are cached by (recipe, seed) in the run folder as their final-step metrics

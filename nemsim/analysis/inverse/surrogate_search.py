@@ -13,7 +13,8 @@ training box):
      best screened recipe, one batched rollout per generation. ``"auto"`` picks CMA-ES when the package
      is installed (benchmarks/small/inverse compares the two), else Adam;
   3. the best distinct candidates get their integer controls rounded and are rolled out again; K are
-     reported, ranked by (targets missed, objective), with conformal intervals
+     reported, ranked by (targets missed, objective plus the edge term: ``spec.search_score``, which
+     every stage minimizes), with conformal intervals
      (``nemsim.analysis.intervals``) and a distance-to-training-data flag.
 
 The reported metrics are always the exact ones (``nemsim.geometry.profile``) of a plain rollout. The spec is
