@@ -555,11 +555,7 @@ def recheck_hit(result: dict[str, Any], spec: dict[str, Any], runs: MetricRuns) 
     if not result["hit"] or "recheck" in result or raw is None:
         return False
     m = runs(np.asarray(raw, dtype=np.float64), RECHECK_SEED)[0]
-    targets = spec["targets"]
-    result["recheck"] = {
-        "met": all(abs(m[k] - t["value"]) <= _tol(k, t) for k, t in targets.items()),
-        "metrics": {k: round(m[k], 3) for k in targets},
-    }
+    result["recheck"] = {"met": _meets(m, spec), "metrics": {k: round(m[k], 3) for k in spec["targets"]}}
     return True
 
 
@@ -574,11 +570,14 @@ def _target_record(path: Path, case: dict[str, Any]) -> dict[str, Any]:
     rec = {k: v for k, v in case.items() if k != "spec"}
     rec["spec"] = spec
     if case["reachable"]:
-        rec["oracle_met"] = all(
-            abs(case["oracle"][k] - t["value"]) <= _tol(k, t) for k, t in spec["targets"].items()
-        )
+        rec["oracle_met"] = _meets(case["oracle"], spec)
     rec["strategies"] = {}
     return rec
+
+
+def _meets(metrics: dict[str, float], spec: dict[str, Any]) -> bool:
+    """Whether ``metrics`` meet every target of a JSON spec within its tolerance."""
+    return all(abs(metrics[k] - t["value"]) <= _tol(k, t) for k, t in spec["targets"].items())
 
 
 def _tol(metric: str, t: dict[str, Any]) -> float:

@@ -40,7 +40,6 @@ from nemsim.analysis.inverse.spec import (
     InverseSpec,
     Progress,
     SearchCancelled,
-    edge_term,
     misses,
     objective,
     search_score,
@@ -69,6 +68,10 @@ class _Pool:
         for i in range(u.shape[0]):
             self.u.append(np.array(u[i], dtype=np.float64))
             self.metrics.append({k: float(v[i]) for k, v in metrics.items()})
+
+    def scores(self, spec: InverseSpec) -> np.ndarray:
+        """The search score (``search_score``) of every recipe so far, (P,)."""
+        return np.array([float(search_score(m, u, spec)) for m, u in zip(self.metrics, self.u, strict=True)])
 
 
 @dataclass
@@ -219,7 +222,7 @@ def search(
         _cma(evaluate, spec, pool, lo, hi, free, fixed, seed, check, progress, trace)
 
     # 3. candidates: round integer controls, roll out again, rank
-    scores = np.array([float(search_score(m, u, spec)) for m, u in zip(pool.metrics, pool.u, strict=True)])
+    scores = pool.scores(spec)
     order = list(np.argsort(scores))
     picks = _pick_distinct(order, pool.u, max(spec.k + 2, 2 * spec.k), cfg.min_separation / 4)
     u_final = _round_ints(np.stack([pool.u[i] for i in picks]))
@@ -263,7 +266,7 @@ def _adam(
     trace: list[float],
 ) -> None:
     cfg = spec.search
-    scores = np.array([float(search_score(m, u, spec)) for m, u in zip(pool.metrics, pool.u, strict=True)])
+    scores = pool.scores(spec)
     starts = _pick_distinct(list(np.argsort(scores)), pool.u, cfg.starts, cfg.min_separation)
     u0 = torch.as_tensor(np.stack([pool.u[i] for i in starts]), dtype=torch.float32)  # (S, 14)
     lo_t, hi_t = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
@@ -322,7 +325,7 @@ def _cma(
             "search.method 'cma' needs the optional package cma (pip install 'nemsim[design]')"
         ) from None
     cfg = spec.search
-    scores = np.array([float(search_score(m, u, spec)) for m, u in zip(pool.metrics, pool.u, strict=True)])
+    scores = pool.scores(spec)
     x0 = pool.u[int(np.argmin(scores))][free]
     es = cma.CMAEvolutionStrategy(
         x0,
@@ -361,14 +364,14 @@ def _final_recipes(
     with torch.no_grad():
         traj = rollout(ctx.model, ctx.x0[None].expand(len(ub), *ctx.x0.shape).contiguous(), ub, step)
     cost.forward_rollouts += len(ub)
-    out: list[dict[str, Any]] = []
+    out: list[tuple[tuple[int, float], dict[str, Any]]] = []  # (rank key, recipe)
     for i in range(len(ub)):
         mt = profile_metrics_batch(traj[i].numpy(), ctx.scene)  # {name: (step + 1,)}
         at = {k: float(v[step]) for k, v in mt.items()}
         raw = np.asarray(from_normalized(u[i].astype(np.float64)))
         for j in INT_INDICES:
             raw[j] = float(round(raw[j]))
-        rec = {
+        rec: dict[str, Any] = {
             "controls": {n: float(v) for n, v in zip(CONTROL_NAMES, raw, strict=True)},
             "controls_normalized": [round(float(v), 5) for v in u[i]],
             "predicted": {k: round(v, 3) for k, v in at.items()},
@@ -377,16 +380,11 @@ def _final_recipes(
             "intervals": _intervals_at(ctx.calibration, at, step),
             "training_data": ctx.support.describe(u[i]),
         }
-        out.append(rec)
-    e, a = spec.search.edge_weight, spec.search.edge_start
-    out.sort(
-        key=lambda r: (
-            sum(not v["met"] for v in r["targets"].values()),
-            r["objective"] + e * float(edge_term(np.asarray(r["controls_normalized"]), a)),
-        )
-    )
+        missed = sum(not v["met"] for v in rec["targets"].values())
+        out.append(((missed, float(search_score(at, u[i], spec))), rec))
+    out.sort(key=lambda kr: kr[0])
     keep: list[dict[str, Any]] = []
-    for r in out:
+    for _, r in out:
         pts = np.asarray(r["controls_normalized"])
         if all(np.linalg.norm(pts - np.asarray(q["controls_normalized"])) > 1e-6 for q in keep):
             keep.append(r)
