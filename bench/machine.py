@@ -7,6 +7,8 @@ import os
 import platform
 from pathlib import Path
 
+from nemsim.training.config import cpu_flags
+
 # instruction-set extensions that change the speed of bf16 inference and training
 _FLAGS = ("avx512_bf16", "amx_bf16", "amx_tile")
 
@@ -16,12 +18,12 @@ def cpu_name() -> str:
     info = Path("/proc/cpuinfo")
     if not info.is_file():
         return platform.processor() or platform.machine()
-    model, flags = "", set[str]()
+    model = ""
     for line in info.read_text(errors="replace").splitlines():
         key, _, value = line.partition(":")
-        if key.strip() == "model name" and not model:
+        if key.strip() == "model name":
             model = value.strip()
-        elif key.strip() == "flags" and not flags:
-            flags = set(value.split())
+            break
+    flags = cpu_flags()
     present = [f for f in _FLAGS if f in flags] or ["no AVX-512 BF16, no AMX"]
     return f"{model or platform.machine()} ({os.cpu_count()} logical CPUs; {', '.join(present)})"

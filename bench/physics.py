@@ -21,6 +21,10 @@ what a process engineer reads, the profile metrics of ``nemsim.geometry.profile`
   (c) **No change**: per case the Avg RMSE of holding x_0 for every step; a case where the surrogate is
       worse counts (reported for the held-out cases and for the sweep recipes).
 
+Common random numbers: the commands run the simulator with counter-based streams by default (``--sim-rng
+counter``, ``SimConfig.rng_mode``), so every sweep level of one seed shares that seed's noise as far as the
+physics allows, and a slope and its standard error carry less of it than with independent runs.
+
 Choices: every comparison uses the simulator's run length (``SimTruth.steps``, default the horizon);
 integer controls (angular exponents) are rounded at each sweep level; Avg RMSE against the two seeds is
 the mean of the two (so the floor and the model error are on the same footing).

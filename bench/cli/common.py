@@ -14,6 +14,12 @@ def add_truth_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sim-steps", type=int, default=None,
                    help="transitions simulated and compared (default: the scene's horizon, 100)")
     p.add_argument("--seeds", default="1,2", help="the simulator seed pair, comma-separated (default 1,2)")
+    p.add_argument("--sim-rng", choices=("counter", "stream"), default="counter",
+                   help="the simulator's random numbers: counter (default), common random numbers keyed by "
+                   "(seed, macro step, source, particle), so the runs of one seed share their noise and "
+                   "the differences between recipes (the sweeps' slopes) carry less of it; stream, one "
+                   "stream per kernel call, as the training data were made; both draw the same "
+                   "distributions")
     p.add_argument("--workers", type=int, default=1, help="parallel simulations, one core each (default 1)")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="keep the simulator runs here and reuse them on a rerun (default: a temporary "
@@ -25,15 +31,16 @@ def add_truth_options(p: argparse.ArgumentParser) -> None:
 
 def sim_truth(args: argparse.Namespace, loaded: typing.Any) -> typing.Any:
     """The SimTruth of a checkpoint's scene and rules (the simulator configuration the checkpoint
-    records, else the defaults, with --set overrides)."""
+    records, else the defaults, with --sim-rng, then the --set overrides)."""
     from nemsim.evaluation.truth import SimTruth
     from nemsim.sim import SimConfig
 
-    config = SimConfig.from_record(loaded.raw.get("sim_config"))
+    config = dataclasses.replace(SimConfig.from_record(loaded.raw.get("sim_config")) or SimConfig(),
+                                 rng_mode=args.sim_rng)
     if args.overrides:
         over = sim_config(args.overrides)  # validates every KEY=VALUE
         keys = {item.partition("=")[0].strip() for item in args.overrides}
-        config = dataclasses.replace(config or SimConfig(), **{k: getattr(over, k) for k in keys})
+        config = dataclasses.replace(config, **{k: getattr(over, k) for k in keys})
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     try:
@@ -46,7 +53,7 @@ def sim_truth(args: argparse.Namespace, loaded: typing.Any) -> typing.Any:
 def sim_cost(truth: typing.Any) -> dict:
     """What the simulator runs of a command cost (printed and stored in its report)."""
     cost = {"runs": truth.n_simulated, "wall_s": round(truth.sim_wall_s, 1), "workers": truth.workers,
-            "steps": truth.steps}
+            "steps": truth.steps, "rng_mode": truth.config.rng_mode}
     per = truth.sim_wall_s / max(truth.n_simulated, 1) * truth.workers
     print(f"simulator: {cost['runs']} runs in {cost['wall_s']:.1f} s wall ({per:.2f} s per run per "  # noqa: T201
           f"worker)", flush=True)

@@ -28,7 +28,8 @@ CONFIG_FLAGS: dict[str, tuple[str, str]] = {
                       "usual; the learning-rate cosine spans the budget (set warmup_steps in --config). "
                       "Example: --max-minutes 45 --resume continues a killed 45-minute run"),
     "--seed": ("seed", "override the seed (default 0)"),
-    "--bf16": ("bf16", "bfloat16 autocast for the training forward pass (default on; rollouts stay fp32)"),
+    "--bf16": ("bf16", "bfloat16 autocast for the training forward pass (default: on a CUDA GPU or a CPU "
+                       "with AVX-512 BF16 or AMX, where it is faster, off elsewhere; rollouts stay fp32)"),
     "--channels-last": ("channels_last", "channels_last_3d memory format (default off)"),
     "--device": ("device", "auto (default: cuda if available, else cpu), cpu, cuda, cuda:N"),
     "--rollout-steps": ("rollout_steps", "validation rollout length in transitions (default: full horizon, "
@@ -84,11 +85,12 @@ def add_train_arguments(p: argparse.ArgumentParser, *, recipe: bool = False) -> 
                         "design --n 1500 --seed 43` simulated with `nemsim generate --controls`; validation "
                         "and test stay those of --data's split, so the paper protocol's cases are unchanged")
     p.add_argument("--pair-data", type=Path, metavar="FILE.h5",
-                   help="sweep pairs to add to every batch (`pairs_per_step`, default 4) with a loss on "
-                        "their predicted difference (`pair_loss_weight` in --config): the cases of this "
-                        "file that share a simulator seed, e.g. `nemsim design --kind pairs --n 600 --seed "
-                        "45` simulated with `nemsim generate --controls`; same scene, simulator "
-                        "configuration and rules as --data")
+                   help="sweep pairs to add to every batch (`pairs_per_step`, default 4) with losses on "
+                        "their predicted difference (in --config: `pair_loss_weight` on the fields, "
+                        "`response_loss_weight` on the profile metrics): the cases of this file that share "
+                        "a simulator seed, e.g. `nemsim design --kind pairs --n 600 --seed 45` simulated "
+                        "with `nemsim generate --controls ... --sim-rng counter` (common random numbers); "
+                        "same scene, simulator configuration and rules as --data")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init-from", type=Path,
                    help="start from this checkpoint's weights (same model and rules); parameters it "

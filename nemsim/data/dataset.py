@@ -220,13 +220,15 @@ class PairDataset(Dataset):
     cases is refused. Item (pair p, start t) is the two cases' items at the same t of a
     ``TransitionDataset`` over the whole file (its ``unroll`` and ``visible_transitions``), stacked on a new
     leading axis: x (2, 2, D, H, W), u (2, n, 14), y (2, n, 2, D, H, W) with n = ``unroll`` (n = 1:
-    u (2, 14), y (2, 2, D, H, W)).
+    u (2, 14), y (2, 2, D, H, W)); ``symmetrize`` and ``quarter`` shape the states as the training items'
+    (``TransitionDataset``), so the pairs join a quarter-domain model's batches.
     Ordering: pair-major (p, t), pairs in the order of their first case's row.
     """
 
-    def __init__(self, path: str | Path, unroll: int = 1, visible_transitions: int | None = None) -> None:
+    def __init__(self, path: str | Path, unroll: int = 1, visible_transitions: int | None = None,
+                 symmetrize: bool = False, quarter: bool = False) -> None:
         self.base = TransitionDataset(path, None, "train", visible_transitions=visible_transitions,
-                                      unroll=unroll)
+                                      unroll=unroll, symmetrize=symmetrize, quarter=quarter)
         self.scene, self.unroll = self.base.scene, self.base.unroll
         with open_trajectories(self.base.path) as tf:
             file_pairs = tf.seed_pairs()  # (P, 2) file rows

@@ -11,6 +11,7 @@ The loss of a sample of U network calls with k predicted states each (the paper:
 eq:training_loss; the extra terms are 0 by default):
 
     L = mean_c sum_j w_j MSE(x̂_cj, x_cj)  +  λ_p MSE(m(x̂), m(x))  +  λ_pair MSE(x̂_b - x̂_a, x_b - x_a)
+        +  λ_resp MSE(m(x̂_b) - m(x̂_a), m(x_b) - m(x_a))
 
   * ``unroll_steps`` U: call c starts from call c-1's prediction, detached (the pushforward trick of
     Brandstetter, Worrall & Welling 2022) unless ``unroll_grad``; it trains the model on the states its own
@@ -21,6 +22,12 @@ eq:training_loss; the extra terms are 0 by default):
     recipes that differ in one control group, one seed) join every batch. A Latin hypercube moves every
     control at once, so a single case weighs a control's response no more than the Monte Carlo noise;
     a pair's difference isolates it. docs/experiments.md compares these terms.
+  * ``response_loss_weight`` λ_resp: the same pairs' difference read as profile metrics (the response a
+    process engineer reads, in voxels, ``PROFILE_LOSS_METRICS``). The field difference of a one-group move
+    is a thin band of sub-voxel changes along the surface, which the field MSE weighs like noise; the
+    metric difference is the response itself. Simulated with common random numbers (``nemsim generate
+    --sim-rng counter``), a pair's two runs share a quarter to a third of their noise
+    (benchmarks/small/pair_noise).
   * ``ema_decay``: validate and keep a moving average of the weights (``nemsim.training.average``).
 
 Budgets: ``max_epochs``, ``max_steps`` or ``max_train_minutes`` (wall clock of steps, validation and
@@ -37,10 +44,31 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Literal
 
-# The faster setting of one NEMSim training step on the small scene: bf16 autocast on, channels_last_3d off
-# (benchmarks/small/README.md, "Training-step precision and memory format").
+# The faster setting of one NEMSim training step on the small scene: channels_last_3d off, bf16 autocast on
+# where the hardware computes in bfloat16 (benchmarks/small/README.md, "Training-step precision and memory
+# format"; ``native_bf16``).
 DEFAULT_CHANNELS_LAST = False
-DEFAULT_BF16 = True
+DEFAULT_BF16 = None  # None: ``native_bf16`` of the training device
+CPU_BF16_FLAGS = ("avx512_bf16", "amx_bf16")  # /proc/cpuinfo flags of CPUs that compute in bfloat16
+
+
+def cpu_flags() -> set[str]:
+    """The instruction-set flags of this machine's first CPU (/proc/cpuinfo; empty where there is none)."""
+    info = Path("/proc/cpuinfo")
+    if not info.is_file():
+        return set()
+    for line in info.read_text(errors="replace").splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "flags":
+            return set(value.split())
+    return set()
+
+
+def native_bf16(device_type: str) -> bool:
+    """Whether bfloat16 autocast is the faster training forward on ``device_type``: a CUDA GPU, or a CPU
+    with AVX-512 BF16 or AMX. A CPU without them emulates bfloat16 arithmetic, several times slower than
+    float32 (benchmarks/small/README.md)."""
+    return device_type == "cuda" or bool(cpu_flags() & set(CPU_BF16_FLAGS))
 
 
 @dataclass(frozen=True)
@@ -59,6 +87,7 @@ class TrainConfig:
     profile_loss_weight: float = 0.0  # lambda of the profile-metric term (0 = the paper's loss; docstring)
     ema_decay: float = 0.0  # validate and keep a moving average of the weights (0 = off; docstring)
     pair_loss_weight: float = 0.0  # lambda of the sweep-pair difference term (needs --pair-data; docstring)
+    response_loss_weight: float = 0.0  # lambda of the sweep pairs' profile-metric response term (docstring)
     pairs_per_step: int = 4  # sweep pairs added to every batch when training with --pair-data
     max_epochs: int = 350  # epoch budget; the cosine spans warm-up end .. max_epochs
     max_steps: int | None = None  # optimizer-step budget; if set, training ends there and the cosine spans it
@@ -85,7 +114,8 @@ class TrainConfig:
     in_memory: bool = False
     # --- precision and device ---
     channels_last: bool = DEFAULT_CHANNELS_LAST  # torch.channels_last_3d for model and inputs
-    bf16: bool = DEFAULT_BF16  # bfloat16 autocast for the training forward pass (rollouts stay fp32)
+    bf16: bool | None = DEFAULT_BF16  # bfloat16 autocast for the training forward pass (rollouts stay fp32);
+    # None: where the device computes in bfloat16 (``native_bf16``)
     device: str = "auto"  # "auto" (cuda if available else cpu), "cpu", "cuda", "cuda:1", ...
     # --- bookkeeping ---
     progress: bool = True  # tqdm bar with loss and ETA (rank 0 only)
@@ -116,6 +146,8 @@ class TrainConfig:
             raise ValueError(f"profile_loss_weight must be >= 0, got {self.profile_loss_weight}")
         if not self.pair_loss_weight >= 0:
             raise ValueError(f"pair_loss_weight must be >= 0, got {self.pair_loss_weight}")
+        if not self.response_loss_weight >= 0:
+            raise ValueError(f"response_loss_weight must be >= 0, got {self.response_loss_weight}")
         if self.pairs_per_step < 1:
             raise ValueError(f"pairs_per_step must be >= 1, got {self.pairs_per_step}")
         if not 0.0 <= self.ema_decay < 1.0:

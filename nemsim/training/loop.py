@@ -51,7 +51,7 @@ from nemsim.evaluation.rollout import steps_per_call
 from nemsim.inference.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
 from nemsim.scenes import Scene
 from nemsim.training.average import WeightAverage
-from nemsim.training.config import TrainConfig
+from nemsim.training.config import TrainConfig, native_bf16
 
 log = logging.getLogger(__name__)
 
@@ -143,14 +143,29 @@ def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torc
 PROFILE_LOSS_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss")
 
 
-def profile_loss(pred: torch.Tensor, target: torch.Tensor, scene: Scene) -> torch.Tensor:
-    """Mean squared error in voxels^2 of the soft profile metrics (``PROFILE_LOSS_METRICS``) of pred (N, 2, D,
-    H, W) against target (N, 2, D, H, W), float32; the training config's ``profile_loss_weight`` term."""
+def full_states(states: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """States (N, 2, D, H, W) of the full scene: a quarter-domain model's quadrants (N, 2, D, c, c) are
+    rebuilt by reflection (``nemsim.symmetry.unfold``, differentiable), full states pass through."""
+    from nemsim.symmetry import unfold
+
+    n = scene.state_shape[-1]
+    return states if states.shape[-1] == n else unfold(states, n)
+
+
+def _profile_voxels(states: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """(4, N) soft profile metrics (``PROFILE_LOSS_METRICS``) in voxels of states (N, 2, D, H, W), full or
+    quadrant."""
     from nemsim.geometry.soft_profile import soft_profile_metrics
 
-    mp, mt = soft_profile_metrics(pred, scene), soft_profile_metrics(target, scene)
-    err = torch.stack([(mp[m] - mt[m]) / scene.voxel_nm for m in PROFILE_LOSS_METRICS])  # (4, N)
-    return torch.mean(err**2)
+    m = soft_profile_metrics(full_states(states, scene), scene)
+    return torch.stack([m[k] / scene.voxel_nm for k in PROFILE_LOSS_METRICS])
+
+
+def profile_loss(pred: torch.Tensor, target: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """Mean squared error in voxels^2 of the soft profile metrics (``PROFILE_LOSS_METRICS``) of pred (N, 2, D,
+    H, W) against target (N, 2, D, H, W) (full states or a quarter-domain model's quadrants), float32; the
+    training config's ``profile_loss_weight`` term."""
+    return torch.mean((_profile_voxels(pred, scene) - _profile_voxels(target, scene)) ** 2)
 
 
 def pair_loss(pred: torch.Tensor, target: torch.Tensor, n_pairs: int) -> torch.Tensor:
@@ -164,11 +179,45 @@ def pair_loss(pred: torch.Tensor, target: torch.Tensor, n_pairs: int) -> torch.T
     return torch.mean((d_pred - d_true) ** 2)
 
 
+def response_loss(pred: torch.Tensor, target: torch.Tensor, n_pairs: int, scene: Scene) -> torch.Tensor:
+    """MSE in voxels^2 of the pairs' predicted profile-metric differences against the simulated ones
+    (``TrainConfig.response_loss_weight``): the last 2P samples of pred and target (N, [k,] 2, D, H, W) are
+    P pairs as in ``pair_loss``; with k states per sample every state's metrics count."""
+    p = n_pairs
+
+    def responses(states: torch.Tensor) -> torch.Tensor:
+        m = _profile_voxels(states[-2 * p:].reshape(-1, *states.shape[-4:]), scene)  # (4, 2P·k)
+        half = m.shape[1] // 2  # first members, then second members, (pair, state) order in each
+        return m[:, half:] - m[:, :half]
+
+    return torch.mean((responses(pred) - responses(target)) ** 2)
+
+
+@dataclass(frozen=True)
+class PairTerms:
+    """The sweep pairs that end a batch (``n`` pairs: the n first members, then the n second ones) and the
+    weights of their two difference terms (``TrainConfig.pair_loss_weight``, ``response_loss_weight``)."""
+
+    n: int
+    field_weight: float
+    response_weight: float
+    scene: Scene
+
+    def loss(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor | float:
+        """λ_pair ``pair_loss`` + λ_resp ``response_loss`` of pred and target (N, [k,] 2, D, H, W)."""
+        total: torch.Tensor | float = 0.0
+        if self.field_weight > 0:
+            total = total + self.field_weight * pair_loss(pred, target, self.n)
+        if self.response_weight > 0:
+            total = total + self.response_weight * response_loss(pred, target, self.n, self.scene)
+        return total
+
+
 def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.Tensor, k: int, autocast,
                    memory_format=torch.contiguous_format,
                    weights: torch.Tensor | None = None,
                    profile: tuple[float, Scene] | None = None,
-                   pairs: tuple[int, float] | None = None, detach: bool = True) -> torch.Tensor:
+                   pairs: PairTerms | None = None, detach: bool = True) -> torch.Tensor:
     """Loss of a model predicting k states per call, over U = u.shape[1] / k calls chained by their detached
     last state (the pushforward term over calls of k; U = 1: plain k-step supervision).
 
@@ -177,8 +226,8 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
     controls of its first transition u_{t+ck} (as the rollout does with constant controls). Returns the mean
     over calls of Σ_j w_j MSE_j. With k = 1 this is ``pushforward_loss`` (model called as model(x, u)).
     ``profile`` = (lambda, scene) adds lambda times ``profile_loss`` over every predicted state of each call.
-    ``pairs`` = (P, lambda): the batch ends with P sweep pairs (``pair_loss``), and lambda times the MSE of
-    their predicted differences over every predicted state is added to each call.
+    ``pairs``: the batch ends with sweep pairs, and their difference terms (``PairTerms.loss``) over every
+    predicted state are added to each call.
     ``detach`` False (``TrainConfig.unroll_grad``): call c starts from call c-1's last state itself, and
     gradients flow through the whole chain of calls.
     """
@@ -199,8 +248,8 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
         if profile is not None and profile[0] > 0:
             target = y[:, c * k:(c + 1) * k]
             total = total + profile[0] * profile_loss(pred.flatten(0, 1), target.flatten(0, 1), profile[1])
-        if pairs is not None and pairs[1] > 0:
-            total = total + pairs[1] * pair_loss(pred, y[:, c * k:(c + 1) * k], pairs[0])
+        if pairs is not None:
+            total = total + pairs.loss(pred, y[:, c * k:(c + 1) * k])
         state = pred[:, -1].detach() if detach else pred[:, -1]
     return total / (n // k)
 
@@ -367,9 +416,10 @@ class _Run:
                 held = getattr(self.pairs, "unroll", 1)
                 raise ValueError(f"the pair data's items hold {held} transitions; the training items hold "
                                  f"{self.window}")
-        elif cfg.pair_loss_weight > 0:
-            raise ValueError("pair_loss_weight > 0 needs sweep pairs to train on: give --pair-data "
-                             "(made by `nemsim design --kind pairs` and `nemsim generate --controls`)")
+        elif cfg.pair_loss_weight > 0 or cfg.response_loss_weight > 0:
+            raise ValueError("pair_loss_weight and response_loss_weight need sweep pairs to train on: give "
+                             "--pair-data (made by `nemsim design --kind pairs` and `nemsim generate "
+                             "--controls`)")
         self.distributed = dist.is_available() and dist.is_initialized()
         rank, world = (dist.get_rank(), dist.get_world_size()) if self.distributed else (0, 1)
         self.is_main = rank == 0
@@ -380,8 +430,9 @@ class _Run:
         self.memory_format = torch.channels_last_3d if cfg.channels_last else torch.contiguous_format
         self.model = model.to(device=self.device, memory_format=self.memory_format)  # type: ignore[call-overload]
         self.train_model: nn.Module = self.model  # DDP-wrapped by ``start``
+        self.bf16 = native_bf16(self.device.type) if cfg.bf16 is None else cfg.bf16
         self.autocast = (
-            torch.autocast(device_type=self.device.type, dtype=torch.bfloat16) if cfg.bf16 else nullcontext()
+            torch.autocast(device_type=self.device.type, dtype=torch.bfloat16) if self.bf16 else nullcontext()
         )
         self.optimizer = torch.optim.AdamW(
             self.model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay
@@ -449,7 +500,7 @@ class _Run:
                  "minutes), %d ranks, device %s, bf16=%s, channels_last=%s, steps_per_call=%d, "
                  "unroll_steps=%d",
                  self.meta.name, len(cast(Sized, self.data.train)), self.steps_per_epoch, cfg.max_epochs,
-                 budget, cfg.max_train_minutes, self.world, self.device, cfg.bf16, cfg.channels_last, self.k,
+                 budget, cfg.max_train_minutes, self.world, self.device, self.bf16, cfg.channels_last, self.k,
                  cfg.unroll_steps)
 
     def wall(self) -> float:
@@ -494,7 +545,8 @@ class _Run:
         if self.pairs is not None:
             xp, up, yp = self.pair_batch()
             x, u, y = torch.cat([x, xp]), torch.cat([u, up]), torch.cat([y, yp])
-            pairs = (cfg.pairs_per_step, cfg.pair_loss_weight)
+            pairs = PairTerms(cfg.pairs_per_step, cfg.pair_loss_weight, cfg.response_loss_weight,
+                              self.meta.scene)
         x = x.to(dev, non_blocking=True).contiguous(memory_format=mf)  # (B, 2, D, H, W)
         if self.window == 1:
             y = y.to(dev, non_blocking=True).contiguous(memory_format=mf)
@@ -504,8 +556,8 @@ class _Run:
             loss = torch.mean((pred - y) ** 2)
             if cfg.profile_loss_weight > 0:
                 loss = loss + cfg.profile_loss_weight * profile_loss(pred, y, self.meta.scene)
-            if pairs is not None and pairs[1] > 0:
-                loss = loss + pairs[1] * pair_loss(pred, y, pairs[0])
+            if pairs is not None:
+                loss = loss + pairs.loss(pred, y)
             return loss
         if self.k == 1:  # u (B, U, 14), y (B, U, 2, D, H, W): pushforward over U transitions
             return pushforward_loss(self.train_model, x, u.to(dev), y.to(dev), autocast, mf,

@@ -204,13 +204,16 @@ def _log_to_file(out: Path) -> logging.Handler:
 def _check_like_data(path: Path, tf: Any, flag: str) -> None:
     """Refuse a further trajectory file (``flag`` = --extra-data or --pair-data) that is missing, has no
     complete case, or was not made by the main data file's scene, simulator configuration and rules. The
-    simulated domain may differ: a quarter-domain run (``SimConfig.domain``) simulates the same mean
-    evolution between mirror walls (benchmarks/small/sim_quarter.md)."""
+    simulated domain and the random numbers may differ: a quarter-domain run (``SimConfig.domain``)
+    simulates the same mean evolution between mirror walls (benchmarks/small/sim_quarter.md), and
+    counter-based streams (``SimConfig.rng_mode``, the sweep pairs' common random numbers) draw the same
+    distributions."""
     from nemsim.data.hdf5 import open_trajectories
 
     def physics(generator: dict) -> Any:
         config = generator.get("config")
-        return {k: v for k, v in config.items() if k != "domain"} if isinstance(config, dict) else config
+        free = ("domain", "rng_mode")
+        return {k: v for k, v in config.items() if k not in free} if isinstance(config, dict) else config
 
     if not Path(path).is_file():
         raise TrainInputError(f"{flag} {path} does not exist")
@@ -250,13 +253,13 @@ def _memory_set(sets: list[Any], cfg: Any) -> Any:
     return MemoryTransitions(sets, device=device if device.type == "cuda" else "cpu", progress=cfg.progress)
 
 
-def _pair_set(path: Path, tf: Any, visible: int | None, unroll: int) -> Any:
-    """The sweep pairs of a pair file (``--pair-data``; ``TrainConfig.pair_loss_weight``)."""
+def _pair_set(path: Path, tf: Any, visible: int | None, unroll: int, shape: dict[str, bool]) -> Any:
+    """The sweep pairs of a pair file (``--pair-data``), shaped as the training items (``shape``)."""
     from nemsim.data.dataset import PairDataset
 
     _check_like_data(path, tf, "--pair-data")
     try:
-        return PairDataset(path, unroll=unroll, visible_transitions=visible)
+        return PairDataset(path, unroll=unroll, visible_transitions=visible, **shape)
     except ValueError as exc:
         raise TrainInputError(str(exc)) from None
 
@@ -302,13 +305,14 @@ def _load_data(job: TrainJob, cfg: TrainConfig) -> tuple[Any, dict, Any]:
         train_set = _memory_set([train_set, *extra_sets], cfg)
     elif extra_sets:
         train_set = TransitionSets([train_set, *extra_sets])
-    pairs = None if job.pair_data is None else _pair_set(job.pair_data, tf, visible, unroll)
+    pairs = None if job.pair_data is None else _pair_set(job.pair_data, tf, visible, unroll, shape)
     if pairs is not None:
-        log.info("sweep pairs: %s (%d pairs), %d per step, pair_loss_weight %g", job.pair_data,
-                 len(pairs.pairs), cfg.pairs_per_step, cfg.pair_loss_weight)
-    elif cfg.pair_loss_weight > 0:
-        raise TrainInputError("pair_loss_weight > 0 needs --pair-data FILE.h5 (sweep pairs: `nemsim design "
-                              "--kind pairs`, then `nemsim generate --controls`)")
+        log.info("sweep pairs: %s (%d pairs), %d per step, pair_loss_weight %g, response_loss_weight %g",
+                 job.pair_data, len(pairs.pairs), cfg.pairs_per_step, cfg.pair_loss_weight,
+                 cfg.response_loss_weight)
+    elif cfg.pair_loss_weight > 0 or cfg.response_loss_weight > 0:
+        raise TrainInputError("pair_loss_weight and response_loss_weight need --pair-data FILE.h5 (sweep "
+                              "pairs: `nemsim design --kind pairs`, then `nemsim generate --controls`)")
     data = TrainData(train=train_set, val=TrajectoryDataset(job.data, manifest, "val"), pairs=pairs)
     log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", job.setting,
              len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)

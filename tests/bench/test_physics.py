@@ -94,10 +94,27 @@ def test_cli_bench_physics(tiny_checkpoint, tmp_path, capsys):
     assert "planned: " in text and "simulator runs" in text
     rep = json.loads((out / "physics.json").read_text())
     assert set(rep["sweeps"]) == set(CONTROL_GROUPS) and len(rep["heldout"]) == 1
+    assert rep["simulator_cost"]["rng_mode"] == "counter"  # common random numbers by default
     assert (out / "physics.png").stat().st_size > 1000
     assert (out / "physics.md").read_text().startswith("# Physics")
     assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--levels", "2"]) == 2
     assert main(["bench", "physics", "--checkpoint", str(tiny_checkpoint), "--sim-steps", "1000"]) == 2
+
+
+def test_truth_runs_share_their_random_numbers_unless_told(tiny_checkpoint):
+    import argparse
+
+    from bench.cli.common import add_truth_options, sim_truth
+    from nemsim.inference.checkpoint import load_checkpoint
+
+    parser = argparse.ArgumentParser()
+    add_truth_options(parser)
+    loaded = load_checkpoint(tiny_checkpoint)
+    cases = (([], "counter"), (["--sim-rng", "stream"], "stream"),
+             (["--sim-rng", "stream", "--set", "rng_mode=counter"], "counter"))  # --set has the last word
+    for argv, want in cases:
+        with sim_truth(parser.parse_args(argv), loaded) as truth:
+            assert truth.config.rng_mode == want
 
 
 def test_sim_truth_cache(tiny_scene, tmp_path):

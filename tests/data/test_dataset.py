@@ -97,7 +97,16 @@ def test_pair_items_stack_the_two_cases_that_share_a_seed(make_file, tiny_scene,
     one = PairDataset(path)  # one transition per item: (2, 14) controls, (2, C, D, H, W) targets
     x1, u1, y1 = one[3]
     assert u1.shape == (2, 14) and decode(y1[1]) == (1, 4)
-    ds.close(), one.close()
+    # shaped as a quarter-domain model's training items: symmetrized, folded to the quadrant
+    shape = {"symmetrize": True, "quarter": True}
+    quad = PairDataset(path, unroll=2, **shape)
+    items = TransitionDataset(path, None, "train", unroll=2, **shape)
+    xq, uq, yq = quad[n + 3]
+    for m, row in enumerate((2, 3)):
+        xi, ui, yi = items[row * n + 3]
+        assert torch.equal(xq[m], xi) and torch.equal(uq[m], ui) and torch.equal(yq[m], yi)
+    assert xq.shape[-1] < x.shape[-1]
+    ds.close(), one.close(), quad.close(), items.close()
 
     with h5py.File(path, "r+") as f:
         f["seeds"][:] = [7, 7, 7, 9, 11, 12]

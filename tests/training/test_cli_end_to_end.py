@@ -184,6 +184,26 @@ def test_extra_data_adds_training_cases(tmp_path, tiny_data, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_further_data_may_differ_from_the_main_file_in_domain_and_random_numbers_only(tmp_path, tiny_data):
+    import shutil
+
+    from nemsim.data.hdf5 import open_trajectories
+    from nemsim.training.run import TrainInputError, _check_like_data
+
+    files = {}
+    for name, config in (("main", {"voxel_nm": 8.0, "domain": "full", "rng_mode": "stream"}),
+                         ("crn", {"voxel_nm": 8.0, "domain": "quarter", "rng_mode": "counter"}),
+                         ("other", {"voxel_nm": 4.0, "domain": "full", "rng_mode": "stream"})):
+        files[name] = tmp_path / f"{name}.h5"
+        shutil.copy(tiny_data, files[name])
+        with h5py.File(files[name], "r+") as f:
+            f.attrs["generator"] = json.dumps({"config": config})
+    with open_trajectories(files["main"]) as tf:
+        _check_like_data(files["crn"], tf, "--pair-data")  # quarter domain, common random numbers: accepted
+        with pytest.raises(TrainInputError, match="simulator configuration differs"):
+            _check_like_data(files["other"], tf, "--pair-data")
+
+
 def test_pair_data_joins_every_batch_and_is_required_by_its_weight(tmp_path, tiny_data, capsys):
     import shutil
 
@@ -200,6 +220,6 @@ def test_pair_data_joins_every_batch_and_is_required_by_its_weight(tmp_path, tin
     log = (out / "train.log").read_text()
     assert f"sweep pairs: {pairs} (2 pairs), 2 per step, pair_loss_weight 1" in log
     assert main(_train_args(tiny_data, tmp_path / "bad", "--no-test", "--config", str(cfg))) == 2
-    assert "needs --pair-data" in capsys.readouterr().err
+    assert "need --pair-data" in capsys.readouterr().err
     assert main(_train_args(tiny_data, tmp_path / "bad", "--pair-data", str(tiny_data))) == 2
     assert "no two complete cases share a simulator seed" in capsys.readouterr().err

@@ -90,3 +90,14 @@ def test_wall_budget_schedule_spans_the_budget():
     assert lr_at(4, 7, cfg, wall_s=300.0) == pytest.approx(half * 5 / 10)  # warm-up step 5 of 10
     assert lr_at(10, 7, cfg, wall_s=0.0) == pytest.approx(cfg.lr)
     assert lr_at(10, 7, cfg, wall_s=600.0) == lr_at(10, 7, cfg, wall_s=5000.0) == pytest.approx(cfg.min_lr)
+
+
+def test_bf16_by_default_only_where_the_device_computes_in_it(monkeypatch):
+    from nemsim.training import config as config_mod
+
+    assert TrainConfig().bf16 is None  # resolved by the training run for its device
+    monkeypatch.setattr(config_mod, "cpu_flags", lambda: {"avx2", "fma"})
+    assert not config_mod.native_bf16("cpu") and config_mod.native_bf16("cuda")
+    for flag in ("avx512_bf16", "amx_bf16"):
+        monkeypatch.setattr(config_mod, "cpu_flags", lambda flag=flag: {"avx2", flag})
+        assert config_mod.native_bf16("cpu")

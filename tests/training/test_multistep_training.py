@@ -21,6 +21,7 @@ from nemsim.scenes import SMALL as SMALL_SCENE
 from nemsim.training.config import TrainConfig
 from nemsim.training.loop import (
     ModelMeta,
+    PairTerms,
     TrainData,
     multistep_loss,
     pushforward_loss,
@@ -284,14 +285,52 @@ def test_pair_loss_adds_lambda_times_the_error_of_the_predicted_differences():
     u = torch.zeros(3, 2, 14)
     base = multistep_loss(m, x, u, y, 2, nullcontext())
     # predicted differences 2 (3 - 1) = 4 and 4 (3 - 1) = 8 against 1: errors 3 and 7 -> (9 + 49) / 2 = 29
-    both = multistep_loss(m, x, u, y, 2, nullcontext(), pairs=(1, 0.5))
+    both = multistep_loss(m, x, u, y, 2, nullcontext(), pairs=PairTerms(1, 0.5, 0.0, SMALL_SCENE))
     assert both.item() == pytest.approx(base.item() + 0.5 * 29.0)
     with torch.no_grad():
         pred = m(x, u[:, 0], all_steps=True)
     assert pair_loss(pred, y, 1).item() == pytest.approx(29.0)
-    assert multistep_loss(m, x, u, y, 2, nullcontext(), pairs=(1, 0.0)).item() == pytest.approx(base.item())
+    off = PairTerms(1, 0.0, 0.0, SMALL_SCENE)
+    assert multistep_loss(m, x, u, y, 2, nullcontext(), pairs=off).item() == pytest.approx(base.item())
     with pytest.raises(ValueError, match="pair_loss_weight"):
         TrainConfig(pair_loss_weight=-1.0)
+
+
+def test_response_loss_is_the_error_of_the_pairs_metric_differences_in_voxels(make_hole):
+    from nemsim.symmetry import fold
+    from nemsim.training.loop import response_loss
+
+    def hole(depth: float, radius: float = 5.0) -> torch.Tensor:
+        return torch.from_numpy(make_hole(SMALL_SCENE, radius, depth))
+
+    # a sample, then one pair whose second member is 2 voxels deeper; the prediction moves nothing
+    target = torch.stack([hole(4.0), hole(4.0), hole(6.0)])
+    pred = torch.stack([hole(9.0), hole(4.0), hole(4.0)])
+    # errors of the differences in voxels: depth 2, top, bottom and mask 0 -> 2^2 / 4 = 1; the lone
+    # sample's error (depth 5 voxels) does not count
+    assert response_loss(pred, target, 1, SMALL_SCENE).item() == pytest.approx(1.0, abs=0.05)
+    assert response_loss(target, target, 1, SMALL_SCENE).item() == 0.0
+    moved = torch.stack([hole(9.0), hole(7.0), hole(9.0)])  # any pair with the simulated difference
+    assert response_loss(moved, target, 1, SMALL_SCENE).item() == pytest.approx(0.0, abs=0.05)
+    # a quarter-domain model's quadrants give the same loss; k states per sample all count
+    quad = response_loss(fold(pred)[:, None], fold(target)[:, None], 1, SMALL_SCENE)
+    assert quad.item() == pytest.approx(response_loss(pred, target, 1, SMALL_SCENE).item(), rel=1e-6)
+    p = fold(pred).clone().requires_grad_(True)
+    response_loss(p, fold(target), 1, SMALL_SCENE).backward()
+    assert p.grad is not None and p.grad[-2:].abs().sum() > 0 and p.grad[0].abs().sum() == 0
+    with pytest.raises(ValueError, match="response_loss_weight"):
+        TrainConfig(response_loss_weight=-1.0)
+
+
+def test_pair_terms_add_both_weighted_differences(make_hole):
+    from nemsim.training.loop import pair_loss, response_loss
+
+    states = [torch.from_numpy(make_hole(SMALL_SCENE, 5.0, d)) for d in (4.0, 5.0, 7.0, 3.0)]
+    target, pred = torch.stack(states[:2]), torch.stack(states[2:])
+    terms = PairTerms(1, 0.3, 0.02, SMALL_SCENE)
+    want = 0.3 * pair_loss(pred, target, 1) + 0.02 * response_loss(pred, target, 1, SMALL_SCENE)
+    assert float(terms.loss(pred, target)) == pytest.approx(want.item())
+    assert PairTerms(1, 0.0, 0.0, SMALL_SCENE).loss(pred, target) == 0.0
 
 
 def _pair_copy(tiny_data, tmp_path):
@@ -329,8 +368,10 @@ def test_training_with_sweep_pairs_adds_them_to_every_batch(tmp_path, tiny_data,
     summary = train(cfg, model, TrainData(items, val, pairs), tmp_path / "pairs-train", meta)
     rows = list(csv.DictReader((tmp_path / "pairs-train" / "metrics.csv").open()))
     assert summary["epochs"] == 1 and float(rows[0]["train_loss"]) > 0 and rows[0]["val_avg_rmse"]
-    with pytest.raises(ValueError, match="needs sweep pairs"):
+    with pytest.raises(ValueError, match="need sweep pairs"):
         train(cfg, model, TrainData(items, val), tmp_path / "no-pairs", meta)
+    with pytest.raises(ValueError, match="need sweep pairs"):
+        train(_cfg(response_loss_weight=1e-3), model, TrainData(items, val), tmp_path / "no-pairs-r", meta)
 
 
 def test_unroll_grad_backpropagates_through_the_chained_calls():
