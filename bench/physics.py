@@ -53,6 +53,7 @@ from nemsim.controls import (
 from nemsim.evaluation.figure import pyplot, save_figure
 from nemsim.evaluation.truth import SimTruth, compare_case, predict, write_report
 
+RNG_LABELS = {"counter": "common random numbers", "stream": "independent streams"}  # SimConfig.rng_mode
 SWEEP_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss", "bowing")
 RESOLVED_SE = 2.0  # a simulator slope counts as resolved beyond this many standard errors
 
@@ -188,8 +189,9 @@ METRIC_LABELS = {"etch_depth": "depth", "top_width": "top w", "bottom_width": "b
 def format_markdown(rep: dict[str, Any]) -> str:
     """Markdown tables: sweeps (per group and metric), held-out cases, summary."""
     nl = len(rep["config"]["seeds"])
+    rng = rep.get("simulator_cost", {}).get("rng_mode", "stream")
     lines = [f"# Physics benchmark ({rep['scene']}, {rep['steps']} transitions, simulator seeds "
-             f"{rep['config']['seeds']}, {nl} runs per recipe)", "",
+             f"{rep['config']['seeds']}, {nl} runs per recipe, {RNG_LABELS.get(rng, rng)})", "",
              "## (a) One control group at a time from the median recipe (final state)", "",
              "Levels are normalized controls (-1 = design minimum, +1 = maximum). Slopes in nm per "
              f"normalized unit ± the standard error of the simulator's (half the difference of its two "
