@@ -5,25 +5,19 @@ from __future__ import annotations
 
 import os
 import platform
-from pathlib import Path
 
-from nemsim.training.config import cpu_flags
+from nemsim.training.config import CPU_BF16_FLAGS, cpu_info
 
 # instruction-set extensions that change the speed of bf16 inference and training
-_FLAGS = ("avx512_bf16", "amx_bf16", "amx_tile")
+_FLAGS = (*CPU_BF16_FLAGS, "amx_tile")
 
 
 def cpu_name() -> str:
     """e.g. "<model name> (2 logical CPUs; avx512_bf16)"; the bare architecture without /proc/cpuinfo."""
-    info = Path("/proc/cpuinfo")
-    if not info.is_file():
+    info = cpu_info()
+    if not info:
         return platform.processor() or platform.machine()
-    model = ""
-    for line in info.read_text(errors="replace").splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() == "model name":
-            model = value.strip()
-            break
-    flags = cpu_flags()
+    flags = set(info.get("flags", "").split())
     present = [f for f in _FLAGS if f in flags] or ["no AVX-512 BF16, no AMX"]
-    return f"{model or platform.machine()} ({os.cpu_count()} logical CPUs; {', '.join(present)})"
+    model = info.get("model name") or platform.machine()
+    return f"{model} ({os.cpu_count()} logical CPUs; {', '.join(present)})"

@@ -52,16 +52,22 @@ DEFAULT_BF16 = None  # None: ``native_bf16`` of the training device
 CPU_BF16_FLAGS = ("avx512_bf16", "amx_bf16")  # /proc/cpuinfo flags of CPUs that compute in bfloat16
 
 
-def cpu_flags() -> set[str]:
-    """The instruction-set flags of this machine's first CPU (/proc/cpuinfo; empty where there is none)."""
+def cpu_info() -> dict[str, str]:
+    """Each /proc/cpuinfo field's first value ("model name", "flags", ...); {} where there is none."""
     info = Path("/proc/cpuinfo")
     if not info.is_file():
-        return set()
+        return {}
+    out: dict[str, str] = {}
     for line in info.read_text(errors="replace").splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() == "flags":
-            return set(value.split())
-    return set()
+        key, sep, value = line.partition(":")
+        if sep:
+            out.setdefault(key.strip(), value.strip())
+    return out
+
+
+def cpu_flags() -> set[str]:
+    """The instruction-set flags of this machine's first CPU (empty where /proc/cpuinfo has none)."""
+    return set(cpu_info().get("flags", "").split())
 
 
 def native_bf16(device_type: str) -> bool:
