@@ -1,5 +1,7 @@
-# NEMSim inference service, CPU-only image.
-#   docker build -t nemsim .
+# NEMSim inference service image, with torch's CPU build (the rule of `make serve`) unless TORCH=cuda.
+#   docker build -t nemsim .                              # or: make container
+#   docker build --build-arg TORCH=cuda -t nemsim-cuda .  # or: make container TORCH=cuda; PyPI's CUDA build,
+#       for `docker run --gpus all ... nemsim-cuda nemsim serve --host 0.0.0.0 --device cuda`
 #   docker run -p 8000:8000 -e NEMSIM_API_KEYS=<a key of >= 16 characters> nemsim
 #       serves checkpoints/nemsim-small.pt; docs at http://localhost:8000/docs; clients send the header X-API-Key.
 #       Without keys the server answers only clients inside the container (it warns at start-up).
@@ -17,18 +19,25 @@
 ARG BASE_IMAGE=python:3.11-slim
 
 FROM ${BASE_IMAGE} AS build
+ARG TORCH=cpu
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 ENV PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PATH=/opt/nemsim/bin:$PATH
 RUN python3 -m venv /opt/nemsim
 
-# torch first, as a CPU wheel, so the package install below does not pull CUDA wheels
+# torch first, as a CPU wheel (TORCH=cuda: PyPI's build), so the package install below keeps it
 COPY docker/wheels/ /wheels/
 RUN set -e; \
     wheel=$(ls /wheels/torch-2.13.0+cpu-*.whl 2>/dev/null | head -n 1); \
-    if [ -n "$wheel" ]; then pip install "$wheel"; \
-    else pip install --index-url "$TORCH_INDEX_URL" torch==2.13.0; fi
+    case "$TORCH" in \
+      cuda) pip install torch==2.13.0 ;; \
+      cpu) if [ -n "$wheel" ]; then pip install "$wheel"; \
+           elif ! pip install --index-url "$TORCH_INDEX_URL" torch==2.13.0; then \
+             echo "no CPU torch: $TORCH_INDEX_URL unreachable and no wheel in docker/wheels/ (above)" >&2; exit 1; \
+           fi ;; \
+      *) echo "TORCH=$TORCH: expected cpu (the default) or cuda" >&2; exit 2 ;; \
+    esac
 
 WORKDIR /src
 COPY pyproject.toml README.md ./
@@ -36,7 +45,7 @@ COPY nemsim ./nemsim
 COPY service ./service
 COPY rules ./rules
 RUN pip install ".[service]" \
-    && python -c "import torch, service.main; assert torch.version.cuda is None, torch.version.cuda"
+    && python -c "import torch, service.main; assert (torch.version.cuda is not None) == ('$TORCH' == 'cuda')"
 
 FROM ${BASE_IMAGE}
 ENV PYTHONDONTWRITEBYTECODE=1 \

@@ -3,10 +3,27 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
+# torch is installed first, so the package install keeps it: the CPU build from the PyTorch CPU index by
+# default (PyPI's torch is the CUDA build on Linux, with some 20 NVIDIA packages); where that index cannot
+# serve it, the default index's build, after a one-line message. TORCH=cuda (`make serve TORCH=cuda`): the
+# default index's build, for an NVIDIA GPU. The container takes the same switch (`make container`).
+TORCH ?= cpu
+TORCH_PIN := torch==2.13.0
+TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
+ifeq ($(TORCH),cpu)
+TORCH_INSTALL = $(BIN)/pip install -q --index-url $(TORCH_CPU_INDEX) $(TORCH_PIN) \
+	|| { echo "make: the CPU index $(TORCH_CPU_INDEX) could not serve $(TORCH_PIN): installing the default index's torch (CUDA on Linux)" >&2; \
+	     $(BIN)/pip install -q $(TORCH_PIN); }
+else ifeq ($(TORCH),cuda)
+TORCH_INSTALL = $(BIN)/pip install -q $(TORCH_PIN)
+else
+$(error TORCH=$(TORCH): expected cpu (the default) or cuda)
+endif
+
 $(BIN)/nemsim: pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q torch==2.13.0
+	$(TORCH_INSTALL)
 	$(BIN)/pip install -q -e '.[service,test]'
 	touch $(BIN)/nemsim
 
@@ -25,7 +42,8 @@ test: venv
 IMAGE ?= nemsim
 BASE_IMAGE ?= python:3.11-slim
 container:
-	docker build --build-arg BASE_IMAGE=$(BASE_IMAGE) -t $(IMAGE) .
+	docker build --build-arg BASE_IMAGE=$(BASE_IMAGE) --build-arg TORCH=$(TORCH) \
+	    --build-arg TORCH_INDEX_URL=$(TORCH_CPU_INDEX) -t $(IMAGE) .
 
 .PHONY: container
 

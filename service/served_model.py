@@ -55,7 +55,7 @@ class RolloutResult:
     steps: int
     controls_raw: np.ndarray  # (T, 14) physical units
     encoded: Future[CompactStates]  # the states being stored (`states` waits for them)
-    metrics: dict[str, list[float | None]]  # name -> (T+1,) values in nm, None where not finite
+    metrics: dict[str, list[float | None]]  # name -> (T+1,) values in nm, None where undefined
     times_s: list[float]  # (T+1,)
     rollout_ms: float
     metrics_ms: float
@@ -254,7 +254,7 @@ class ServedModel:
         try:  # a symmetric model's rollout stays on the quadrant (what the cache keeps; a quarter the work)
             pred = self.predictor.rollout(schedule, out=buf, quadrant=True)
             metrics = {
-                k: [v if math.isfinite(v) else None for v in vals.tolist()]  # JSON has no NaN / Inf
+                k: [v if math.isfinite(v) else None for v in vals.tolist()]  # undefined (NaN): null
                 for k, vals in pred.metrics.items()
             }
         except BaseException:

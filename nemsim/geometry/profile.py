@@ -27,7 +27,17 @@ Definitions (nm = voxels * scene.voxel_nm):
     per column) over the planar field, the columns at least opening_radius + d_max from the axis (else all
     outside opening_radius + 1); a column without mask counts as fully eroded.
 
-:func:`profile_metrics_batch` is vectorized over a leading step axis (T, 2, D, H, W). It also takes the
+Where a width is a measurement: on a row of sidewall, at least h_b above the floor (the rows below belong
+to the rounded floor, which is why ``bottom_width`` is taken h_b up). ``measured_profile_metrics`` reports
+NaN until then: ``top_width`` and ``bottom_width`` until the top Si row is sidewall (a hole 1.5 voxels
+deep), ``neck_width`` and ``bowing`` until the first reference row is (3.5 voxels). The neck is the
+narrowest row above the bow, and the bow row is wherever the widening peaks, so when a faint bulge appears
+lower down the neck moves to another row and its width jumps; ``neck_depth`` (nm below the initial Si top)
+names the row the neck was measured on, so a jump of ``neck_width`` shows as a change of ``neck_depth``.
+``profile_metrics_batch`` gives a number at every step, which searches and losses need; where a metric is
+undefined that number stands in for it (0, a width of the rounded floor, or for the neck the top width).
+
+Both are vectorized over a leading step axis (T, 2, D, H, W). They also take the
 states' quadrant (T, 2, D, c, c) (``nemsim.symmetry.fold``) of fields exactly symmetric under the square's
 mirrors (a quarter-domain model's rollout): the lines through the axis and the mask-top map are rebuilt by
 reflection from the quadrant, so the metrics equal those of the unfolded fields without building them.
@@ -152,15 +162,8 @@ def _field_columns_mask(scene: Scene) -> np.ndarray:
     return sel
 
 
-def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
-    """Profile metrics of a sequence of states (see the module docstring for the definitions).
-
-    Args:
-        states: (T, 2, D, H, W) normalized SDF states (numpy or CPU torch).
-        scene: the scene the states belong to.
-    Returns:
-        {name: (T,) float64 in nm} for the names in ``METRIC_NAMES``.
-    """
+def _measure(states: Any, scene: Scene) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """(``profile_metrics_batch``'s metrics, the neck row's depth (T,) in voxels below the initial Si top)."""
     if hasattr(states, "detach"):
         states = states.detach().cpu().numpy()
     x = np.asarray(states)
@@ -202,8 +205,13 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
     excess = np.where(in_hole, w_down - neck_above, -np.inf)  # (T, ref + 1) widening over the neck
     k_bow = np.argmax(excess, axis=1) if excess.shape[1] else np.zeros(t_count, dtype=np.int64)
     bowing = np.where(has_rows, np.maximum(np.take_along_axis(excess, k_bow[:, None], 1)[:, 0], 0.0), 0.0)
-    neck = np.where(has_rows, np.take_along_axis(neck_above, k_bow[:, None], 1)[:, 0], top_w) \
-        if excess.shape[1] else top_w
+    if excess.shape[1]:  # the neck: the narrowest in-hole row from the first reference row down to the bow
+        upto_bow = np.arange(excess.shape[1])[None, :] <= k_bow[:, None]
+        k_neck = np.argmin(np.where(in_hole & upto_bow, w_down, np.inf), axis=1)
+        neck = np.where(has_rows, np.take_along_axis(w_down, k_neck[:, None], 1)[:, 0], top_w)
+    else:
+        k_neck, neck = k_bow, top_w
+    neck_depth = BOW_SKIP_ROWS + 0.5 + k_neck  # voxels below the initial Si top (w_down[:, j]: row ref - j)
 
     # --- bottom width: interpolate the Si field to h_b above the floor --------------------------
     h_b = np.maximum(BOTTOM_FRACTION * depth, BOTTOM_MIN_VOX)
@@ -229,7 +237,7 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
         m_top = _first_crossing(m_cols, m_rows).mean(axis=1)  # (T,)
     mask_loss = (scene.resist_top + 0.5) - m_top
 
-    return {
+    metrics = {
         "etch_depth": depth * vox,
         "top_width": top_w * vox,
         "neck_width": neck * vox,
@@ -237,6 +245,42 @@ def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
         "bowing": bowing * vox,
         "mask_loss": mask_loss * vox,
     }
+    return metrics, neck_depth
+
+
+def profile_metrics_batch(states: Any, scene: Scene) -> dict[str, np.ndarray]:
+    """Profile metrics of a sequence of states (see the module docstring for the definitions), a number at
+    every step; users are shown ``measured_profile_metrics``.
+
+    Args:
+        states: (T, 2, D, H, W) normalized SDF states (numpy or CPU torch).
+        scene: the scene the states belong to.
+    Returns:
+        {name: (T,) float64 in nm} for the names in ``METRIC_NAMES``.
+    """
+    return _measure(states, scene)[0]
+
+
+def measured_profile_metrics(states: Any, scene: Scene) -> dict[str, np.ndarray]:
+    """The profile metrics as measurements: ``profile_metrics_batch``'s values, NaN at the steps where a
+    metric is undefined, plus ``neck_depth`` (module docstring).
+
+    Args:
+        states: (T, 2, D, H, W) normalized SDF states (numpy or CPU torch), or their quadrant.
+        scene: the scene the states belong to.
+    Returns:
+        {name: (T,) float64 in nm, NaN where undefined} for the names in ``METRIC_NAMES`` and
+        ``neck_depth``.
+    """
+    metrics, neck_depth = _measure(states, scene)
+    out = dict(metrics, neck_depth=neck_depth * scene.voxel_nm)
+    depth = metrics["etch_depth"] / scene.voxel_nm  # (T,) voxels
+    sidewall = depth - np.maximum(BOTTOM_FRACTION * depth, BOTTOM_MIN_VOX)  # deepest sidewall (voxels down)
+    ref = 0.5 + BOW_SKIP_ROWS  # depth of the first reference row (the top Si row's centre: 0.5)
+    for name, row in (("top_width", 0.5), ("bottom_width", 0.5), ("neck_width", ref), ("bowing", ref),
+                      ("neck_depth", ref)):  # fmt: skip
+        out[name] = np.where(sidewall >= row, out[name], np.nan)
+    return out
 
 
 def profile_metrics(state: Any, scene: Scene) -> dict[str, float]:

@@ -371,10 +371,11 @@ class Predictor:
         return tuple(self.x0.shape)
 
     def metrics(self, states: np.ndarray) -> dict[str, np.ndarray]:
-        """Profile metrics (nm) of states (T+1, 2, D, H, W): name -> (T+1,) (``profile_metrics_batch``)."""
-        from nemsim.geometry.profile import profile_metrics_batch
+        """Profile metrics (nm) of states (T+1, 2, D, H, W): name -> (T+1,), NaN where undefined
+        (``measured_profile_metrics``)."""
+        from nemsim.geometry.profile import measured_profile_metrics
 
-        return profile_metrics_batch(states, self.scene)
+        return measured_profile_metrics(states, self.scene)
 
     def warm_up(self, steps: int) -> None:
         """One short rollout so the first request does not pay for allocation / graph compilation; on CUDA

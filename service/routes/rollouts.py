@@ -3,9 +3,11 @@
 Exports of a cached rollout, by its id (404 once it left the cache, as for its meshes):
 
 * `metrics.csv`: one row per state; columns `step`, `time [s]` and each profile metric in nm (the unit in
-  the column name, so a spreadsheet keeps it), undefined values as empty cells; `#` comment lines first
-  name the model, the scene and the controls (a recipe adds one column per control instead). Built on a
-  worker thread without a gate: a few hundred rows cost less than a gate's bookkeeping.
+  the column name, so a spreadsheet keeps it; `neck_depth`: the row the neck is measured on), undefined
+  values (`nemsim.geometry.profile`: the hole has not reached the row a width is measured on) as empty
+  cells; `#` comment lines first name the model, the scene and the controls (a recipe adds one column per
+  control instead) and say what an empty cell and `neck_depth` mean. Built on a worker thread without a
+  gate: a few hundred rows cost less than a gate's bookkeeping.
 * `trajectory.h5`: the states in the simulator's data-file layout (`nemsim.data.hdf5`, one case), so
   `nemsim.data.hdf5.open_trajectories` and every HDF5 tool read it (`_write_trajectory`). Decoding and
   compressing every state is real work: it waits at the mesh gate like a mesh export.
@@ -48,6 +50,7 @@ from service.schemas import (
 from service.served_model import RolloutResult, ServedModel, UnknownRollout
 
 router = APIRouter(tags=["rollouts"])
+UNDEFINED = "not defined at that step (the hole has not reached the row it is measured on)"  # empty / NaN
 
 
 def _mesh_url(rollout_id: str, step: int, channel: str, fmt: str) -> str:
@@ -275,6 +278,10 @@ def metrics_csv(served: ServedModel, result: RolloutResult) -> str:
         )
     else:
         out.write(f"# controls (physical units): {json.dumps(array_to_controls(raw[0]))}\n")
+    out.write(
+        f"# empty cell: {UNDEFINED}; neck_depth: the row neck_width is measured on (the neck width jumps "
+        "where the neck moves to another row)\n"
+    )
     names = list(result.metrics)
     header = ["step", "time [s]"] + [f"{n} [nm]" for n in names]
     if varying:
@@ -296,8 +303,9 @@ def _write_trajectory(served: ServedModel, result: RolloutResult) -> bytes:
     transition's, `case_ids` [0], `seeds` [-1] (no simulator seed), `complete` [1]; the root attributes
     of the data files (scene JSON, control and channel names, `d_max`, rules SHA-256, `generator`
     naming the model) plus `source`, `model_id`, `rollout_id`, `voxel_nm` and `controls` (JSON). Extra:
-    `metrics/<name>` (T+1,) nm, NaN where undefined. `check_dataset`'s data-set checks (T = the scene's
-    horizon, controls inside the design ranges) may flag a rollout that differs from a simulated case."""
+    `metrics/<name>` (T+1,) nm, NaN where undefined (attribute `nan` says so). `check_dataset`'s data-set
+    checks (T = the scene's horizon, controls inside the design ranges) may flag a rollout that differs from
+    a simulated case."""
     import h5py
 
     from nemsim.data.hdf5 import CHANNEL_NAMES, DEFAULT_COMPRESSION, FORMAT_VERSION
@@ -348,7 +356,7 @@ def _write_trajectory(served: ServedModel, result: RolloutResult) -> bytes:
         f.create_dataset("case_meta", data=[json.dumps(provenance)], dtype=h5py.string_dtype())
         for name, values in result.metrics.items():
             f[f"metrics/{name}"] = np.array([np.nan if v is None else v for v in values], dtype=np.float64)
-            f[f"metrics/{name}"].attrs["unit"] = "nm"
+            f[f"metrics/{name}"].attrs.update(unit="nm", nan=UNDEFINED)
     return buf.getvalue()
 
 

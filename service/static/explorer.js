@@ -116,24 +116,8 @@ function requestBody() {
 }
 
 // --- metrics: undefined is a gap --------------------------------------------------------------------
-// A width exists once the hole reaches the row it is measured on (nemsim.geometry.profile): the top width
-// at the top Si row (its centre half a voxel below the initial Si top), the bottom width from a hole one
-// voxel deep, the neck and the bowing from their first reference row (two rows further down, 2.5 voxels).
-// Before that the API reports 0 (or the top width, for the neck); the page shows nothing there.
-const DEFINED_FROM_VOX = { top_width: [0.5, false], bottom_width: [1, true], neck_width: [2.5, false], bowing: [2.5, false] };
-function definedMetrics(metrics) {
-  const depth = metrics.etch_depth, vox = state.model.scene.voxel_nm;
-  if (!depth) return metrics;
-  const out = {};
-  for (const [n, vals] of Object.entries(metrics)) {
-    const rule = DEFINED_FROM_VOX[n];
-    out[n] = !rule ? vals : vals.map((v, k) => {
-      const d = depth[k], at = rule[0] * vox;
-      return d === null || v === null || (rule[1] ? d < at - 1e-9 : d <= at + 1e-9) ? null : v;
-    });
-  }
-  return out;
-}
+// The API sends null where a metric is not defined yet (the hole has not reached the row it is measured
+// on): the curves break there and the tables show "–".
 const last = (vals) => vals[vals.length - 1];
 
 // --- canvases fit their column ----------------------------------------------------------------------
@@ -275,10 +259,10 @@ function drawPlanes(step) {
 function drawChart() {
   const c = $('chart'), { ctx, w: cw, h: ch } = fitCanvas(c, 260);
   const run = state.run; if (!run) return;
-  const names = Object.keys(run.shown);
+  const names = Object.keys(run.metrics);
   const series = [[run, []], [state.a, [6, 4]], [state.sim, [2, 3]]].filter(([s]) => s);
   let ymin = 0, ymax = 1;
-  for (const [s] of series) for (const n of names) for (const v of (s.shown[n] || [])) if (v !== null) { ymin = Math.min(ymin, v); ymax = Math.max(ymax, v); }
+  for (const [s] of series) for (const n of names) for (const v of (s.metrics[n] || [])) if (v !== null) { ymin = Math.min(ymin, v); ymax = Math.max(ymax, v); }
   const tmax = Math.max(...series.map(([s]) => last(s.times_s)));
   const yt = niceTicks(ymin, ymax), xt = niceTicks(0, tmax);
   const L = 8 + Math.max(...yt.ticks.map((v) => ctx.measureText(yt.label(v)).width));
@@ -299,7 +283,7 @@ function drawChart() {
   names.forEach((n, i) => {
     ctx.strokeStyle = COLORS[i % COLORS.length];
     for (const [s, dash] of series) {
-      const vals = s.shown[n]; if (!vals) continue;
+      const vals = s.metrics[n]; if (!vals) continue;
       ctx.setLineDash(dash); ctx.lineWidth = 1.6; ctx.beginPath(); let pen = false;
       vals.forEach((v, k) => { if (v === null) { pen = false; return; } const x = X(s.times_s[k]), y = Y(v); pen ? ctx.lineTo(x, y) : ctx.moveTo(x, y); pen = true; });
       ctx.stroke();
@@ -320,7 +304,7 @@ function metricsTable() {
   if (state.a) cols.push(['A', state.a]);
   if (state.sim) cols.push(['simulator', state.sim]);
   let html = `<table><tr><th>at t = ${run.times_s[k].toFixed(1)} s (nm)</th>${cols.map(([n]) => `<th>${n}</th>`).join('')}</tr>`;
-  for (const n of Object.keys(run.shown)) html += `<tr><td>${n}</td>${cols.map(([, s]) => `<td>${nm1((s.shown[n] || [])[Math.min(k, s.shown[n].length - 1)])}</td>`).join('')}</tr>`;
+  for (const n of Object.keys(run.metrics)) html += `<tr><td>${n}</td>${cols.map(([, s]) => `<td>${nm1((s.metrics[n] || [])[Math.min(k, s.metrics[n].length - 1)])}</td>`).join('')}</tr>`;
   $('final-metrics').innerHTML = `${html}</table><p class="hint">– : not defined yet (the hole has not reached the row it is measured on)</p>`;
 }
 
@@ -426,7 +410,7 @@ async function run() {
   try {
     const { data } = await api('POST', '/rollout', body);
     (state.rolloutMs = state.rolloutMs || []).push(performance.now() - t0);
-    data.t0 = t0; data.shown = definedMetrics(data.metrics);
+    data.t0 = t0;
     state.run = data; state.body = body; state.sim = null;
     $('comparison').innerHTML = ''; $('rmse').hidden = true; $('job-status').textContent = '';
     showWarnings(data);
@@ -506,8 +490,8 @@ function renderAB() {
   let html = '<table><tr><th>control (over time)</th><th>A</th><th>current</th></tr>';
   html += diff.map((s) => `<tr><td>${s.name}</td><td>${show(seq(state.a, s.name))}</td><td>${show(seq(state.run, s.name))}</td></tr>`).join('') || '<tr><td colspan=3>same controls</td></tr>';
   html += '</table><table><tr><th>final (nm)</th><th>A</th><th>current</th><th>current − A</th></tr>';
-  for (const n of Object.keys(state.run.shown)) {
-    const a = last(state.a.shown[n]), b = last(state.run.shown[n]);
+  for (const n of Object.keys(state.run.metrics)) {
+    const a = last(state.a.metrics[n]), b = last(state.run.metrics[n]);
     html += `<tr><td>${n}</td><td>${nm1(a)}</td><td>${nm1(b)}</td><td>${a !== null && b !== null ? fixed(b - a) : '–'}</td></tr>`;
   }
   box.innerHTML = `${html}</table>`;
@@ -550,13 +534,13 @@ function drawRmse(res) {
   ctx.stroke();
 }
 function showComparison(res) {
-  state.sim = { metrics: res.simulator_metrics, shown: definedMetrics(res.simulator_metrics), times_s: res.times_s, result: res };
-  const surrogate = definedMetrics(res.surrogate_metrics);
+  state.sim = { metrics: res.simulator_metrics, times_s: res.times_s, result: res };
+  const surrogate = res.surrogate_metrics;
   $('rmse').hidden = false; drawRmse(res);
   let html = `<p>avg RMSE ${res.avg_rmse.toFixed(4)} (normalized SDF), simulator ${res.simulator_s.toFixed(1)} s, seed ${res.seed}</p>`;
   html += '<table><tr><th>final (nm)</th><th>surrogate</th><th>simulator</th><th>difference</th></tr>';
   for (const n of Object.keys(res.final_differences)) {
-    const s = last(surrogate[n]), m = last(state.sim.shown[n]);
+    const s = last(surrogate[n]), m = last(state.sim.metrics[n]);
     html += `<tr><td>${n}</td><td>${nm1(s)}</td><td>${nm1(m)}</td><td>${s !== null && m !== null ? fixed(s - m) : '–'}</td></tr>`;
   }
   html += '</table><button id="show-err">Show the simulator\'s Si surface at this time, coloured by the surrogate\'s error</button>';

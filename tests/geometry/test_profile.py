@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nemsim.geometry.profile import METRIC_NAMES, profile_metrics, profile_metrics_batch
+from nemsim.geometry.profile import (
+    BOW_SKIP_ROWS,
+    METRIC_NAMES,
+    measured_profile_metrics,
+    profile_metrics,
+    profile_metrics_batch,
+)
 from nemsim.scenes import SMALL
 
 
@@ -73,6 +79,46 @@ def test_batch_matches_single_and_torch(tiny_scene, make_hole):
         for k in METRIC_NAMES:
             assert batch[k][i] == pytest.approx(single[k]), k
     assert np.all(np.diff(batch["etch_depth"]) > 0)
+
+
+def test_measured_metrics_are_nan_until_their_row_is_sidewall(tiny_scene, make_hole):
+    """A width is measured once its row lies at least h_b (1 voxel here) above the floor: top and bottom
+    width from a hole 1.5 voxels deep, neck, bowing and neck_depth from 3.5; elsewhere the numbers are
+    ``profile_metrics_batch``'s."""
+    sc = tiny_scene
+    depths = (0.0, 1.2, 1.8, 3.2, 3.8)  # voxels
+    states = np.stack([make_hole(sc, 2.0, d) for d in depths])
+    measured, filled = measured_profile_metrics(states, sc), profile_metrics_batch(states, sc)
+    assert set(measured) == {*METRIC_NAMES, "neck_depth"}
+    defined_from = dict(top_width=1.5, bottom_width=1.5, neck_width=3.5, bowing=3.5, neck_depth=3.5)
+    for name, values in measured.items():
+        for d, value, number in zip(depths, values, filled.get(name, values), strict=True):
+            if d < defined_from.get(name, 0.0):
+                assert np.isnan(value), (name, d)
+            else:
+                assert value == number, (name, d)
+    # what the NaN replace: the bottom read on the top row, the neck standing in for the top width
+    assert filled["bottom_width"][1] == filled["top_width"][1]
+    assert filled["neck_width"][3] == filled["top_width"][3]
+
+
+def test_neck_depth_names_the_row_of_the_neck(tiny_scene, make_hole):
+    """The neck is the narrowest row above the bow: a one-row constriction above a bulge is the neck, and
+    neck_depth is that row's depth; in a straight hole (no bow) the neck is the first reference row."""
+    sc = tiny_scene
+    v = sc.voxel_nm
+    st = make_hole(sc, 1.5, 14.0, bow=1.5, bow_depth=10.0)  # radius 3 at native z 9..11
+    y, x = np.mgrid[0 : sc.ny + 2, 0 : sc.nx + 2] - 1.0  # native coordinates of the padded grid
+    r = np.hypot(x - sc.opening_centre[0], y - sc.opening_centre[1])
+    z = 15  # native row of the constriction: radius 1
+    st[1, z + 1] = np.minimum(st[1, z + 1], (1.0 - r) / sc.d_max_vox)
+    m = measured_profile_metrics(st[None], sc)
+    assert m["neck_width"][0] == pytest.approx(2.0 * v, abs=1e-3)
+    assert m["neck_depth"][0] == pytest.approx((sc.si_top - 0.5 - z) * v)
+    assert m["bowing"][0] == pytest.approx(4.0 * v, abs=1e-3)
+    straight = measured_profile_metrics(make_hole(sc, 1.5, 14.0)[None], sc)
+    assert straight["bowing"][0] == 0.0
+    assert straight["neck_depth"][0] == pytest.approx((0.5 + BOW_SKIP_ROWS) * v)
 
 
 def test_bad_shape(tiny_scene):

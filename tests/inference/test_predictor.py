@@ -28,9 +28,9 @@ def _mid() -> dict[str, float]:
 
 def test_physical_mapping_gives_the_rollout_of_the_library(predictor):
     """A mapping of physical controls gives exactly the trajectory and metrics of `rollout` on the
-    normalized vector (the path callers wrote by hand before) and of `profile_metrics_batch`."""
+    normalized vector (the path callers wrote by hand before) and of `measured_profile_metrics`."""
     from nemsim.evaluation.rollout import rollout
-    from nemsim.geometry.profile import profile_metrics_batch
+    from nemsim.geometry.profile import measured_profile_metrics
 
     controls, steps = _mid(), 3
     pred = predictor.rollout(controls, steps)
@@ -39,7 +39,7 @@ def test_physical_mapping_gives_the_rollout_of_the_library(predictor):
     with torch.inference_mode():
         ref = rollout(predictor.runtime, torch.from_numpy(predictor.x0)[None], u, steps)[0].numpy()
     np.testing.assert_array_equal(pred.states, ref)
-    for name, values in profile_metrics_batch(ref, predictor.scene).items():
+    for name, values in measured_profile_metrics(ref, predictor.scene).items():
         np.testing.assert_array_equal(pred.metrics[name], values)
     assert pred.steps == steps and len(pred.times_s) == steps + 1
     np.testing.assert_array_equal(pred.schedule.raw, np.tile(raw, (steps, 1)))

@@ -221,13 +221,13 @@ def test_concurrent_requests_are_safe(client):
 
 def test_served_trajectory_is_the_rollout(served, default_controls):
     """The server's trajectory (kept in a reused buffer, stored as float16) and metrics are those of
-    `nemsim.evaluation.rollout` and `profile_metrics_batch`, for consecutive rollouts of different
+    `nemsim.evaluation.rollout` and `measured_profile_metrics`, for consecutive rollouts of different
     lengths through the same buffer."""
     import torch
 
     from nemsim.controls import to_normalized
     from nemsim.evaluation.rollout import rollout
-    from nemsim.geometry.profile import profile_metrics_batch
+    from nemsim.geometry.profile import measured_profile_metrics
     from service.served_model import ServedModel
 
     s = ServedModel(served.predictor, cache_size=0)
@@ -242,7 +242,7 @@ def test_served_trajectory_is_the_rollout(served, default_controls):
         states = result.states.decode()  # kept compactly, decoded bit for bit
         assert not cached and states.dtype == np.float16
         np.testing.assert_array_equal(states, ref.astype(np.float16))
-        for name, values in profile_metrics_batch(ref, s.scene).items():
+        for name, values in measured_profile_metrics(ref, s.scene).items():
             np.testing.assert_allclose(np.array(result.metrics[name], dtype=float), values, equal_nan=True)
     assert len(s._buffers) == 1  # one rollout at a time: one buffer, reused
 
