@@ -18,6 +18,10 @@ and request metrics, for every request (pure ASGI, nothing buffered).
   client. Otherwise those headers are ignored, so rotating them changes nothing.
 * Rate limit per client (API key, else address): a token bucket of `rate_limit_per_minute` with bursts
   of `rate_limit_burst`; beyond it 429 with Retry-After. Probes and /metrics are exempt.
+* Wrong API keys per client address: a token bucket of `key_failures_per_minute` with bursts of
+  `key_failure_burst` (always on with keys); an address that used it up gets 429 with Retry-After for
+  every request that needs a key, before its key is even compared, so guessing keys is slow and tells
+  nothing meanwhile. A missing key does not count (it guesses nothing).
 * At most `limit_concurrency` requests in flight (probes exempt); beyond it 503 with Retry-After at once.
 * Security headers on every response (nosniff, no framing, no referrer, no caching of API answers, a
   strict Content-Security-Policy except on the interactive docs, which load their UI script).
@@ -32,11 +36,12 @@ import hmac
 import ipaddress
 import json
 import logging
+import math
 import re
 import time
 import uuid
 from collections import OrderedDict
-from typing import Any
+from typing import Any, NamedTuple
 
 from starlette.routing import Router
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -183,15 +188,37 @@ class TokenBuckets:
         self.max_clients = max_clients
         self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()
 
-    def take(self, client: str, now: float) -> float:
-        """0 if the request may go ahead, else the seconds until a token is available."""
-        tokens, last = self._buckets.pop(client, (self.burst, now))
+    def _level(self, client: str, now: float) -> tuple[float, float]:
+        """(tokens of `client` now, seconds until it has one: 0 when it has)."""
+        tokens, last = self._buckets.get(client, (self.burst, now))
         tokens = min(self.burst, tokens + (now - last) * self.rate)
-        wait = 0.0 if tokens >= 1.0 else (1.0 - tokens) / self.rate
+        return tokens, 0.0 if tokens >= 1.0 else (1.0 - tokens) / self.rate
+
+    def wait(self, client: str, now: float) -> float:
+        """0 if `client` has a token now, else the seconds until it has one; takes nothing."""
+        return self._level(client, now)[1]
+
+    def take(self, client: str, now: float) -> float:
+        """0 if the request may go ahead (a token is taken), else the seconds until a token is available."""
+        tokens, wait = self._level(client, now)
+        self._buckets.pop(client, None)
         self._buckets[client] = (tokens - 1.0 if wait == 0.0 else tokens, now)
         while len(self._buckets) > self.max_clients:
             self._buckets.popitem(last=False)
         return wait
+
+
+def retry_after(wait_s: float) -> bytes:
+    """A Retry-After value: whole seconds, at least 1."""
+    return str(max(1, math.ceil(wait_s))).encode()
+
+
+class Refusal(NamedTuple):
+    """A request refused before the app sees it: status, one-line message, extra headers."""
+
+    status: int
+    message: str
+    headers: tuple[tuple[bytes, bytes], ...] = ()
 
 
 class AccessMiddleware:
@@ -208,39 +235,45 @@ class AccessMiddleware:
             if settings.rate_limit_per_minute > 0
             else None
         )
+        self.key_failures = TokenBuckets(settings.key_failures_per_minute, settings.key_failure_burst)
         self.metrics = metrics
         self.access_log = settings.access_log
         self.max_in_flight = settings.limit_concurrency
         self.in_flight = 0
 
-    def _client_key(self, scope: Scope, headers: dict[bytes, bytes]) -> tuple[str | None, int, str]:
-        """(client key, refusal status or 0, refusal message)."""
+    def _client_key(self, scope: Scope, headers: dict[bytes, bytes]) -> str | Refusal:
+        """Who the request is for the rate limits (API key id, else address), or why it is refused."""
         host = scope["client"][0] if scope.get("client") else None
         if not self.keys:
             if not (self.allow_remote or is_loopback(host)):
-                return (
-                    None,
-                    403,
-                    "this server has no API keys configured and answers only clients on its own machine",
+                return Refusal(
+                    403, "this server has no API keys configured and answers only clients on its own machine"
                 )
             if not host_allowed(headers.get(b"host"), self.allowed_hosts):
                 name = host_name(headers[b"host"].decode("latin-1"))[:100]
-                return (
-                    None,
+                return Refusal(
                     400,
                     f"the Host header {name!r} does not name this server: without API keys it answers only "
                     "localhost, 127.0.0.1 and [::1] (a guard against DNS rebinding); add the name to "
                     "NEMSIM_ALLOWED_HOSTS to serve it",
                 )
-            return host or "-", 0, ""
+            return host or "-"
+        address, now = host or "-", time.monotonic()
+        wait = self.key_failures.wait(address, now)
+        if wait > 0:  # checked before the key, so guessing gets no answer at all while it lasts
+            retry = retry_after(wait)
+            return Refusal(
+                429,
+                f"too many wrong API keys from this address; retry in {retry.decode()} s",
+                ((b"retry-after", retry),),
+            )
         given = headers.get(b"x-api-key", b"").decode("latin-1")
         if given and any(hmac.compare_digest(given.encode(), k.encode()) for k in self.keys):
-            return key_id(given), 0, ""
-        return (
-            None,
-            401,
-            "a valid X-API-Key header is required" if not given else "the X-API-Key is not valid",
-        )
+            return key_id(given)
+        if not given:
+            return Refusal(401, "a valid X-API-Key header is required")
+        self.key_failures.take(address, now)
+        return Refusal(401, "the X-API-Key is not valid")
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -275,23 +308,23 @@ class AccessMiddleware:
                 size += len(message.get("body", b""))
             await send(message)
 
-        client, refused, why = (scope["client"][0] if scope.get("client") else "-"), 0, ""
+        client: str | Refusal = scope["client"][0] if scope.get("client") else "-"
         if path not in OPEN_PATHS:
-            client, refused, why = self._client_key(scope, headers)
+            client = self._client_key(scope, headers)
         try:
-            if refused:
-                await send_error(send_with_headers, refused, why)
+            if isinstance(client, Refusal):
+                await send_error(send_with_headers, client.status, client.message, list(client.headers))
                 return
             state["client_key"] = client
             if self.buckets is not None and path not in UNLIMITED_PATHS:
-                wait = self.buckets.take(str(client), time.monotonic())
+                wait = self.buckets.take(client, time.monotonic())
                 if wait > 0:
-                    retry = str(max(1, int(wait + 0.999)))
+                    retry = retry_after(wait)
                     await send_error(
                         send_with_headers,
                         429,
-                        f"rate limit exceeded for this client; retry in {retry} s",
-                        [(b"retry-after", retry.encode())],
+                        f"rate limit exceeded for this client; retry in {retry.decode()} s",
+                        [(b"retry-after", retry)],
                     )
                     return
             if path not in OPEN_PATHS and self.in_flight >= self.max_in_flight:
@@ -317,7 +350,7 @@ class AccessMiddleware:
                         {
                             "request_id": rid,
                             "client": scope["client"][0] if scope.get("client") else None,
-                            "key": client if str(client).startswith("key:") else None,
+                            "key": client if isinstance(client, str) and client.startswith("key:") else None,
                             "method": scope.get("method"),
                             "route": route,
                             "path": path[:200],

@@ -9,12 +9,23 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
+import socket
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from nemsim.cli.common import Subparsers, UserError
+from nemsim.cli.common import EXIT_BUG, Subparsers, UserError
+
+if TYPE_CHECKING:
+    import uvicorn
+
+    from service.config import Settings
 
 SERVICE_EXTRA = "pip install 'nemsim[service]'"  # what `nemsim serve` needs beyond the library
+EXIT_MODEL = 3  # the checkpoint cannot be served (unreadable, damaged, incompatible, of another scene)
+EXIT_BIND = 4  # the address cannot be bound (in use, not this machine's, not permitted)
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)  # a clean stop: in-flight requests drained, exit 0
 
 
 def register(sub: Subparsers) -> None:
@@ -24,8 +35,11 @@ def register(sub: Subparsers) -> None:
         description=(
             "Serve a trained checkpoint with uvicorn: POST /rollout (controls -> trajectory metrics and "
             "surface meshes), GET /mechanisms, /health, /ready and /model; interactive OpenAPI docs at "
-            "/docs. Runs until interrupted; writes nothing. Other settings come from NEMSIM_* "
-            "environment variables. Example: nemsim serve --checkpoint runs/nemsim/best.pt --port 8000"
+            "/docs. Runs until SIGTERM or SIGINT; writes nothing. Other settings come from NEMSIM_* "
+            "environment variables. Exit codes: 0 stopped cleanly (requests in flight answered), 2 a bad "
+            "option or setting (one line naming each, its value and what is accepted) or no checkpoint "
+            f"file, {EXIT_MODEL} the checkpoint cannot be served, {EXIT_BIND} the address cannot be bound. "
+            "Example: nemsim serve --checkpoint runs/nemsim/best.pt --port 8000"
         ),
     )
     p.add_argument(
@@ -44,16 +58,81 @@ def register(sub: Subparsers) -> None:
     p.set_defaults(handler=_cmd_serve)
 
 
-def resolve_checkpoint(arg: str | None) -> str:
-    """The checkpoint to serve: --checkpoint, else $NEMSIM_CHECKPOINT, else the settings' default."""
-    from service.config import Settings
-
-    path = Path(arg).expanduser() if arg else Settings().resolved_checkpoint()
-    if path is None:
-        raise UserError("no checkpoint: pass --checkpoint, set NEMSIM_CHECKPOINT or add checkpoints/*.pt")
+def resolve_checkpoint(arg: str | None, settings: Settings | None = None) -> str:
+    """The checkpoint to serve: --checkpoint, else $NEMSIM_CHECKPOINT, else the default of `settings` (of
+    the environment when not given); a UserError when that path names no file (missing, or a directory:
+    then naming the .pt files in it)."""
+    path = Path(arg).expanduser() if arg else (settings or read_settings()).resolved_checkpoint()
+    if path.is_dir():
+        found = sorted(p.name for p in path.glob("*.pt"))[:3]
+        hint = f" (it holds {', '.join(found)})" if found else " (it holds no .pt file)"
+        raise UserError(f"checkpoint {path} is a directory: name a .pt file{hint}")
     if not path.is_file():
         raise UserError(f"checkpoint {path} does not exist")
     return str(path.resolve())
+
+
+def read_settings() -> Settings:
+    """The settings from the NEMSIM_* environment; a UserError naming every bad value in one line."""
+    from pydantic import ValidationError
+
+    from service.config import get_settings, invalid_settings
+
+    get_settings.cache_clear()
+    try:
+        settings = get_settings()
+        settings.api_key_set()
+    except ValidationError as exc:
+        raise UserError(f"invalid settings: {invalid_settings(exc)}") from None
+    except ValueError as exc:  # an API key too short, or a key file that cannot be read
+        raise UserError(f"invalid settings: {exc}") from None
+    return settings
+
+
+def bind(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to host:port (IPv6 for an address with a colon), before anything loads, so an
+    address that cannot be served ends the command at once; OSError naming what to change otherwise."""
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise OSError(
+            f"cannot bind {host}:{port} ({exc.strerror or exc}): --host / NEMSIM_HOST takes an address of "
+            "this machine (127.0.0.1, 0.0.0.0, ::) and --port / NEMSIM_PORT a port no other process uses"
+        ) from None
+    return sock
+
+
+def run_server(config: uvicorn.Config, sock: socket.socket) -> bool:
+    """Serve on `sock` until SIGTERM or SIGINT (in-flight requests drained); whether the server started.
+
+    uvicorn hands a signal that stopped it back to the handler it found, which would end the process by
+    that signal (exit 143 for SIGTERM): the handler it finds does nothing instead, so a clean stop exits 0."""
+    import uvicorn
+
+    previous = {sig: signal.signal(sig, lambda *_: None) for sig in STOP_SIGNALS}
+    try:
+        if config.workers > 1:
+            from uvicorn.supervisors import Multiprocess
+
+            Multiprocess(config, sockets=[sock]).run()
+            return True
+        server = uvicorn.Server(config)
+        try:
+            server.run(sockets=[sock])
+        except SystemExit:  # uvicorn's own exit when the app's start-up failed (reason logged)
+            return False
+        return server.started
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _stop(code: int, message: str) -> int:
+    print(f"nemsim serve: {message}", file=sys.stderr)  # noqa: T201 -- the command's one line, as UserError's
+    return code
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -75,37 +154,45 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise UserError(
             f"the port must be an integer in 1..65535 (--port or NEMSIM_PORT), got {port!r}"
         ) from None
-    # every worker process builds its app from the environment, so the choice travels there
-    os.environ["NEMSIM_CHECKPOINT"] = resolve_checkpoint(args.checkpoint)
+    # bad settings are named before the checkpoint is looked for; every worker process builds its app from
+    # the environment, so the choice travels there
+    os.environ["NEMSIM_CHECKPOINT"] = resolve_checkpoint(args.checkpoint, read_settings())
     if args.device is not None:
         os.environ["NEMSIM_RUNTIME_BACKEND"] = "cuda" if args.device == "cuda" else "openvino"
     os.environ.setdefault("NEMSIM_EXIT_ON_LOAD_FAILURE", "1")  # a checkpoint that can never load: exit 3
-    from service.config import get_settings
-    from service.main import LOAD_FAILURE_EXIT
+    settings = read_settings()
+    from service.main import LOAD_FAILURE_EXIT, checkpoint_problem, loading
     from service.protocol import uvicorn_options
 
-    get_settings.cache_clear()
-    try:
-        settings = get_settings()
-        keys = settings.api_key_set()
-    except ValueError as exc:  # a bad NEMSIM_* value
-        raise UserError(f"invalid NEMSIM_* setting: {' '.join(str(exc).split())}") from None
-    from service.main import checkpoint_problem
-
-    problem = checkpoint_problem(settings)  # fail before binding: exit 3 like a failed load
+    problem = checkpoint_problem(settings)  # fail before binding, since every worker would fail the same way
     if problem is not None:
-        print(f"nemsim serve: {problem}", file=sys.stderr)  # noqa: T201
-        return 3
+        return _stop(EXIT_MODEL, problem)
+    try:
+        sock = bind(args.host, args.port)
+    except OSError as exc:
+        return _stop(EXIT_BIND, str(exc))
     from service.access import bind_warning
 
-    warning = bind_warning(args.host, keys, settings.allow_remote_without_key)
+    log = logging.getLogger("nemsim.serve")
+    warning = bind_warning(args.host, settings.api_key_set(), settings.allow_remote_without_key)
     if warning:
-        logging.getLogger("nemsim.serve").warning(warning)
-    uvicorn.run(
+        log.warning(warning)
+    config = uvicorn.Config(
         "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
         log_level="info", **uvicorn_options(settings, bind_settings=args.workers == 1),
     )
+    log.info("serving on http://%s:%d (docs at /docs)", f"[{args.host}]" if ":" in args.host else args.host,
+             args.port)
+    started = run_server(config, sock)
     if LOAD_FAILURE_EXIT["failed"]:
-        print("nemsim serve: the checkpoint can never load (reason above); stopped", file=sys.stderr)  # noqa: T201
-        return 3
-    return 0
+        code = _stop(EXIT_MODEL, "the checkpoint can never load (reason above); stopped")
+    elif not started:
+        code = _stop(EXIT_BUG, "the server could not start (reason above)")
+    else:
+        code = 0
+    if loading():  # the runtime's native threads abort an interpreter that shuts down under them
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code

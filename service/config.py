@@ -7,11 +7,13 @@ Read through the cached `get_settings()` dependency (never at import); tests rep
 from __future__ import annotations
 
 import ipaddress
+import types
+import typing
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +54,8 @@ def parse_networks(text: str) -> tuple[IPNetwork, ...]:
             out.append(ipaddress.ip_network(entry, strict=False))
         except ValueError:
             raise ValueError(
-                f"NEMSIM_TRUSTED_PROXIES: {entry!r} is not an IP address or network (e.g. 10.0.0.0/8)"
+                f"{entry!r} is not an IP address or network; expected comma-separated addresses or networks "
+                "such as 10.0.0.0/8 or ::1"
             ) from None
     return tuple(out)
 
@@ -195,6 +198,13 @@ class Settings(BaseSettings):
         default=1200, ge=0, description="requests per minute per client (API key, else address); 0: no limit"
     )
     rate_limit_burst: int = Field(default=100, ge=1, description="requests a client may send at once")
+    key_failure_burst: int = Field(
+        default=20, ge=1, description="wrong API keys one client address may send before it gets 429 + "
+        "Retry-After; while it is over, its requests that need a key get 429 whatever key they carry",
+    )
+    key_failures_per_minute: int = Field(
+        default=6, ge=1, description="... and, beyond that burst, how many more wrong keys per minute",
+    )
     docs: bool = Field(default=True, description="serve /docs and /openapi.json")
     access_log: bool = Field(
         default=True, description="one JSON line per request on the service.access logger"
@@ -295,6 +305,45 @@ class Settings(BaseSettings):
         if self.checkpoint is None or self.checkpoint.resolve() == default_checkpoint().resolve():
             return DEFAULT_SCENE
         return None
+
+
+def accepted_form(name: str) -> str:
+    """What the setting `name` (a `Settings` field) accepts, in words: "an integer in 1..10000", "true or
+    false", "one of 'allow', 'clip', 'refuse'"."""
+    field = Settings.model_fields[name]
+    kind = field.annotation
+    if isinstance(kind, types.UnionType):  # `X | None`: what X accepts
+        kind = next(a for a in typing.get_args(kind) if a is not type(None))
+    if typing.get_origin(kind) is Literal:
+        return "one of " + ", ".join(repr(v) for v in typing.get_args(kind))
+    if kind is bool:
+        return "true or false (also 1/0, yes/no, on/off)"
+    bounds = {k: getattr(m, k) for m in field.metadata for k in ("ge", "gt", "le") if hasattr(m, k)}
+    if kind in (int, float):
+        what = "an integer" if kind is int else "a number"
+        if "ge" in bounds and "le" in bounds:
+            return f"{what} in {bounds['ge']}..{bounds['le']}"
+        signs = {"ge": ">=", "gt": ">", "le": "<="}
+        return " ".join([what, *(f"{signs[k]} {v}" for k, v in bounds.items())])
+    pattern = next((m.pattern for m in field.metadata if getattr(m, "pattern", None)), None)
+    return f"text matching {pattern}" if pattern else "text"
+
+
+def invalid_settings(exc: ValidationError) -> str:
+    """One line naming every bad `NEMSIM_*` value of a failed `Settings()`, its value and what is accepted:
+    ``NEMSIM_MAX_STEPS='abc': expected an integer in 1..10000; NEMSIM_DOCS='maybe': expected true or
+    false (also 1/0, yes/no, on/off)``. A secret (the API keys) is never echoed."""
+    order = list(Settings.model_fields)
+    parts = []
+    for err in sorted(exc.errors(), key=lambda e: order.index(str(e["loc"][0])) if e["loc"] else -1):
+        name = str(err["loc"][0]) if err["loc"] else ""
+        if name not in Settings.model_fields:  # not a field's value: the model's own rule
+            parts.append(str(err["msg"]))
+            continue
+        value = "<hidden>" if Settings.model_fields[name].annotation is SecretStr else repr(err["input"])
+        why = str(err["ctx"]["error"]) if err["type"] == "value_error" else f"expected {accepted_form(name)}"
+        parts.append(f"NEMSIM_{name.upper()}={value}: {why}")
+    return "; ".join(parts)
 
 
 @lru_cache

@@ -84,7 +84,9 @@ class DesignRequest(BaseModel):
         0, description="search seed"
     )
     verify: bool = Field(
-        False, description="run the simulator on the top recipes and report achieved against target"
+        False,
+        strict=True,
+        description="run the simulator on the top recipes and report achieved against target (true/false)",
     )
     verify_top: Annotated[int, Field(ge=1, le=3), BeforeValidator(_json_integer)] | None = Field(
         None,
@@ -92,6 +94,7 @@ class DesignRequest(BaseModel):
     )
     refine: bool | None = Field(
         None,
+        strict=True,
         description="simulator-corrected design (implies verify): when the top recipes miss in the "
         "simulator, the simulator-minus-surrogate offset at the best one shifts the targets and a local "
         "search around it proposes a new recipe for the simulator, round after round; the top recipe is "

@@ -16,6 +16,9 @@ interactive rollouts. Nothing outlives the server (`service.job_processes`): `Jo
 start) removes the job folders under `work_dir` that dead servers left and kills the children on
 SIGTERM / SIGINT; `JobQueue.close` (shutdown) kills them.
 
+A cancelled job (`cancel`) stays readable with status `cancelled` and no result until it is forgotten like
+any finished job; cancelling a finished job changes nothing.
+
 A client may have at most `per_client` jobs running or waiting (`TooManyJobs`, answered 429 +
 Retry-After). The comparison uses the helpers of `nemsim.evaluation.truth` (per-step RMSE in normalized
 SDF units) and the profile metrics of both trajectories.
@@ -192,8 +195,10 @@ class JobQueue:
             except KeyError:
                 raise UnknownJob(job_id) from None
 
-    def cancel(self, job_id: str) -> Job:
-        """Cancel a pending or running job (a finished one is left as it is)."""
+    def cancel(self, job_id: str, wait_s: float = 0.0) -> Job:
+        """Cancel a pending or running job (a finished one is left as it is), waiting up to `wait_s` for a
+        running one to stop (its child killed, its files removed): then it is `cancelled`, and stays so
+        until it is forgotten like any finished job."""
         with self._lock:
             job = self.get(job_id)
             if job.status == "pending":
@@ -201,6 +206,7 @@ class JobQueue:
                 self._finish(job, "cancelled", message="cancelled before it started")
             elif job.status == "running":
                 job.cancel_event.set()  # the work stops at its next check; the worker marks it cancelled
+                self._lock.wait_for(lambda: job.status != "running", timeout=wait_s)
             return job
 
     def close(self) -> None:
@@ -272,6 +278,7 @@ class JobQueue:
         job.status, job.message, job.finished = status, message, time.time()
         if status != "done":
             job.artifacts.clear()
+        self._lock.notify_all()  # a cancel waiting for the job to stop
 
     def _prune(self) -> None:
         now = time.time()

@@ -50,6 +50,7 @@ class ServiceState:
         return self.status == "ready"
 
 
+LOAD_THREAD = "nemsim-load"  # the thread that loads the checkpoint and warms up (`lifespan`)
 LOAD_FAILURE_EXIT = {"failed": False}  # set when a load failure stopped the process (`nemsim serve` reads it)
 
 
@@ -57,6 +58,12 @@ def stop_process() -> None:
     """Ask the server to shut down (uvicorn turns SIGTERM into a graceful exit)."""
     LOAD_FAILURE_EXIT["failed"] = True
     os.kill(os.getpid(), signal.SIGTERM)
+
+
+def loading() -> bool:
+    """Whether this process is still loading a checkpoint: the runtimes' native threads then abort an
+    interpreter that shuts down under them, so `nemsim serve` ends such a process without that shutdown."""
+    return any(t.name == LOAD_THREAD and t.is_alive() for t in threading.enumerate())
 
 
 M_ARENA_MAX = -8  # glibc mallopt parameter (malloc.h)
@@ -141,7 +148,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         threading.Thread(
             target=load_model,
             args=(state, app.state.settings, app.state.on_load_failure),
-            name="nemsim-load",
+            name=LOAD_THREAD,
             daemon=True,
         ).start()
     yield

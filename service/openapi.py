@@ -1,4 +1,5 @@
-"""The OpenAPI document states every rule the server enforces, so a schema-valid request is accepted.
+"""The OpenAPI document states the rules the server enforces: every request the server accepts is valid
+under it, and a valid request is refused only for one of the two cross-field rules below.
 
 Static rules live in the models (`service.schemas`: the scale guard as `maximum`, whole-number
 exponents as `multipleOf`, "exactly one of" as `oneOf`, normalized bounds as `prefixItems`). What
@@ -7,9 +8,10 @@ the document when it is first generated. Error responses share one schema (`Erro
 
 Two rules tie fields of a rollout request together: a recipe of n control sets means `steps` = n (when
 `steps` is given too), and an inline mesh's `step` must not exceed the rollout's steps (the given
-`steps`, the recipe's length, else the default 100). JSON Schema cannot compare two values, so
-`steps_agreement` states them as one `if`/`then` per possible n (the server's ceiling bounds n); above
-`STEPS_RULES_MAX` the document would grow too large and the field descriptions carry them instead.
+`steps`, the recipe's length, else the default 100). JSON Schema can state them only as one conditional
+clause per possible n, which schema-driven tools (schemathesis) cannot expand at the default ceiling of
+100 steps, so the request schema stays plain and the field descriptions carry these two rules; the server
+refuses a request that breaks one with a 422 naming the field.
 
 `/docs` is Swagger UI from the files vendored under `static/vendor/swagger-ui` (no CDN), so the reference
 works without a network, as the page does.
@@ -44,7 +46,8 @@ _WHY = {
     413: "request body larger than the server's limit",
     414: "URL longer than the server's limit",
     422: "invalid input: the message names the field and the rule",
-    429: "rate limit of this API key / client exceeded (Retry-After says when to retry)",
+    429: "rate limit of this API key / client exceeded, or too many wrong API keys from this address "
+    "(Retry-After says when to retry)",
     431: "request headers larger than the server's limit",
     500: "internal error (the message carries the request id)",
     503: "model not ready, or the queue for this kind of work is full (Retry-After)",
@@ -58,46 +61,6 @@ def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
 
 
 SWAGGER_UI = "/static/vendor/swagger-ui"
-STEPS_RULES_MAX = 1_000  # larger `steps` ceilings: the rules stay in the descriptions (module docstring)
-
-
-def steps_agreement(max_steps: int) -> list[dict[str, Any]]:
-    """JSON Schema clauses (for an `allOf`) of the two cross-field rules of a rollout request (module
-    docstring): for each n in 1..max_steps, "steps = n or a recipe of n sets" implies "steps is n or
-    absent, the recipe (if any) has n sets and every mesh step is at most n"; with neither, the
-    default number of steps bounds the mesh steps."""
-
-    def mesh_steps_at_most(n: int) -> dict[str, Any]:
-        return {"type": "array", "items": {"properties": {"step": {"maximum": n}}}}
-
-    clauses: list[dict[str, Any]] = [
-        {
-            "if": {
-                "anyOf": [
-                    {"required": ["steps"], "properties": {"steps": {"const": n}}},
-                    {
-                        "required": ["recipe"],
-                        "properties": {"recipe": {"type": "array", "minItems": n, "maxItems": n}},
-                    },
-                ]
-            },
-            "then": {
-                "properties": {
-                    "steps": {"anyOf": [{"const": n}, {"type": "null"}]},
-                    "recipe": {"anyOf": [{"type": "null"}, {"type": "array", "minItems": n, "maxItems": n}]},
-                    "meshes": mesh_steps_at_most(n),
-                }
-            },
-        }
-        for n in range(1, max_steps + 1)
-    ]
-    unset = [
-        {"anyOf": [{"not": {"required": [name]}}, {"properties": {name: {"type": "null"}}}]}
-        for name in ("steps", "recipe")
-    ]
-    default = {"properties": {"meshes": mesh_steps_at_most(DEFAULT_STEPS)}}
-    clauses.append({"if": {"allOf": unset}, "then": default})
-    return clauses
 
 
 def install(app: FastAPI, settings: Any) -> None:
@@ -138,8 +101,6 @@ def install(app: FastAPI, settings: Any) -> None:
                 {"required": [name], "properties": {name: {"not": {"type": "null"}}}}
                 for name in ("recipe", "steps")
             ]
-        if settings.max_steps <= STEPS_RULES_MAX:
-            request["allOf"] = steps_agreement(settings.max_steps)
         mesh = doc["paths"]["/rollouts/{rollout_id}/mesh"]["get"]
         for param in mesh["parameters"]:
             if param["name"] == "step":

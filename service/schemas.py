@@ -284,7 +284,8 @@ class ControlSource(BaseModel):
         None,
         min_length=1,
         max_length=MAX_STEPS_HARD,
-        description="one control set per transition (time-varying process)",
+        description="one control set per transition (time-varying process); `steps`, when given too, must "
+        "be its length",
     )
     steps: Annotated[int, Field(ge=1, le=MAX_STEPS_HARD), BeforeValidator(_json_integer)] | None = Field(
         None,
@@ -363,7 +364,8 @@ class RolloutRequest(ControlSource):
     meshes: list[MeshSpec] = Field(
         default_factory=list,
         max_length=64,
-        description="surface meshes to return inline (server limit applies)",
+        description="surface meshes to return inline (server limit applies); each `step` at most the "
+        "rollout's steps (`steps`, the recipe's length, else the default)",
     )
     intervals: bool = Field(
         False, strict=True, description="add per-step conformal intervals of the profile metrics (true/false)"
@@ -405,7 +407,11 @@ class JobCreated(BaseModel):
 class JobStatus(BaseModel):
     id: str
     kind: str
-    status: Literal["pending", "running", "done", "failed", "cancelled"]
+    status: Literal["pending", "running", "done", "failed", "cancelled"] = Field(
+        description="cancelled: stopped by DELETE /jobs/{id} (or the server stopping) and kept, without a "
+        "result, until forgotten like a finished job (NEMSIM_JOBS_KEEP_S, NEMSIM_JOBS_KEEP_MAX; then 404); "
+        "DELETE of a finished job leaves it unchanged"
+    )
     progress: float = Field(ge=0.0, le=1.0)
     created: float = Field(description="creation time, seconds since the epoch")
     result: dict[str, Any] | None = Field(None, description="present when done")

@@ -22,6 +22,7 @@ from service.schemas import Channel, JobCreated, JobStatus, MeshFormat, Simulati
 router = APIRouter(tags=["jobs"])
 
 JobId = Annotated[str, Path(max_length=64)]
+CANCEL_WAIT_S = 10.0  # DELETE waits at most this long for a running job to stop (its child is polled often)
 
 
 async def get_jobs(request: Request) -> JobQueue:
@@ -111,9 +112,10 @@ async def get_job(job_id: JobId, jobs: JobsDep) -> JobStatus:
 
 @router.delete("/jobs/{job_id}", response_model=JobStatus, responses={404: {"model": ErrorBody}})
 async def delete_job(job_id: JobId, jobs: JobsDep) -> JobStatus:
-    """Cancel a pending or running job (its status becomes `cancelled` once it stopped)."""
+    """Cancel a job; once stopped it reads `cancelled`, here and at GET /jobs/{id}, until forgotten (404)."""
     _job(jobs, job_id)
-    return JobStatus(**jobs.cancel(job_id).as_dict())
+    job = await anyio.to_thread.run_sync(jobs.cancel, job_id, CANCEL_WAIT_S)
+    return JobStatus(**job.as_dict())
 
 
 @router.get(

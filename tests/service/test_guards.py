@@ -182,10 +182,14 @@ def test_forwarded_header_when_configured():
 
 
 def test_bad_trusted_proxy_setting():
-    from service.config import Settings
+    from pydantic import ValidationError
 
-    with pytest.raises(ValueError, match="NEMSIM_TRUSTED_PROXIES"):
+    from service.config import Settings, invalid_settings
+
+    with pytest.raises(ValueError, match="'not-an-address' is not an IP address or network") as bad:
         Settings(trusted_proxies="10.0.0.0/8, not-an-address")
+    assert isinstance(bad.value, ValidationError)
+    assert invalid_settings(bad.value).startswith("NEMSIM_TRUSTED_PROXIES='10.0.0.0/8, not-an-address': ")
 
 
 # --- messages -------------------------------------------------------------------------------------------
