@@ -488,12 +488,11 @@ def bench_train(args: argparse.Namespace, data_path: str, dev: Any, cap_s: float
     """(e) the training loop's step end to end, the training set in memory and streamed from the HDF5 file
     (per DataLoader worker count; and the loader alone), against the same step on a batch already on the
     device. The in-memory variant runs first (the pipeline the recipe trains with)."""
-    from nemsim.data.dataset import TransitionDataset
+    from nemsim.data.dataset import MemoryTransitions, TransitionDataset
     from nemsim.evaluation.rollout import steps_per_call
     from nemsim.inference.checkpoint import load_checkpoint
     from nemsim.training.config import TrainConfig
     from nemsim.training.loop import Clock, ModelMeta, TrainData, _Run
-    from nemsim.training.run import _memory_set
 
     loaded = load_checkpoint(args.checkpoint, device="cpu")
     k = steps_per_call(loaded.model)
@@ -523,7 +522,7 @@ def bench_train(args: argparse.Namespace, data_path: str, dev: Any, cap_s: float
         res: dict[str, Any] = {}
         if workers is None:
             t0 = time.perf_counter()
-            train_set = _memory_set([dataset()], cfg)
+            train_set = MemoryTransitions([dataset()], device=dev)
             _sync(dev)
             res.update(decode_s=time.perf_counter() - t0, held_on=str(train_set.device),
                        gib=round(train_set.states.numel() * 2 / 2**30, 3))
@@ -659,7 +658,10 @@ def stage_figures(stage: dict[str, Any], folder: Path, wall_s: float, full_cases
     row: dict[str, Any] = {"name": stage["name"], "finished": True, "wall_s": wall_s, "steps": steps,
                            "loop_s": loop, "val_s": val, "test_s": test_s,
                            "setup_s": max(0.0, wall_s - loop - test_s),
-                           "steps_per_s": steps / max(loop - val, 1e-9)}  # fmt: skip
+                           "steps_per_s": steps / max(loop - val, 1e-9),
+                           "batch": summary["train_config"]["batch_size"],
+                           "device_type": str(summary["train_config"]["device"]).split(":")[0]}  # fmt: skip
+    row["items_per_s"] = row["steps_per_s"] * row["batch"]
     try:
         row.update(_stage_extrapolation(args, folder, row, full_cases, full_extra))
     except Exception as exc:  # noqa: BLE001 -- the measured figures stand without it
@@ -677,7 +679,7 @@ def _stage_extrapolation(args: list[str], folder: Path, row: dict[str, Any], ful
     with open(folder / "metrics.csv", newline="") as f:
         rounds = sum(1 for r in csv.DictReader(f) if r.get("val_avg_rmse"))
     config = _value(args, "--config")
-    cfg = read_config_file(config)[0] if config else TrainConfig()
+    cfg = (read_config_file(config)[0] if config else TrainConfig()).resolved(row.get("device_type", "cuda"))
     if cfg.max_steps is None:
         return {}
     manifest = json.loads((Path(_value(args, "--splits") or "") / f"{_value(args, '--setting')}.json")

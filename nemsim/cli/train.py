@@ -21,6 +21,8 @@ CONFIG_FLAGS: dict[str, tuple[str, str]] = {
     "--epochs": ("max_epochs", "epoch budget (overrides max_epochs; default 350)"),
     "--max-steps": ("max_steps", "optimizer-step budget (overrides max_steps; default none): ends training "
                     "there, validates, and the learning-rate cosine spans it"),
+    "--max-samples": ("max_samples", "training-items budget (overrides max_samples; default none): the "
+                      "same training on every device, ceil(N / batch) optimizer steps at the device's batch"),
     "--max-minutes": ("max_train_minutes",
                       "wall-clock budget in minutes (overrides max_train_minutes; default none): training "
                       "stops at the first optimizer step at which the run's wall time (training steps, "

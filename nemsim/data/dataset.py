@@ -22,9 +22,12 @@ images, a quieter target of the same mean evolution) and yield the fundamental d
 (``quarter``: what a quarter-domain model trains on).
 
 ``MemoryTransitions`` holds the training items of one or more such datasets in memory instead (the input
-pipeline that keeps up with a GPU): each trajectory is read and decoded once, symmetrized and folded as
-asked, and kept as float16 (on the training device when it fits); a batch is a gather of whole windows by
-index, no per-sample Python work (``__getitems__``).
+pipeline that keeps up with a GPU): each trajectory is read and inflated once on every core
+(``nemsim.data.hdf5.read_cases``), symmetrized and folded as asked on the device that holds it, and kept
+as float16 (on the training device when it fits); a batch is a gather of whole windows by index, no
+per-sample Python work (``__getitems__``). The decoded states are kept for the next set of the same cases
+and shape in this process (the stages of a recipe share one decode; ``decoded_states``).
+``MemoryTrajectories`` does the same for whole trajectories (the validation rollouts of a training run).
 """
 
 from __future__ import annotations
@@ -279,30 +282,8 @@ class MemoryTransitions(Dataset):
             raise ValueError("the sets held in memory must have the same unroll and visible transitions")
         self.unroll, self._starts = first.unroll, first._starts
         self.n_states = first.n_states
-        n_cases = sum(len(s.rows) for s in sets)
-        shape = self.state_shape(sets)  # (C, D, H', W')
         self.device = torch.device(device)
-        self.states = torch.empty((n_cases, self.n_states, *shape), dtype=torch.float16, device=self.device)
-        self.u = torch.empty((n_cases, self.n_states - 1, first.u.shape[-1]), dtype=torch.float32,
-                             device=self.device)
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=n_cases, desc="decode training set", unit="case", leave=False)
-        g = 0
-        for s in sets:
-            data = s._dataset()
-            for k, row in enumerate(s.rows):
-                traj = torch.from_numpy(np.asarray(data[int(row)], dtype=np.float32))  # (T, C, D, H, W)
-                self.states[g].copy_(s.transform(traj))
-                self.u[g].copy_(torch.from_numpy(np.array(s.u[k], dtype=np.float32)))
-                g += 1
-                if bar is not None:
-                    bar.update()
-            s.close()
-        if bar is not None:
-            bar.close()
+        self.states, self.u = decoded_states(sets, self.device, progress, "decode training set")
         self._offsets = torch.arange(self.unroll + 1, device=self.device)  # (n+1,)
 
     @staticmethod
@@ -333,6 +314,79 @@ class MemoryTransitions(Dataset):
         if self.unroll == 1:
             return run[:, 0], u[:, 0], run[:, 1]
         return run[:, 0], u, run[:, 1:]
+
+
+class MemoryTrajectories(Dataset):
+    """The trajectories of a ``TrajectoryDataset`` held in memory as float16 (on ``device``), items as it
+    gives them: (case_id, states (T, 2, D, H, W) float32, u (T-1, 14) float32), on ``device``."""
+
+    def __init__(self, base: TrajectoryDataset, device: torch.device | str = "cpu",
+                 progress: bool = False) -> None:
+        self.case_ids = base.case_ids
+        self.device = torch.device(device)
+        self.states, self.u = decoded_states([base], self.device, progress, f"decode {base.split} set")
+
+    def __len__(self) -> int:
+        return int(self.states.shape[0])
+
+    def __getitem__(self, i: int):
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} trajectories")
+        k = int(i) % len(self)
+        return int(self.case_ids[k]), self.states[k].float(), self.u[k]
+
+
+_DECODED: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}  # recent decodes (``decoded_states``)
+KEEP_DECODED = 2  # decodes kept: a run's training set and its validation set
+
+
+def decoded_states(sets: list, device: torch.device, progress: bool = False,
+                   desc: str = "decode") -> tuple[torch.Tensor, torch.Tensor]:
+    """(states (N, T, C, D, H', W') float16, u (N, T-1, 14) float32) on ``device`` of the cases of ``sets``
+    (``_H5Backed`` datasets; states shaped by each set's ``transform`` where it has one), in order.
+
+    The trajectories are inflated on every core (``read_cases``) and shaped on ``device`` (float32 there,
+    stored float16). The last ``KEEP_DECODED`` results are kept for the same files (path, size,
+    modification time), rows, shaping and device, so the next stage of a recipe reuses them rather than
+    decoding again.
+    """
+    from nemsim.data.hdf5 import read_cases
+
+    def key_of(s) -> tuple:
+        st = s.path.stat()
+        return (str(s.path.resolve()), st.st_size, st.st_mtime_ns, s.rows.tobytes(),
+                getattr(s, "symmetrize", False), getattr(s, "quarter", False))
+
+    key = (tuple(key_of(s) for s in sets), str(device))
+    if key in _DECODED:
+        _DECODED[key] = _DECODED.pop(key)  # the most recently used last
+        return _DECODED[key]
+    while len(_DECODED) >= KEEP_DECODED:  # the least recently used goes before this one is made
+        del _DECODED[next(iter(_DECODED))]
+    first = sets[0]
+    n_cases = sum(len(s.rows) for s in sets)
+    shape = MemoryTransitions.state_shape(sets) if hasattr(first, "transform") else first.scene.state_shape
+    states = torch.empty((n_cases, first.n_states, *shape), dtype=torch.float16, device=device)
+    u = torch.empty((n_cases, first.n_states - 1, first.u.shape[-1]), dtype=torch.float32, device=device)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_cases, desc=desc, unit="case", leave=False)
+    g = 0
+    for s in sets:
+        for k, traj in read_cases(s.path, s.rows):
+            x = torch.from_numpy(traj).to(device, non_blocking=False)  # (T, C, D, H, W), stored dtype
+            states[g].copy_(s.transform(x.float()) if hasattr(s, "transform") else x)
+            u[g].copy_(torch.from_numpy(np.array(s.u[k], dtype=np.float32)))
+            g += 1
+            if bar is not None:
+                bar.update()
+        s.close()
+    if bar is not None:
+        bar.close()
+    _DECODED[key] = (states, u)
+    return states, u
 
 
 def as_batch(batch):

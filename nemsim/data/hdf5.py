@@ -496,6 +496,57 @@ def open_trajectories(path: str | Path) -> TrajectoryFile:
 # --- integrity check ---------------------------------------------------------------------------------
 
 
+def _direct_chunks(states: h5py.Dataset) -> bool:
+    """Whether ``states`` can be read a raw chunk at a time and inflated outside HDF5 (``read_cases``): one
+    state per chunk, gzip (zlib) or no filter at all, no other filter."""
+    plain = states.compression in (None, "gzip") and not states.shuffle and not states.fletcher32 \
+        and states.scaleoffset is None
+    return plain and states.chunks == (1, 1, *states.shape[2:])
+
+
+def read_cases(path: str | Path, rows: Any, threads: int | None = None, ahead: int | None = None):
+    """Yield (i, states (T, 2, D, H, W) in the stored dtype) for each file row ``rows[i]``, in order.
+
+    The whole-file decode of a training set (``nemsim.data.dataset.MemoryTransitions``): HDF5 inflates a
+    chunk holding its one global lock, so a plain read decodes on one core. Here each state's compressed
+    chunk is read as it is stored and inflated by ``zlib`` (which releases the GIL) on ``threads`` threads
+    (default: the cores this process may use), at most ``ahead`` cases (default 2 x threads) read ahead of
+    the consumer. A layout this cannot read (``_direct_chunks``) is read row by row through h5py.
+    """
+    import os
+    import zlib
+    from concurrent.futures import ThreadPoolExecutor
+
+    rows = [int(r) for r in np.asarray(rows).reshape(-1)]
+    if threads is None:
+        threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    threads = max(1, int(threads))
+    with h5py.File(path, "r") as f:
+        states = f["states"]
+        if not _direct_chunks(states):
+            for i, row in enumerate(rows):
+                yield i, states[row]
+            return
+        shape, dtype, n_t = states.shape[2:], states.dtype, states.shape[1]
+        zero = (0,) * len(shape)
+
+        def case(row: int) -> np.ndarray:
+            out = np.empty((n_t, *shape), dtype=dtype)
+            for t in range(n_t):
+                mask, raw = states.id.read_direct_chunk((row, t, *zero))
+                inflated = raw if mask & 1 or states.compression is None else zlib.decompress(raw)
+                out[t] = np.frombuffer(inflated, dtype=dtype).reshape(shape)
+            return out
+
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            window = max(1, ahead or 2 * threads)
+            futures = {i: pool.submit(case, r) for i, r in enumerate(rows[:window])}
+            for i in range(len(rows)):
+                if i + window < len(rows):
+                    futures[i + window] = pool.submit(case, rows[i + window])
+                yield i, futures.pop(i).result()
+
+
 @dataclass
 class CheckReport:
     """Result of ``check_dataset``: ``ok`` is False if any check failed; ``text`` is the readable report."""

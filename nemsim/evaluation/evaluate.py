@@ -76,8 +76,12 @@ def batched(items: Iterable[Trajectory], batch_size: int) -> Iterator[list[Traje
 
 def _stack(batch: Sequence[Trajectory], steps: int | None, device: torch.device) -> tuple:
     case_ids = [int(c) for c, _, _ in batch]
-    states = torch.stack([torch.as_tensor(np.asarray(s), dtype=torch.float32) for _, s, _ in batch])
-    u = torch.stack([torch.as_tensor(np.asarray(uu), dtype=torch.float32) for _, _, uu in batch])
+    def tensor(a: Any) -> torch.Tensor:  # a tensor stays where it is (an in-memory set on the device)
+        return a.float() if isinstance(a, torch.Tensor) else torch.as_tensor(np.asarray(a),
+                                                                             dtype=torch.float32)
+
+    states = torch.stack([tensor(s) for _, s, _ in batch])
+    u = torch.stack([tensor(uu) for _, _, uu in batch])
     T = u.shape[1] if steps is None else steps
     if T > u.shape[1] or T + 1 > states.shape[1]:
         raise ValueError(f"steps={T} exceeds the trajectory length ({states.shape[1]} states)")
@@ -86,9 +90,11 @@ def _stack(batch: Sequence[Trajectory], steps: int | None, device: torch.device)
 
 def step_sq_error_sum(pred: torch.Tensor, true: torch.Tensor) -> np.ndarray:
     """Σ_i e_{i,t} over the batch for t = 1..T (pred/true (B, T+1, 2, D, H, W), step 0 excluded),
-    computed through metrics.case_step_mse so the metric definition lives in one place."""
-    p = pred[:, 1:].detach().float().cpu().numpy()
-    t = true[:, 1:].detach().float().cpu().numpy()
+    computed through metrics.case_step_mse so the metric definition lives in one place (on the device
+    when both are there)."""
+    p, t = pred[:, 1:].detach().float(), true[:, 1:].detach().float()
+    if p.device != t.device or p.device.type == "cpu":
+        p, t = p.cpu(), t.cpu()
     return case_step_mse(p, t).sum(axis=0)  # (T,) float64
 
 
@@ -201,7 +207,7 @@ def evaluate(
     n_total = len(trajectories)
     if n_total == 0:
         raise ValueError("no test trajectories to evaluate")
-    first_T = int(np.asarray(trajectories[0][2]).shape[0])
+    first_T = len(trajectories[0][2])  # transitions of the first case's controls (an array or a tensor)
     T_run = first_T if steps is None else steps
     writer = RolloutWriter(rollout_path, n_total, T_run, scene, rollout_attrs) if rollout_path else None
     sq_sum: np.ndarray | None = None
@@ -220,7 +226,7 @@ def evaluate(
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             seconds += time.perf_counter() - t0
-            pred = pred.float().cpu()
+            pred, states = pred.float().cpu(), states.cpu()  # the metrics below read host arrays
             s = step_sq_error_sum(pred, states)
             sq_sum = s if sq_sum is None else sq_sum + s
             if chamfer:

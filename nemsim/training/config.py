@@ -35,6 +35,15 @@ checkpoint writes, summed over ``--resume``: the equal-time comparison of models
 cosine then spans the budget, so every model reaches ``min_lr`` when its time runs out, and a resumed run
 is not bit-identical). ``checkpoint_every`` writes last.pt inside an epoch. ``bf16`` (training forward only)
 and ``channels_last``: defaults from benchmarks/small/README.md.
+
+One recipe on any device (``resolved``): the budgets can be given in training items seen (``max_samples``,
+``warmup_samples``, ``samples_per_epoch``), which become steps at the batch the run takes, so a recipe trains
+the same amount whatever its batch. ``cuda`` holds the values that change on a CUDA device (the batch that
+fills it, the validation batch); ``lr_scaling`` moves the learning rate with the batch from the one it was
+tuned at (``base_batch_size``): ``sqrt`` is the square-root rule of adaptive optimizers (Malladi, Lyu,
+Panigrahi & Arora 2022, "On the SDEs and scaling rules for adaptive gradient algorithms"): Adam's update
+noise at batch B and lr η matches that at κB and √κ η. ``min_lr`` scales with it (the cosine keeps its
+shape).
 """
 
 from __future__ import annotations
@@ -50,6 +59,9 @@ from typing import Any, Literal
 DEFAULT_CHANNELS_LAST = False
 DEFAULT_BF16 = None  # None: ``native_bf16`` of the training device
 CPU_BF16_FLAGS = ("avx512_bf16", "amx_bf16")  # /proc/cpuinfo flags of CPUs that compute in bfloat16
+LR_SCALING = {"none": 0.0, "sqrt": 0.5, "linear": 1.0}  # lr_scaling -> exponent p of (batch / base)^p
+# what ``TrainConfig.cuda`` may change: the batch that fills the device and what goes with it
+DEVICE_FIELDS = ("batch_size", "val_batch_size", "lr", "checkpoint_every", "num_workers", "bf16")
 
 
 def cpu_info() -> dict[str, str]:
@@ -103,6 +115,14 @@ class TrainConfig:
     checkpoint_every: int | None = None  # also write last.pt every N steps (mid-epoch resume); None: epochs
     batches_per_epoch: int | None = None  # end each epoch after N batches (a random sample of the shuffled
     # training set): a large data set still validates, and keeps best.pt, every N steps; None = all of it
+    # --- budgets in items seen, the same on every device (``resolved`` turns them into steps) ---
+    max_samples: int | None = None  # items budget: ceil(max_samples / batch_size) steps (max_steps if less)
+    warmup_samples: int | None = None  # warm-up in items: warmup_steps = ceil(warmup_samples / batch_size)
+    samples_per_epoch: int | None = None  # items per epoch: batches_per_epoch = ceil(. / batch_size)
+    # --- the batch that fills the device, and the learning rate that goes with it ---
+    lr_scaling: Literal["none", "sqrt", "linear"] = "none"  # lr (and min_lr) x (batch / base_batch_size)^p
+    base_batch_size: int | None = None  # the batch lr was tuned at (None: batch_size, nothing scales)
+    cuda: dict[str, Any] | None = None  # fields that change on a CUDA device, e.g. {batch_size: 256}
     # --- validation / model selection ([supp_evaluation]) ---
     val_every: int = 10  # epochs between validation rollouts
     patience: int = 20  # validation rounds without improvement before early stop
@@ -160,6 +180,34 @@ class TrainConfig:
             raise ValueError(f"ema_decay must be in [0, 1) (0 = off), got {self.ema_decay}")
         if self.select_metric not in ("avg_rmse", "mse"):
             raise ValueError(f"select_metric={self.select_metric!r}; expected one of ['avg_rmse', 'mse']")
+        for name in ("max_samples", "samples_per_epoch", "base_batch_size"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be None or >= 1, got {value}")
+        if self.warmup_samples is not None and self.warmup_samples < 0:
+            raise ValueError(f"warmup_samples must be None or >= 0, got {self.warmup_samples}")
+        if self.lr_scaling not in LR_SCALING:
+            raise ValueError(f"lr_scaling={self.lr_scaling!r}; expected one of {sorted(LR_SCALING)}")
+        if self.cuda is not None and (not isinstance(self.cuda, dict) or set(self.cuda) - set(DEVICE_FIELDS)):
+            raise ValueError(f"cuda: a mapping of some of {list(DEVICE_FIELDS)}, got {self.cuda!r}")
+
+    def resolved(self, device_type: str) -> "TrainConfig":
+        """The config a run on ``device_type`` ("cpu", "cuda") takes: the ``cuda`` overrides on a CUDA
+        device, the budgets in items turned into steps at its batch, the learning rate scaled by
+        ``lr_scaling`` from ``base_batch_size``. The result resolves to itself (its ``cuda`` is applied and
+        cleared, its learning rate rule spent), so a resumed run gets the same numbers."""
+        on_cuda = device_type == "cuda"
+        cfg = self.replace(**(self.cuda or {}), cuda=None) if on_cuda else self.replace(cuda=None)
+        b = cfg.batch_size
+        steps = {name: -(-value // b) for name, value in (("max_steps", cfg.max_samples),
+                                                           ("warmup_steps", cfg.warmup_samples),
+                                                           ("batches_per_epoch", cfg.samples_per_epoch))
+                 if value is not None}  # fmt: skip
+        if cfg.max_steps is not None and "max_steps" in steps:  # both budgets: whichever ends first
+            steps["max_steps"] = min(steps["max_steps"], cfg.max_steps)
+        factor = (b / (cfg.base_batch_size or b)) ** LR_SCALING[cfg.lr_scaling]
+        return cfg.replace(**steps, lr=cfg.lr * factor, min_lr=cfg.min_lr * factor, lr_scaling="none",
+                           base_batch_size=None)
 
     def replace(self, **changes: Any) -> "TrainConfig":
         return from_dict({**asdict(self), **changes})

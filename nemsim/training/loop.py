@@ -58,6 +58,7 @@ log = logging.getLogger(__name__)
 CSV_FIELDS = ("epoch", "step", "lr", "train_loss", "val_avg_rmse", "val_final_rmse", "val_mse",
               "epoch_seconds", "val_seconds", "wall_s", "cpu_s", "val_wall_s")
 FINAL_LOSS_STEPS = 50  # the summary's final training loss is the mean over this many last steps
+BAR_EVERY = 10  # steps between progress-bar updates (each reads the loss from the device)
 
 
 @dataclass(frozen=True)
@@ -434,8 +435,10 @@ class _Run:
         self.autocast = (
             torch.autocast(device_type=self.device.type, dtype=torch.bfloat16) if self.bf16 else nullcontext()
         )
+        # fused on a GPU: one kernel for the whole update, where the step is launch-bound
         self.optimizer = torch.optim.AdamW(
-            self.model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay
+            self.model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay,
+            fused=self.device.type == "cuda",
         )
         self.step_weights = None if cfg.step_loss_weights is None else torch.tensor(cfg.step_loss_weights)
         # the weights validation sees (ema_decay > 0): their moving average; None: the trained ones
@@ -453,6 +456,7 @@ class _Run:
         self.t_start, self.c_start = clock.wall(), clock.cpu()  # this process's share starts (reset by start)
         self.now_wall = 0.0  # the run's wall seconds at the last ``tick``
         self.bar: Any = None
+        self.pending: list[torch.Tensor] = []  # step losses not yet read from the device (``losses``)
 
     def resume(self) -> None:
         """Continue from ``last.pt`` if there is one: weights, optimizer, state, RNG streams."""
@@ -591,14 +595,14 @@ class _Run:
             if self.average is not None:
                 self.average.update()
             st.step += 1
-            n = torch.tensor(x.shape[0], device=dev, dtype=torch.float64)
-            loss_sum += torch.stack([loss.detach().double() * x.shape[0], n])
-            st.recent_losses = (st.recent_losses + [float(loss.detach())])[-FINAL_LOSS_STEPS:]
+            loss_sum[0] += loss.detach().double() * x.shape[0]  # no host-device copy: the step is not
+            loss_sum[1] += x.shape[0]  # synchronized with the device (the losses are read in ``losses``)
+            self.pending.append(loss.detach())
             spent = self.tick()
-            if self.bar is not None:
+            if self.bar is not None and (st.step % BAR_EVERY == 0 or spent):
                 done = st.step if self.budget_s is None else round(min(self.now_wall, self.budget_s))
                 self.bar.update(done - self.bar.n)
-                self.bar.set_postfix(epoch=epoch + 1, step=st.step, loss=f"{st.recent_losses[-1]:.3e}",
+                self.bar.set_postfix(epoch=epoch + 1, step=st.step, loss=f"{self.losses()[-1]:.3e}",
                                      lr=f"{lr:.2e}")
             if spent:  # the run ends here: validation and last.pt follow (``validation_due``, ``end_epoch``)
                 break
@@ -606,12 +610,22 @@ class _Run:
                     and st.step < self.step_cap and (i + 1) < self.steps_per_epoch):
                 self.save_last(epoch, loss_sum, batches=i + 1)
         st.skip = self.sampler.skip = 0
+        self.losses()
         if self.distributed:
             dist.all_reduce(loss_sum)
         train_loss = float(loss_sum[0]) / max(float(loss_sum[1]), 1.0)
         return {"epoch": epoch + 1, "step": st.step, "lr": lr, "train_loss": train_loss,
                 "epoch_seconds": self.clock.wall() - t_epoch, "wall_s": self.now_wall, "cpu_s": self.cpu(),
                 "val_wall_s": st.val_wall_s}  # fmt: skip
+
+    def losses(self) -> list[float]:
+        """The last ``FINAL_LOSS_STEPS`` step losses (``RunState.recent_losses``), with the steps' losses
+        still on the device read in one copy."""
+        st = self.state
+        if self.pending:
+            st.recent_losses = (st.recent_losses + torch.stack(self.pending).tolist())[-FINAL_LOSS_STEPS:]
+            self.pending.clear()
+        return st.recent_losses
 
     def budget_done(self) -> bool:
         """Before an epoch: the wall budget is spent and the last epoch's weights were validated, so the run
@@ -681,6 +695,7 @@ class _Run:
 
     def save_last(self, epoch_done: int, partial: torch.Tensor | None = None, batches: int = 0) -> None:
         """last.pt with everything needed to resume (``RunState.train_state``)."""
+        self.losses()
         ckpt = self.checkpoint(self.state.history, epoch_done)
         ckpt["train_state"] = self.state.train_state(self.optimizer, epoch_done, partial, batches,
                                                      wall_s=self.wall(), cpu_s=self.cpu())
@@ -706,7 +721,7 @@ class _Run:
         """
         st, cfg = self.state, self.cfg
         history = st.history if history is None else history
-        recent = st.recent_losses
+        recent = self.losses()
         final = sum(recent) / len(recent) if recent else (history[-1]["train_loss"] if history else None)
         return {
             "epochs": len(history) if epochs is None else epochs,
@@ -749,6 +764,7 @@ def train(
         resume: continue from out_dir/last.pt if present (else start fresh).
         clock: where wall and CPU time are read (default ``Clock()``: perf_counter, process_time).
     """
+    cfg = cfg.resolved(pick_device(cfg.device).type)  # the device's batch, budgets in steps, scaled lr
     run = _Run(cfg, model, data, Path(out_dir), meta, clock or Clock())
     if resume:
         run.resume()

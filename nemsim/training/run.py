@@ -22,6 +22,7 @@ from __future__ import annotations
 import gc
 import json
 import logging
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -236,21 +237,24 @@ def _extra_train_set(path: Path, tf: Any, visible: int | None, unroll: int, shap
     return TransitionDataset(path, None, "train", visible_transitions=visible, unroll=unroll, **shape)
 
 
-def _memory_set(sets: list[Any], cfg: Any) -> Any:
-    """The training sets decoded once into memory (``in_memory``): on the training GPU when they take at
-    most half of its free memory, else in host memory."""
+def _memory_sets(sets: list[Any], val: Any, cfg: Any) -> tuple[Any, Any]:
+    """The training sets and the validation trajectories decoded once into memory (``in_memory``): on the
+    training GPU when they take at most half of its free memory, else in host memory."""
     import torch
 
-    from nemsim.data.dataset import MemoryTransitions
+    from nemsim.data.dataset import MemoryTrajectories, MemoryTransitions
     from nemsim.training.loop import pick_device
 
     device = pick_device(cfg.device)
     probe = MemoryTransitions.nbytes_of(sets)
-    if device.type == "cuda" and probe > 0.5 * torch.cuda.mem_get_info(device)[0]:
+    val_bytes = len(val.rows) * val.n_states * math.prod(val.scene.state_shape) * 2
+    if device.type == "cuda" and probe + val_bytes > 0.5 * torch.cuda.mem_get_info(device)[0]:
         device = torch.device("cpu")
-    log.info("training set in memory: %d cases, %.2f GB float16 on %s", sum(len(s.rows) for s in sets),
-             probe / 1e9, device)
-    return MemoryTransitions(sets, device=device if device.type == "cuda" else "cpu", progress=cfg.progress)
+    device = device if device.type == "cuda" else torch.device("cpu")
+    log.info("training set in memory: %d cases, %.2f GB float16 on %s; validation set %d cases, %.2f GB",
+             sum(len(s.rows) for s in sets), probe / 1e9, device, len(val.rows), val_bytes / 1e9)
+    return (MemoryTransitions(sets, device=device, progress=cfg.progress),
+            MemoryTrajectories(val, device=device, progress=cfg.progress))
 
 
 def _pair_set(path: Path, tf: Any, visible: int | None, unroll: int, shape: dict[str, bool]) -> Any:
@@ -301,8 +305,9 @@ def _load_data(job: TrainJob, cfg: TrainConfig) -> tuple[Any, dict, Any]:
         raise TrainInputError(str(exc)) from None
     if extra_sets:
         log.info("extra training data: %s", ", ".join(f"{e.path} ({len(e.rows)} cases)" for e in extra_sets))
+    val_set: Any = TrajectoryDataset(job.data, manifest, "val")
     if cfg.in_memory:
-        train_set = _memory_set([train_set, *extra_sets], cfg)
+        train_set, val_set = _memory_sets([train_set, *extra_sets], val_set, cfg)
     elif extra_sets:
         train_set = TransitionSets([train_set, *extra_sets])
     pairs = None if job.pair_data is None else _pair_set(job.pair_data, tf, visible, unroll, shape)
@@ -313,7 +318,7 @@ def _load_data(job: TrainJob, cfg: TrainConfig) -> tuple[Any, dict, Any]:
     elif cfg.pair_loss_weight > 0 or cfg.response_loss_weight > 0:
         raise TrainInputError("pair_loss_weight and response_loss_weight need --pair-data FILE.h5 (sweep "
                               "pairs: `nemsim design --kind pairs`, then `nemsim generate --controls`)")
-    data = TrainData(train=train_set, val=TrajectoryDataset(job.data, manifest, "val"), pairs=pairs)
+    data = TrainData(train=train_set, val=val_set, pairs=pairs)
     log.info("setting %s: %d train / %d val / %d test cases, visible transitions %s", job.setting,
              len(manifest["train"]), len(manifest["val"]), len(manifest["test"]), visible)
     return tf, manifest, data
@@ -333,16 +338,25 @@ def _rules(job: TrainJob, tf: Any) -> tuple[Any, dict[str, Any] | None]:
     return perturb(rules, job.perturb, job.perturb_seed), {"kind": job.perturb, "seed": job.perturb_seed}
 
 
-def _test_best(job: TrainJob, manifest: dict, scene: Any, steps: int | None) -> None:
-    """Evaluate best.pt on the test split: into best.pt's metrics and OUT/test_metrics.json."""
-    from nemsim.data.dataset import TrajectoryDataset
+def _test_best(job: TrainJob, manifest: dict, scene: Any, cfg: TrainConfig) -> None:
+    """Evaluate best.pt on the test split: into best.pt's metrics and OUT/test_metrics.json. With
+    ``in_memory`` the test trajectories are decoded at once into the training device's memory; on a GPU
+    they are rolled out there, ``val_batch_size`` at a time (the device's batch), on the CPU one at a time
+    (the paper's timing)."""
+    from nemsim.data.dataset import MemoryTrajectories, TrajectoryDataset
     from nemsim.evaluation.evaluate import evaluate, write_json
     from nemsim.inference.checkpoint import load_checkpoint, update_metrics
+    from nemsim.training.loop import pick_device
 
     best = job.out / "best.pt"
     loaded = load_checkpoint(best)
-    test_set = cast(Sequence[Any], TrajectoryDataset(job.data, manifest, "test"))  # (case_id, states, u)
-    result = evaluate(loaded.model, test_set, scene, steps=steps)
+    device = pick_device(cfg.device)
+    test_set: Any = TrajectoryDataset(job.data, manifest, "test")  # (case_id, states, u)
+    batch = cfg.resolved("cuda").val_batch_size if device.type == "cuda" else 1
+    if cfg.in_memory:
+        test_set = MemoryTrajectories(test_set, device=device, progress=cfg.progress)
+    result = evaluate(loaded.model, cast(Sequence[Any], test_set), scene, steps=cfg.rollout_steps,
+                      batch_size=batch, device=device)
     update_metrics(best, {job.setting: result.to_json_dict()})
     write_json(result, job.out / "test_metrics.json", {"setting": job.setting})
     log.info("test: Avg RMSE %.5f, Final RMSE %.5f, CD %s", result.avg_rmse, result.final_rmse,
@@ -385,7 +399,7 @@ def run_training(job: TrainJob) -> dict[str, Any]:
         if dist.is_initialized():
             dist.barrier()
         if rank == 0 and job.test and (out / "best.pt").is_file() and manifest.get("test"):
-            _test_best(job, manifest, scene, cfg.rollout_steps)
+            _test_best(job, manifest, scene, cfg)
     finally:
         if handler is not None:
             logging.getLogger().removeHandler(handler)

@@ -101,3 +101,32 @@ def test_bf16_by_default_only_where_the_device_computes_in_it(monkeypatch):
     for flag in ("avx512_bf16", "amx_bf16"):
         monkeypatch.setattr(config_mod, "cpu_flags", lambda flag=flag: {"avx2", flag})
         assert config_mod.native_bf16("cpu")
+
+
+def test_budgets_in_items_and_the_device_batch_resolve_to_the_same_training_amount(tmp_path):
+    """One recipe on any device: budgets in items become steps at the batch the device takes (rounded up),
+    the CUDA overrides apply on a CUDA device only, and the square-root rule scales lr and min_lr from
+    the batch they were tuned at; a resolved config resolves to itself."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("batch_size: 24\nlr: 5.0e-4\nmin_lr: 1.0e-5\nmax_samples: 288000\nwarmup_samples: 7200\n"
+                   "samples_per_epoch: 24000\nlr_scaling: sqrt\nbase_batch_size: 24\n"
+                   "cuda: {batch_size: 96, val_batch_size: 50}\n")
+    base, _ = read_config_file(cfg)
+    cpu, gpu = base.resolved("cpu"), base.resolved("cuda")
+    assert (cpu.batch_size, cpu.max_steps, cpu.warmup_steps, cpu.batches_per_epoch) == (24, 12000, 300, 1000)
+    assert cpu.lr == pytest.approx(5e-4) and cpu.val_batch_size == TrainConfig().val_batch_size
+    assert (gpu.batch_size, gpu.max_steps, gpu.warmup_steps, gpu.batches_per_epoch) == (96, 3000, 75, 250)
+    assert gpu.val_batch_size == 50
+    assert gpu.lr == pytest.approx(1e-3) and gpu.min_lr == pytest.approx(2e-5)  # sqrt(96 / 24) = 2
+    assert gpu.max_steps * gpu.batch_size == cpu.max_steps * cpu.batch_size == 288000
+    assert gpu.resolved("cuda") == gpu and cpu.resolved("cpu") == cpu
+    odd = TrainConfig(batch_size=7, max_samples=100, lr_scaling="linear", base_batch_size=14).resolved("cpu")
+    assert odd.max_steps == 15 and odd.lr == pytest.approx(TrainConfig().lr / 2)
+
+
+@pytest.mark.parametrize("bad, match", [({"cuda": {"patience": 3}}, "cuda: a mapping of some of"),
+                                        ({"lr_scaling": "cube"}, "lr_scaling='cube'"),
+                                        ({"max_samples": 0}, "max_samples must be None or >= 1")])
+def test_bad_device_and_item_budget_fields_are_refused(bad, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig(**bad)

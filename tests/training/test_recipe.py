@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
 from nemsim.cli import main
@@ -57,33 +58,46 @@ def test_stages_run_in_order_warm_started_then_skip_or_resume(tmp_path, tiny_dat
     assert "resumed from" in (second / "train.log").read_text() and (second / STAGE_RECORD).is_file()
 
 
-def test_a_stage_frees_its_training_set_before_the_next_loads_its_own(tmp_path, tiny_data, monkeypatch):
-    """Stages run in one process: a finished stage's in-memory training set (13.9 GB for the union recipe
-    on `small`) must be gone before the next stage decodes its own, or two of them coexist."""
+def test_the_stages_share_one_decode_and_drop_what_they_no_longer_use(tmp_path, tiny_data, tiny_manifest,
+                                                                      monkeypatch):
+    """Stages run in one process: a second stage on the same cases reuses the first stage's decoded states
+    (training and validation), and a decode of other cases drops the least recently used one before it is
+    made, so two training sets of a recipe never coexist (13.9 GB for the union recipe on `small`)."""
     import gc
     import weakref
 
     import nemsim.training.run as run
+    from nemsim.data.dataset import TransitionDataset, decoded_states
 
     config = tmp_path / "memory.train.yaml"
     config.write_text("in_memory: true\n")
-    made, alive, refs = run._memory_set, [], []
+    made, seen = run._memory_sets, []
 
-    def memory_set(sets, cfg):
-        alive.append(sum(ref() is not None for ref in refs))  # sets of earlier stages still in memory
-        out = made(sets, cfg)
-        refs.append(weakref.ref(out))
+    def memory_sets(sets, val, cfg):
+        out = made(sets, val, cfg)
+        seen.append((out[0].states, out[1].states))
         return out
 
-    monkeypatch.setattr(run, "_memory_set", memory_set)
-    gc.disable()  # as when no collection happens to run between the stages
+    monkeypatch.setattr(run, "_memory_sets", memory_sets)
+    memory = ["--config", str(config)]
+    recipe = _recipe(tmp_path, tiny_data, first=memory, second=memory)
+    assert main(["train", "--recipe", str(recipe), "--out", str(tmp_path / "runs"), "--no-progress"]) == 0
+    (train_a, val_a), (train_b, val_b) = seen
+    assert train_a is train_b and val_a is val_b  # decoded once
+    seen.clear()
+    del train_a, train_b, val_b
+
+    gc.disable()  # freed by reference counts alone, as when no collection runs between stages
     try:
-        memory = ["--config", str(config)]
-        recipe = _recipe(tmp_path, tiny_data, first=memory, second=memory)
-        assert main(["train", "--recipe", str(recipe), "--out", str(tmp_path / "runs"), "--no-progress"]) == 0
+        ref = weakref.ref(val_a)
+        del val_a
+        other = TransitionDataset(tiny_data, tiny_manifest, "train", symmetrize=True)
+        other_b = TransitionDataset(tiny_data, tiny_manifest, "test")
+        decoded_states([other], torch.device("cpu"))
+        decoded_states([other_b], torch.device("cpu"))  # two other decodes: the recipe's are gone
+        assert ref() is None
     finally:
         gc.enable()
-    assert alive == [0, 0]
 
 
 def test_malformed_recipes_are_one_line_exit_2(tmp_path, tiny_data, capsys):
