@@ -2,8 +2,10 @@
 
 Each variant rolls out the same ``steps``-step trajectories (batch ``batch``, seeded controls uniform in the
 normalized design box, the scene's initial state) ``repeats`` times after one warm-up rollout; reported:
-median and min wall seconds per rollout, and max |Δ| of the whole trajectory against fp32 (normalized SDF
-units), so the fastest precision that keeps the error is visible. Variants are interleaved (fp32, bf16,
+median and min wall seconds per rollout, the median CPU seconds of this process per rollout (all its
+threads: on a machine shared with other jobs, wall time grows with their load and CPU time much less), and
+max |Δ| of the whole trajectory against fp32 (normalized SDF units), so the fastest precision that keeps the
+error is visible. Variants are interleaved (fp32, bf16,
 channels_last, fp32, ...) so that load from other processes on the machine hits them alike.
 
 Variants:
@@ -85,7 +87,8 @@ def bench_rollout(
     """Time ``steps``-step rollouts of ``model`` from x0 (2, D, H, W) for each variant (CPU).
 
     Returns {"steps", "batch", "repeats", "threads", "variants": {name: {"median_s", "min_s", "times_s",
-    "max_abs_diff_vs_fp32"}}}; ``max_abs_diff_vs_fp32`` is max |x̂ - x̂_fp32| over the whole trajectory.
+    "cpu_median_s", "cpu_times_s", "max_abs_diff_vs_fp32"}}}; ``max_abs_diff_vs_fp32`` is max
+    |x̂ - x̂_fp32| over the whole trajectory.
     """
     if steps < 1 or batch < 1 or repeats < 1:
         raise ValueError(f"steps, batch and repeats must be >= 1, got {steps}, {batch}, {repeats}")
@@ -98,6 +101,7 @@ def bench_rollout(
     u = torch.rand(batch, N_CONTROLS, generator=g) * 2 - 1  # (B, 14) normalized
     setups = {name: _variant(model, x, name) for name in variants}
     times: dict[str, list[float]] = {name: [] for name in variants}
+    cpu_times: dict[str, list[float]] = {name: [] for name in variants}
     trajs: dict[str, torch.Tensor] = {}
     window_stats: dict[str, dict[str, Any]] = {}
     with torch.inference_mode():
@@ -110,9 +114,10 @@ def bench_rollout(
         for _ in range(repeats):
             for name, (m, xv, ctx, win) in setups.items():
                 with ctx():
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     rollout(m, xv, u, steps, window=win)
                     times[name].append(time.perf_counter() - t0)
+                    cpu_times[name].append(time.process_time() - c0)
     ref = trajs["fp32"]
     return {
         "steps": steps,
@@ -124,6 +129,8 @@ def bench_rollout(
                 "median_s": statistics.median(times[name]),
                 "min_s": min(times[name]),
                 "times_s": times[name],
+                "cpu_median_s": statistics.median(cpu_times[name]),
+                "cpu_times_s": cpu_times[name],
                 "max_abs_diff_vs_fp32": float((trajs[name] - ref).abs().max()),
                 **({"fraction_computed": window_stats[name]["fraction_computed"]} if name in window_stats
                    else {}),
@@ -137,11 +144,12 @@ def format_bench(report: dict[str, Any]) -> str:
     lines = [
         f"{report['steps']}-step rollout, batch {report['batch']}, {report['repeats']} repeats, "
         f"{report['threads']} thread(s):",
-        f"  {'variant':14s} {'median s':>9s} {'min s':>8s} {'max|Δ| vs fp32':>15s}",
+        f"  {'variant':14s} {'median s':>9s} {'min s':>8s} {'CPU s':>8s} {'max|Δ| vs fp32':>15s}",
     ]
     for name, v in report["variants"].items():
         frac = f"  ({v['fraction_computed']:.2f} of the voxels computed)" if "fraction_computed" in v else ""
         lines.append(
-            f"  {name:14s} {v['median_s']:9.3f} {v['min_s']:8.3f} {v['max_abs_diff_vs_fp32']:15.2e}{frac}"
+            f"  {name:14s} {v['median_s']:9.3f} {v['min_s']:8.3f} {v['cpu_median_s']:8.3f} "
+            f"{v['max_abs_diff_vs_fp32']:15.2e}{frac}"
         )
     return "\n".join(lines)

@@ -69,7 +69,7 @@ def bench_service(
             if time.monotonic() > deadline or app.state.service.status == "failed":
                 raise RuntimeError(f"service not ready: {app.state.service.status} {app.state.service.error}")
             time.sleep(0.05)
-        model_id = client.get("/model").json()["model_id"]
+        info = client.get("/model").json()
         first = body(np.asarray(from_normalized(np.zeros(len(CONTROL_NAMES))), dtype=np.float64))
         _post(client, first)  # warm the cache for the repeat figure
         cpu0 = time.process_time()
@@ -83,9 +83,10 @@ def bench_service(
     outside = [1.0 - rollout_s / wall_s for wall_s, rollout_s in uncached]
     return {
         "checkpoint": Path(checkpoint).name,  # the file name: reports carry no machine paths
-        "model_id": model_id,
+        "model_id": info["model_id"],
         "steps": steps,
         "machine": _machine(settings.runtime_backend),
+        "runtime": info["runtime"],  # what rolled out (GET /model): backend, precision, the CPU's flags
         "uncached": {
             **_percentiles([wall for wall, _ in uncached]),
             "cpu_ms_per_request": 1e3 * (cpu1 - cpu0) / n,

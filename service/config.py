@@ -132,8 +132,10 @@ class Settings(BaseSettings):
         description="rollout runtime; openvino falls back to torch (logged) if missing; cuda: CUDA graphs on "
         "the GPU (`nemsim serve --device cuda`), eager torch on the CPU without CUDA (logged)",
     )
-    runtime_precision: Literal["f32", "bf16"] = Field(
-        default="bf16", description="rollout precision (bf16: same Avg RMSE within 1 %, measured)"
+    runtime_precision: Literal["auto", "f32", "bf16"] = Field(
+        default="auto", description="rollout precision; auto: bf16 where the device computes in it (a GPU, "
+        "a CPU with AVX-512 BF16 or AMX), else f32 (`nemsim.inference.precision`; bf16: same Avg RMSE within "
+        "1 %, measured); GET /model says what runs",
     )
     rollout_nice: int = Field(
         default=0,

@@ -549,6 +549,11 @@ class ModelInfo(BaseModel):
     extrapolation: str = Field(
         description="policy for controls outside the training box: allow, clip or refuse"
     )
+    runtime: dict[str, Any] = Field(
+        description="what rolls out: backend, precision (and, for openvino, the precision its CPU plugin "
+        "runs), threads, fallback_reason, precision_requested (auto: the CPU's default), the CPU's name, "
+        "its bfloat16 flags and its default precision"
+    )
 
 
 class MechanismsResponse(BaseModel):

@@ -171,7 +171,7 @@ class ServedModel:
         cache_size: int = 32,
         cache_bytes: int | None = None,
         runtime_backend: str = "openvino",
-        runtime_precision: str = "bf16",
+        runtime_precision: str = "auto",
         runtime_threads: int = 1,
     ) -> ServedModel:
         """Load `path` weights-only (`nemsim.inference`; CheckpointError) and serve it; `scene`: the scene

@@ -371,12 +371,19 @@ def test_design_pairs_write_a_seed_id_column_and_need_an_even_n(tmp_path, capsys
 # ---- the CLI package: its version, the commands plugged in from service/ and bench/ ----------------------
 
 
-def test_version_prints_the_package_version(capsys):
+@pytest.mark.parametrize(("flags", "runtime", "named"), [("avx2 fma", "f32", "no bf16 arithmetic"),
+                                                         ("avx2 avx512_bf16", "bf16", "avx512_bf16")])
+def test_version_prints_the_version_and_the_served_runtime(capsys, monkeypatch, flags, runtime, named):
     from importlib.metadata import version
 
+    from nemsim.training import config
+
+    monkeypatch.setattr(config, "cpu_info", lambda: {"model name": "Some CPU 9000", "flags": flags})
     with pytest.raises(SystemExit) as exc:
         main(["--version"])
-    assert exc.value.code == 0 and capsys.readouterr().out.strip() == f"nemsim {version('nemsim')}"
+    first, second = capsys.readouterr().out.strip().splitlines()
+    assert exc.value.code == 0 and first == f"nemsim {version('nemsim')}"
+    assert second.startswith(f"served runtime openvino-{runtime} on Some CPU 9000 ({named};")
 
 
 def test_help_lists_the_commands_of_the_library_and_of_the_plugins():

@@ -61,6 +61,33 @@ def _version() -> str:
         return __version__
 
 
+def _version_text() -> str:
+    """The version, and the runtime a served model rolls out on here by default: OpenVINO when installed,
+    at the precision this CPU computes fastest in (``nemsim.inference.precision``)."""
+    from importlib.util import find_spec
+
+    from nemsim.inference.precision import machine
+
+    m = machine()
+    backend = "openvino" if find_spec("openvino") is not None else "torch"
+    flags = ", ".join(m["bf16_flags"]) or "no bf16 arithmetic"
+    return (f"nemsim {_version()}\nserved runtime {backend}-{m['default_precision']} on {m['cpu']} ({flags}; "
+            "NEMSIM_RUNTIME_PRECISION=f32|bf16 overrides)")
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: composed only when asked (it reads /proc/cpuinfo), printed to stdout, exit 0."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
+                 default: str = argparse.SUPPRESS, help: str | None = None) -> None:
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        print(_version_text())  # noqa: T201
+        parser.exit()
+
+
 def _unavailable(name: str, exc: BaseException) -> Handler:
     """The handler of a plugin command whose module failed to import: says what to install."""
 
@@ -101,8 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}",
-                        help="print the version and exit")
+    parser.add_argument("--version", action=_VersionAction,
+                        help="print the version and the default rollout runtime on this CPU, and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for group in COMMAND_GROUPS:

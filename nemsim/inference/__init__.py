@@ -4,6 +4,7 @@ controls -- what the service, the CLI and the bench use to run a trained model.
   ``checkpoint``   save / read / load checkpoints (weights-only, weights verified; ``CheckpointError``);
   ``eager``        the runtime interface and its PyTorch reference (``TorchRuntime``);
   ``runtime``      ``compile_model``: PyTorch eager, OpenVINO, or CUDA graphs (``cuda_graph``);
+  ``precision``    the precision per device ("auto": bf16 where the hardware computes in it, else f32);
   ``predictor``    ``Predictor``: physical controls -> normalized once -> rollout -> profile metrics;
   ``range_check``  controls outside the training box (how far; allow, clip or refuse).
 

@@ -16,12 +16,11 @@ import torch
 from torch import nn
 
 from nemsim.evaluation.rollout import steps_per_call
+from nemsim.inference.precision import PRECISIONS, Precision
 from nemsim.model.unpack import NO_FINISH, Finish
 
 Backend = Literal["torch", "openvino", "cuda"]
-Precision = Literal["f32", "bf16"]
 BACKENDS: tuple[str, ...] = ("torch", "openvino", "cuda")
-PRECISIONS: tuple[str, ...] = ("f32", "bf16")
 
 
 @dataclass(frozen=True)

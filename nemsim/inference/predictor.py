@@ -31,6 +31,7 @@ import torch
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
 from nemsim.inference import range_check
 from nemsim.inference.checkpoint import LoadedModel, checkpoint_id, load_checkpoint
+from nemsim.inference.precision import machine, resolve_precision
 from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
 from nemsim.symmetry import fold, quarter_model_size, symmetrize
 
@@ -215,13 +216,17 @@ class Predictor:
             loaded: from ``load_checkpoint``.
             model_id: how responses name the model (default: the checkpoint's stem).
             backend: "auto", "torch" or "openvino" (which falls back to torch, logged, when unavailable).
-            precision: "f32" or "bf16". threads: OpenVINO threads per rollout.
+            precision: "f32", "bf16" or "auto" (bf16 where the device computes in it, else f32:
+                ``nemsim.inference.precision``). threads: OpenVINO threads per rollout.
             x0: (2, D, H, W) initial state; default the scene's, built as the checkpoint's data were.
         """
         self.loaded = loaded
         self.scene = loaded.scene
         self.model_id = model_id or (loaded.path.stem if loaded.path else loaded.name)
-        self.runtime: Runtime = compile_model(loaded.model, resolve_backend(backend), precision, threads)  # type: ignore[arg-type]
+        backend = resolve_backend(backend)
+        self.precision_requested = precision
+        chosen = resolve_precision(precision, "cuda" if backend == "cuda" else "cpu")
+        self.runtime: Runtime = compile_model(loaded.model, backend, chosen, threads)  # type: ignore[arg-type]
         self.sim_config, source = _recorded_sim_config(loaded.raw or {})
         n = quarter_model_size(loaded.model)
         if x0 is None:
@@ -277,6 +282,12 @@ class Predictor:
     @property
     def n_params(self) -> int:
         return int(sum(p.numel() for p in self.model.parameters() if p.requires_grad))
+
+    def runtime_info(self) -> dict[str, Any]:
+        """What rolls out and why: the runtime's ``describe()`` (backend, precision, threads, fallback
+        reason; OpenVINO also the precision its plugin runs), ``precision_requested`` ("auto": the CPU's
+        default) and the CPU with its bfloat16 flags (``nemsim.inference.precision.machine``)."""
+        return {**self.runtime.describe(), "precision_requested": self.precision_requested, **machine()}
 
     @property
     def horizon_steps(self) -> int:

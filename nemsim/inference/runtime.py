@@ -38,9 +38,7 @@ from torch.utils import _pytree as pytree
 from nemsim.controls import N_CONTROLS
 from nemsim.inference.eager import (  # noqa: F401 -- re-exported: the runtime API in one place
     BACKENDS,
-    PRECISIONS,
     Backend,
-    Precision,
     Runtime,
     RuntimeConfig,
     TorchRuntime,
@@ -49,6 +47,7 @@ from nemsim.inference.eager import (  # noqa: F401 -- re-exported: the runtime A
     model_precompute,
     model_predict,
 )
+from nemsim.inference.precision import PRECISIONS, Precision  # noqa: F401 -- re-exported
 from nemsim.model.unpack import NO_FINISH, Finish, write_states
 
 log = logging.getLogger(__name__)
@@ -322,6 +321,14 @@ class OpenVINORuntime(Runtime):
         r = torch.from_numpy(req.get_output_tensor(0).data).float()  # (B, 16k, D'/2, H'/2, W'/2)
         gate = cache.torch_cache.get("gate") if isinstance(cache.torch_cache, dict) else None
         return write_states(xin, r, gate, bool(getattr(self.config, "clamp_output", True)), out, finish)
+
+    def describe(self) -> dict[str, Any]:
+        """``Runtime.describe`` plus ``inference_precision``: what the CPU plugin runs the compiled graph in
+        (it runs f32 under a bf16 hint on a CPU without AVX-512); None before the first compile."""
+        with self._lock:
+            compiled = next(iter(self._compiled.values()), None)
+        ran = None if compiled is None else compiled.get_property("INFERENCE_PRECISION_HINT").get_type_name()
+        return {**super().describe(), "inference_precision": ran}
 
     def _scratch(self, req: Any, batch: int) -> Any:
         """The request's own output array (B, k, 2, D, H, W) float32 for calls that keep fewer than k states

@@ -95,4 +95,5 @@ async def get_model(served: ServedModelDep, settings: SettingsDep) -> ModelInfo:
         controls=controls,
         initial_state=predictor.initial_state_source,
         extrapolation=settings.extrapolation,
+        runtime=predictor.runtime_info(),
     )

@@ -20,6 +20,7 @@ from torch import nn
 from nemsim.evaluation.rollout import rollout
 from nemsim.inference import runtime
 from nemsim.inference.runtime import compile_model, openvino_available
+from nemsim.training.config import cpu_flags
 
 torch.set_num_threads(1)
 
@@ -74,7 +75,9 @@ def test_openvino_f32_matches_pytorch(trained):
     ref = rollout(model, x0, u)  # (2, STEPS+1, 2, D, H, W) PyTorch eager, the reference
     pred = compile_model(model, "openvino", "f32", threads=1)
     assert pred.backend == "openvino" and pred.fallback_reason is None
+    assert pred.describe()["inference_precision"] is None  # nothing compiled yet
     out = rollout(pred, x0, u)
+    assert pred.describe()["inference_precision"] == "f32"
     assert out.shape == ref.shape and out.dtype == torch.float32
     assert (out[:, 1:] - out[:, :1]).abs().max() > 1e-3  # the trajectory moves: the check is not vacuous
     assert (out - ref).abs().max() <= 1e-4
@@ -131,6 +134,9 @@ def test_openvino_bf16_close_to_pytorch(trained):
     with torch.inference_mode():  # how the service calls it: the graph is traced from inference tensors
         out = rollout(pred, x0[:1], u[:1])
     assert pred.backend == "openvino" and pred.precision == "bf16"
+    # the CPU plugin takes a bf16 hint only on AVX-512 (emulated without AVX-512 BF16 or AMX); f32 elsewhere
+    avx512 = {"avx512f", "avx512bw", "avx512vl", "avx512dq"} <= cpu_flags()
+    assert pred.describe()["inference_precision"] == ("bf16" if avx512 else "f32")
     d = out - ref
     assert d.abs().max() <= 0.05 and d.pow(2).mean().sqrt() <= 0.01
 
@@ -232,3 +238,4 @@ def test_bench_rollout_has_openvino_variants(trained):
     model, x0, _ = trained
     rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-f32"])
     assert rep["variants"]["openvino-f32"]["max_abs_diff_vs_fp32"] <= 1e-4
+    assert all(0 < v["cpu_median_s"] and len(v["cpu_times_s"]) == 1 for v in rep["variants"].values())

@@ -6,6 +6,7 @@ import time
 
 from fastapi.testclient import TestClient
 
+from nemsim.inference.precision import cpu_name, default_precision
 from service.config import Settings, default_checkpoint, get_settings
 from service.main import create_app
 
@@ -35,6 +36,12 @@ def test_model_info(client, tiny_scene):
         assert set(c) >= {"name", "unit", "min", "max", "train_min", "train_max"}
         assert c["unit"] == spec.unit and (c["train_min"], c["train_max"]) == (spec.low, spec.high)
         assert c["min"] is None or c["min"] <= c["train_min"]
+    # what rolls out, chosen for this CPU (NEMSIM_RUNTIME_PRECISION unset: auto)
+    runtime = info["runtime"]
+    assert runtime["precision_requested"] == "auto" and runtime["precision"] == default_precision()
+    assert runtime["cpu"] == cpu_name() and runtime["backend"] in ("openvino", "torch")
+    if runtime["backend"] == "openvino":  # compiled by the warm-up: what the CPU plugin runs in
+        assert runtime["inference_precision"] in ("f32", "bf16")
 
 
 def test_not_ready_without_checkpoint(tmp_path):

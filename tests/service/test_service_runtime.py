@@ -19,7 +19,7 @@ def test_runtime_settings_from_the_environment(monkeypatch):
     from service.config import Settings
 
     s = Settings()
-    assert (s.runtime_backend, s.runtime_precision, s.runtime_threads) == ("openvino", "bf16", 1)
+    assert (s.runtime_backend, s.runtime_precision, s.runtime_threads) == ("openvino", "auto", 1)
     monkeypatch.setenv("NEMSIM_RUNTIME_BACKEND", "torch")
     monkeypatch.setenv("NEMSIM_RUNTIME_PRECISION", "f32")
     monkeypatch.setenv("NEMSIM_RUNTIME_THREADS", "2")
