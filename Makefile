@@ -5,13 +5,14 @@ BIN := $(VENV)/bin
 
 # torch is installed first, so the package install keeps it: the CPU build from the PyTorch CPU index by
 # default (PyPI's torch is the CUDA build on Linux, with some 20 NVIDIA packages); where that index cannot
-# serve it, the default index's build, after a one-line message. TORCH=cuda (`make serve TORCH=cuda`): the
-# default index's build, for an NVIDIA GPU. The container takes the same switch (`make container`).
+# serve it, the default index's build, after a one-line message (one retry: an index that is not reachable
+# costs seconds, not minutes of pip's default retries for every dependency). TORCH=cuda (`make serve
+# TORCH=cuda`): the default index's build, for an NVIDIA GPU. The container takes the same switch.
 TORCH ?= cpu
 TORCH_PIN := torch==2.13.0
 TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 ifeq ($(TORCH),cpu)
-TORCH_INSTALL = $(BIN)/pip install -q --index-url $(TORCH_CPU_INDEX) $(TORCH_PIN) \
+TORCH_INSTALL = $(BIN)/pip install -q --retries 1 --index-url $(TORCH_CPU_INDEX) $(TORCH_PIN) \
 	|| { echo "make: the CPU index $(TORCH_CPU_INDEX) could not serve $(TORCH_PIN): installing the default index's torch (CUDA on Linux)" >&2; \
 	     $(BIN)/pip install -q $(TORCH_PIN); }
 else ifeq ($(TORCH),cuda)

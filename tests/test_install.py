@@ -50,7 +50,7 @@ def torch_installs(calls: list[str]) -> list[str]:
 def test_cpu_build_by_default(tmp_path):
     run, calls = make_venv(tmp_path)
     assert run.returncode == 0, run.stderr
-    assert torch_installs(calls) == [f"install -q --index-url {CPU_INDEX} torch==2.13.0"]
+    assert torch_installs(calls) == [f"install -q --retries 1 --index-url {CPU_INDEX} torch==2.13.0"]
     assert calls[-1] == "install -q -e .[service,test]"  # after torch: the package install keeps it
     assert "CPU index" not in run.stderr
 
@@ -59,7 +59,7 @@ def test_unreachable_cpu_index_falls_back_with_one_line(tmp_path):
     run, calls = make_venv(tmp_path, cpu_index_rc=1)
     assert run.returncode == 0, run.stderr
     assert torch_installs(calls) == [
-        f"install -q --index-url {CPU_INDEX} torch==2.13.0",
+        f"install -q --retries 1 --index-url {CPU_INDEX} torch==2.13.0",
         "install -q torch==2.13.0",
     ]
     said = [line for line in run.stderr.splitlines() if "CPU index" in line]
