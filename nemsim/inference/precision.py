@@ -1,11 +1,12 @@
 """Which precision a runtime computes in on this machine: ``resolve_precision("auto")`` and ``machine``.
 
 bfloat16 pays only where the hardware computes in it: a CUDA GPU, or a CPU with AVX-512 BF16 or AMX
-(``nemsim.training.config.CPU_BF16_FLAGS``). A CPU with AVX-512 but neither emulates bfloat16 arithmetic,
-several times slower than float32; OpenVINO's CPU plugin ignores a bf16 hint on a CPU without AVX-512 and
-runs float32. So ``"auto"`` (the service's default) is bf16 where the hardware computes in it and f32
-elsewhere; ``"f32"`` or ``"bf16"`` given explicitly is taken as is. The speed of each precision per CPU is
-measured by ``nemsim bench rollout`` and ``nemsim bench speed-error``.
+(``nemsim.training.config.CPU_BF16_FLAGS``). Elsewhere it is emulated: PyTorch's autocast on any such CPU
+(benchmarks/small/README.md), OpenVINO's CPU plugin on one with AVX-512; without AVX-512 the plugin drops a
+bf16 hint and runs the float32 graph (``OpenVINORuntime.describe``: ``inference_precision``). So ``"auto"``
+(the service's default) is bf16 where the hardware computes in it and f32 elsewhere, and says so;
+``"f32"`` or ``"bf16"`` given explicitly is taken as is. The speed of each precision per CPU is measured by
+``nemsim bench rollout`` and ``nemsim bench speed-error``.
 """
 
 from __future__ import annotations
