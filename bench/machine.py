@@ -4,7 +4,6 @@ not), so every timed result names the CPU it came from."""
 from __future__ import annotations
 
 import os
-import platform
 
 from nemsim.training.config import CPU_BF16_FLAGS, cpu_info
 
@@ -14,10 +13,11 @@ _FLAGS = (*CPU_BF16_FLAGS, "amx_tile")
 
 def cpu_name() -> str:
     """e.g. "<model name> (2 logical CPUs; avx512_bf16)"; the bare architecture without /proc/cpuinfo."""
+    from nemsim.inference.precision import cpu_name as model_name
+
     info = cpu_info()
     if not info:
-        return platform.processor() or platform.machine()
+        return model_name()
     flags = set(info.get("flags", "").split())
     present = [f for f in _FLAGS if f in flags] or ["no AVX-512 BF16, no AMX"]
-    model = info.get("model name") or platform.machine()
-    return f"{model} ({os.cpu_count()} logical CPUs; {', '.join(present)})"
+    return f"{model_name()} ({os.cpu_count()} logical CPUs; {', '.join(present)})"
