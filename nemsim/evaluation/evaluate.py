@@ -2,7 +2,7 @@
 
 Rollouts start from the ground-truth x_0 (``nemsim.evaluation.rollout``); the only correction is the monotone
 projection the model's config asks for (NEMSim: on; ``nemsim.model.monotone``). They run in PyTorch f32 (the
-reference) or through a compiled runtime (``predictor``: e.g. the OpenVINO bf16 graph the service runs, so
+reference) or through a compiled runtime (``predictor``: e.g. the OpenVINO graph the service runs, so
 what is served is what is scored). Metrics come from ``nemsim.evaluation.metrics`` (RMSE_t over cases then
 √, eqs. supp_step_rmse / supp_avg_rmse / supp_final_rmse; final-step Chamfer distance,
 eq. supp_chamfer_distance; trainable parameters, eq. supp_params).
@@ -193,7 +193,7 @@ def evaluate(
         chamfer: compute the final-step Chamfer distance (the slowest metric).
         rollout_path: if given, stream predictions to this HDF5 file (``pred``, ``case_ids``).
         predictor: a runtime of ``model`` (``nemsim.inference.runtime.compile_model``, e.g. the served
-            OpenVINO bf16 graph) that runs the rollouts instead of the model itself; CPU only. Its graph is
+            OpenVINO graph) that runs the rollouts instead of the model itself; CPU only. Its graph is
             compiled for the first batch's shape before the timing starts (a smaller last batch compiles
             its own shape inside it).
     """
