@@ -142,7 +142,7 @@ class Settings(BaseSettings):
         ge=0,
         le=19,
         description="rollouts compute on threads this much nicer than the server (Linux; 0: the same "
-        "priority). Interactive rollouts should stay above background work: jobs run at nice 19",
+        "priority). Jobs run at the server's priority, one at a time on one core",
     )
     runtime_threads: int = Field(
         default=1, ge=1, description="OpenVINO threads per rollout; keep threads x max_concurrency <= cores"

@@ -3,9 +3,9 @@
 A design job runs in a child process of the job queue (`service.jobs.run_child`, task `design` of
 `service.sim_child`), as a simulator job's simulator does: the search's gradients and its batched rollouts
 take hundreds of MB, which the server's resident memory would keep (its budget is 1 GB); cancelling kills
-the search at once; the child computes at nice 19. The server writes the served weights into the job's
-folder in checkpoint form (`write_weights`) with what it derived from them (initial state, simulator
-configuration, calibration, model id); the child loads them with the weights-only loader
+the search at once; the child computes at the server's priority. The server writes the served weights
+into the job's folder in checkpoint form (`write_weights`) with what it derived from them (initial state,
+simulator configuration, calibration, model id); the child loads them with the weights-only loader
 (`nemsim.inference.checkpoint`), runs `nemsim.analysis.inverse.search` in PyTorch (gradients; the fast
 runtime serves rollouts only), then the verification's or the simulator-corrected rounds' simulator runs
 in the same process (`service.sim_child.design_in_child`, beside what a simulator job runs), and writes the

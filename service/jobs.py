@@ -11,10 +11,11 @@ server holds threads and torch): the simulator of a simulator job (`simulate_and
 search of a design job (`service.inverse`). So cancelling stops it at once, a crash of the numerical code
 cannot take the server down, and the server's memory does not grow with a job (a design search's
 gradients take hundreds of MB). The worker thread waits for the child, passes its progress on and reads
-its result. The child and the queue's worker threads run at nice 19: jobs never take the CPU from
-interactive rollouts. Nothing outlives the server (`service.job_processes`): `JobQueue.open` (server
-start) removes the job folders under `work_dir` that dead servers left and kills the children on
-SIGTERM / SIGINT; `JobQueue.close` (shutdown) kills them.
+its result. The child and the queue's worker threads run at `JOB_NICE`, the server's priority
+(`service.sim_child.job_priority`): a job is never starved, and one at a time takes one core. Nothing
+outlives the server (`service.job_processes`): `JobQueue.open` (server start) removes the job folders
+under `work_dir` that dead servers left and kills the children on SIGTERM / SIGINT; `JobQueue.close`
+(shutdown) kills them.
 
 A cancelled job (`cancel`) stays readable with status `cancelled` and no result until it is forgotten like
 any finished job; cancelling a finished job changes nothing.
@@ -58,7 +59,7 @@ from service.job_processes import (
 from service.memory import release_free_memory
 from service.scheduler import ServiceBusy, lower_thread_priority
 from service.schemas import jsonable
-from service.sim_child import ERROR_FILE, INPUT_FILE, PROGRESS_FILE
+from service.sim_child import ERROR_FILE, INPUT_FILE, JOB_NICE, PROGRESS_FILE
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -67,7 +68,6 @@ STATUSES = ("pending", "running", "done", "failed", "cancelled")
 KINDS = ("simulation", "design")  # simulator runs (routes/jobs.py), inverse design (routes/inverse.py)
 KEEP_ARTIFACTS = 4  # finished jobs whose trajectories are kept for GET /jobs/{id}/mesh
 COMPARE_BLOCK = 8  # states compared at a time (`compare`)
-JOB_NICE = 19  # the lowest CPU priority: job workers and job children
 RETRY_AFTER_S = (1, 300)  # bounds of the Retry-After of a client at its job limit
 
 

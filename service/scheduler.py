@@ -11,8 +11,8 @@ turned cheap mesh requests into 503s, and requests whose client had already disc
 * The app keeps one gate per kind of work (`Gates`): uncached rollouts, meshes, mechanisms. Cache hits
   never touch a gate, and meshes of finished rollouts never wait behind rollouts.
 * Rollouts run on their own worker threads (`low_priority_executor`), `rollout_nice` nicer than the
-  server (Linux only; default 0: the server's priority). Interactive rollouts must never yield to
-  background work: simulator jobs run at nice 19 (`service.jobs`), far below them. A positive
+  server (Linux only; default 0: the server's priority). Jobs run at the server's priority too
+  (`service.sim_child.JOB_NICE`), one at a time on one core (`service.jobs`). A positive
   `rollout_nice` lets the event loop (cheap answers, new requests) take the CPU first when rollouts
   saturate it, at the price of rollouts yielding to anything else on the machine. The model runtime
   computes in the calling thread, so the priority covers the forward passes; other work uses the

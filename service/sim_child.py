@@ -10,8 +10,8 @@ inputs (`input.pkl`, and whatever else the task reads) into the job's folder and
   ends, `kill -9` of the server included (`prctl(PR_SET_PDEATHSIG)`); where that is not available, a
   watchdog thread exits once the parent is gone. A server that died before the guard was set (the parent
   is no longer the given pid) means exit at once;
-* runs at the lowest CPU priority (nice 19, its scheduler autogroup too): interactive rollouts get the
-  cores first;
+* runs at `JOB_NICE`, the server's CPU priority (its scheduler autogroup too): never starved, and one
+  job at a time takes at most one core (`job_priority`);
 * writes the share of its work done (a number in [0, 1]) to `progress`, its output into the folder (the
   simulator: `states.npy`; a design: `result.json`), or its failure to `error` (exit status 1): JSON
   ``{"type": exception class name, "message": its text}``.
@@ -47,6 +47,7 @@ TASKS = ("simulate", "design")
 CONFIRM_SEED_OFFSET = 1  # a refined design's confirmation runs with the design's simulator seed + this
 SEARCH_SHARE = 0.6  # progress share of a design's search when the job also verifies
 MODEL_FILE, RESULT_FILE = "model.pt", "result.json"  # in a design job's folder
+JOB_NICE = 0  # job children and job worker threads: this much nicer than the server (`job_priority`)
 
 
 def die_with_parent(server_pid: int) -> None:
@@ -71,19 +72,25 @@ def die_with_parent(server_pid: int) -> None:
         threading.Thread(target=watch, name="nemsim-parent-watch", daemon=True).start()
 
 
-def lowest_priority() -> None:
-    """Nice 19 (POSIX); background work must never take the CPU from interactive requests.
+def job_priority() -> None:
+    """`JOB_NICE` nicer than the server (POSIX), the job's scheduler autogroup too.
+
+    A core shared with one other busy process is split by the kernel's weights per nice level (sched(7)):
+    at nice 0 half each, so a job goes at least half its quiet pace beside any one CPU-bound process; at
+    nice 2 it would get 39 %, at nice 19 1.5 % (a starved job whose progress stands still). Interactive
+    rollouts are protected by numbers instead: one job runs at a time on one thread
+    (`NEMSIM_SIM_WORKERS`), so a job takes at most one core from the server.
 
     Linux with scheduler autogroups (the default on desktops and many servers) weighs sessions against each
     other first and applies a nice value only within its session's group; this process leads a session of
-    its own, so its group's nice is set to 19 too (``/proc/self/autogroup``, sched(7))."""
+    its own, so its group's nice is set to `JOB_NICE` too (``/proc/self/autogroup``, sched(7))."""
     if hasattr(os, "nice"):
         with contextlib.suppress(OSError):  # a sandbox that forbids it: run as is
-            os.nice(19)  # clamped at 19
+            os.nice(JOB_NICE)
     autogroup = Path("/proc/self/autogroup")
     if autogroup.exists():
         with contextlib.suppress(OSError):
-            autogroup.write_text("19")
+            autogroup.write_text(str(JOB_NICE))
 
 
 def write_atomically(path: Path, data: bytes) -> None:
@@ -274,7 +281,7 @@ def main(argv: list[str]) -> int:
     job_dir, server_pid = Path(argv[0]), int(argv[1])
     task = argv[2] if len(argv) > 2 else "simulate"
     die_with_parent(server_pid)
-    lowest_priority()
+    job_priority()
     try:
         run_task(job_dir, task)
     except Exception as exc:  # noqa: BLE001 -- the server reports it on the job

@@ -36,7 +36,7 @@ TARGETS, AT_S = (
     if SHOWCASE
     else ({"etch_depth": ("20", "5"), "mask_loss": ("1", "")}, "0.5")
 )
-JOB_MS = 180_000  # a limit, not a target: a job's child process starts at nice 19 (slow on a busy machine)
+JOB_MS = 180_000  # a limit, not a target: a job's child process shares a busy machine's cores
 log = logging.getLogger(__name__)
 
 
