@@ -19,7 +19,9 @@ that benchmark's simulator calls per target reached with the surrogate-guided de
 strategy: every call it spent on the reachable targets, independent confirmation runs included, over the
 targets it reached), read once per model. Calls per hit rather than the median: it stays finite when
 fewer than half the targets are reached, and it is what a design costs on average when a miss is retried.
-Another checkpoint, or an installation without the benchmarks, has none: the field is then absent.
+It is one figure for every design, not an estimate for the query at hand, and `expected_calls_basis` says
+so (how many targets it averages, where it comes from). Another checkpoint, or an installation without the
+benchmarks, has none: both fields are then absent.
 
 Every rollout also says how far its recipe lies from the training data and what error the committed
 extrapolation benchmark of the served checkpoint (`benchmarks/<scene>/extrapolation/extrapolation.json`,
@@ -63,13 +65,20 @@ def calibration(served: Any) -> Calibration | None:
         return _calibrations[served.model_id]
 
 
-def expected_calls_to_target(served: Any, benchmarks: Path = BENCHMARKS) -> float | None:
-    """The committed design-cost benchmark's simulator calls per target reached, for the served checkpoint
-    (module docstring); None when there is no result for it."""
+def expected_calls_to_target(served: Any, benchmarks: Path = BENCHMARKS) -> tuple[float, str] | None:
+    """The committed design-cost benchmark's simulator calls per target reached, for the served checkpoint,
+    and a line that says what that figure is (module docstring); None when there is no result for it."""
     rep = _committed(served, benchmarks, "design_cost/results.json")
     summary = rep.get("summary", {}).get(DESIGN_LABEL) if rep else None
     value = summary.get("calls_per_hit") if isinstance(summary, dict) else None
-    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+    if not isinstance(summary, dict) or not isinstance(value, int | float) or isinstance(value, bool):
+        return None
+    basis = (
+        f"the benchmark's average over {summary.get('reachable', '?')} held-out reachable targets "
+        f"(nemsim bench design-cost, benchmarks/{served.predictor.scene.name}/design_cost), the same "
+        "figure for every design: not an estimate for this one"
+    )
+    return float(value), basis
 
 
 def rollout_trust(served: Any, raw: np.ndarray, normalized: np.ndarray,
@@ -109,13 +118,13 @@ def _committed(served: Any, benchmarks: Path, name: str) -> dict[str, Any] | Non
 
 def with_call_counts(result: dict[str, Any], served: Any) -> dict[str, Any]:
     """The design result with ``simulator_calls`` and, when the benchmark has a figure for the served
-    checkpoint, ``expected_calls_to_target``."""
+    checkpoint, ``expected_calls_to_target`` and ``expected_calls_basis``."""
     out = dict(result)
     if "simulator_calls" not in out:
         out["simulator_calls"] = len((out.get("verification") or {}).get("recipes") or [])
     expected = expected_calls_to_target(served)
     if expected is not None:
-        out["expected_calls_to_target"] = expected
+        out["expected_calls_to_target"], out["expected_calls_basis"] = expected
     return out
 
 

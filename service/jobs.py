@@ -96,6 +96,7 @@ class Job:
     created: float = field(default_factory=time.time)
     status: str = "pending"
     progress: float = 0.0
+    phase: str | None = None  # what the running work is doing (its child's word)
     result: dict[str, Any] | None = None
     message: str | None = None
     finished: float | None = None
@@ -115,6 +116,7 @@ class Job:
             "kind": self.kind,
             "status": self.status,
             "progress": round(float(self.progress), 4),
+            "phase": {"pending": "waiting in the queue", "running": self.phase}.get(self.status),
             "created": self.created,
             "result": self.result if self.status == "done" else None,
             "message": self.message,
@@ -322,9 +324,10 @@ def run_child(
 ) -> T:
     """Run `task` of `service.sim_child` on `inputs` in a child process of the job's queue and return
     `read(job folder)` of its output. `write(job folder)` adds input files (beside `input.pkl`). The
-    child's progress (0..1) becomes the job's, times `share` (never going back); cancelling the job kills
-    the child. `what` names the work in messages ("the simulator"). Raises JobCancelled, ChildFailed, and
-    RuntimeError (no folder, no process; naming no path). The child's folder is removed on every path."""
+    child's progress (0..1) becomes the job's, times `share` (never going back), and its phase the job's
+    `phase`; cancelling the job kills the child. `what` names the work in messages ("the simulator").
+    Raises JobCancelled, ChildFailed, and RuntimeError (no folder, no process; naming no path). The
+    child's folder is removed on every path."""
     children = job.children if job.children is not None else SimulatorChildren()
     try:
         job_dir = children.make_dir()
@@ -335,6 +338,7 @@ def run_child(
         (job_dir / INPUT_FILE).write_bytes(pickle.dumps(inputs))
         if write is not None:
             write(job_dir)
+        job.phase = f"starting {what}"
         try:
             child = children.start(job_dir, task)
         except ChildrenStopped:
@@ -345,7 +349,9 @@ def run_child(
             if job.cancelled:
                 raise JobCancelled
             with contextlib.suppress(OSError, ValueError):  # not written yet
-                job.progress = max(job.progress, share * float((job_dir / PROGRESS_FILE).read_text()))
+                done, _, phase = (job_dir / PROGRESS_FILE).read_text().partition("\n")
+                job.progress = max(job.progress, share * float(done))
+                job.phase = phase or job.phase
             time.sleep(poll_s)
         if job.cancelled or children.stopped:
             raise JobCancelled

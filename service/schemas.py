@@ -413,6 +413,11 @@ class JobStatus(BaseModel):
         "DELETE of a finished job leaves it unchanged"
     )
     progress: float = Field(ge=0.0, le=1.0)
+    phase: str | None = Field(
+        None,
+        description="what the job is doing now: 'waiting in the queue', then as it runs (a design: loading "
+        "the model, screening k/n recipes, the search's steps, 'simulator run k of n'); null once finished",
+    )
     created: float = Field(description="creation time, seconds since the epoch")
     result: dict[str, Any] | None = Field(None, description="present when done")
     message: str | None = Field(None, description="why the job failed (one line)")

@@ -12,7 +12,9 @@ inputs (`input.pkl`, and whatever else the task reads) into the job's folder and
   is no longer the given pid) means exit at once;
 * runs at `JOB_NICE`, the server's CPU priority (its scheduler autogroup too): never starved, and one
   job at a time takes at most one core (`job_priority`);
-* writes the share of its work done (a number in [0, 1]) to `progress`, its output into the folder (the
+* writes the share of its work done (a number in [0, 1]) and, on a second line, what it is doing (a
+  design: loading the model, screening, the search's steps, simulator run k of n) to `progress`, its
+  output into the folder (the
   simulator: `states.npy`; a design: `result.json`), or its failure to `error` (exit status 1): JSON
   ``{"type": exception class name, "message": its text}``.
 
@@ -35,7 +37,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -100,15 +102,23 @@ def write_atomically(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def progress_writer(job_dir: Path) -> Callable[[float], None]:
-    """report(share) for a task: the share of its work done, written to `progress` when it moved."""
-    last = [-1.0]
+class Report(Protocol):
+    """report(share, phase): the share of a task's work done (0..1; None: as before) and what it is doing
+    (None: as before)."""
 
-    def report(share: float) -> None:
-        share = round(min(max(float(share), 0.0), 1.0), 4)
-        if share != last[0]:
-            last[0] = share
-            write_atomically(job_dir / PROGRESS_FILE, str(share).encode())
+    def __call__(self, share: float | None, phase: str | None = None) -> None: ...
+
+
+def progress_writer(job_dir: Path) -> Report:
+    """A task's `Report`: "<share>\n<phase>" written to `progress` when either moved."""
+    last: list[Any] = [0.0, ""]
+
+    def report(share: float | None, phase: str | None = None) -> None:
+        now = [last[0] if share is None else round(min(max(float(share), 0.0), 1.0), 4),
+               last[1] if phase is None else phase]
+        if now != last:
+            last[:] = now
+            write_atomically(job_dir / PROGRESS_FILE, f"{now[0]}\n{now[1]}".encode())
 
     return report
 
@@ -137,7 +147,7 @@ def simulate_schedule(
     return res.states.astype(np.float16)
 
 
-def simulate_task(job_dir: Path, inputs: Any, report: Callable[[float], None]) -> None:
+def simulate_task(job_dir: Path, inputs: Any, report: Report) -> None:
     """Task `simulate`: inputs (scene, simulator config, (T, 14) schedule, seed); states to `states.npy`."""
     scene, config, schedule, seed = inputs
     states = simulate_schedule(scene, config, schedule, seed, report)
@@ -146,10 +156,11 @@ def simulate_task(job_dir: Path, inputs: Any, report: Callable[[float], None]) -
     os.replace(tmp, job_dir / "states.npy")
 
 
-def design_in_child(job_dir: Path, inputs: dict[str, Any], report: Callable[[float], None]) -> None:
+def design_in_child(job_dir: Path, inputs: dict[str, Any], report: Report) -> None:
     """Task `design`: load the weights `service.inverse.design_work` wrote, run the design, write
     `result.json`. The design's simulator runs are this process's (`simulate_schedule`, what a simulator
     job's child runs)."""
+    report(0.0, "loading the model")
     import torch
 
     from nemsim.analysis.intervals import Support
@@ -179,10 +190,13 @@ def _plain(value: Any) -> Any:
     raise TypeError(f"{type(value).__name__} is not JSON serializable")
 
 
-def _design(ctx: Any, o: dict[str, Any], report: Callable[[float], None]) -> dict[str, Any]:
-    """The design of `service.inverse.design_work` (its options in `o`); report(share of the job done)."""
+def _design(ctx: Any, o: dict[str, Any], report: Report) -> dict[str, Any]:
+    """The design of `service.inverse.design_work` (its options in `o`), its recipes labelled predicted or
+    simulated (`label_recipes`); report(share of the job done, phase): the search's stages, then
+    "simulator run k of n" (of at most n for a simulator-corrected design) with its steps."""
     from nemsim.analysis.inverse import (
         SimulationSkipped,
+        label_recipes,
         refine_with_simulator,
         search,
         simulated_metrics,
@@ -193,11 +207,19 @@ def _design(ctx: Any, o: dict[str, Any], report: Callable[[float], None]) -> dic
 
     spec = o["spec"]
     sim_max_work = o["sim_max_work"]
+    runs = [0]  # simulator runs started
 
-    def simulated(raw: np.ndarray, steps: int, progress: Callable[[float], None], seed: int | None = None
-                  ) -> np.ndarray:
+    def simulated(raw: np.ndarray, steps: int, share: Callable[[float], float | None], planned: str,
+                  seed: int | None = None) -> np.ndarray:
         schedule = np.repeat(raw[None], steps, axis=0)  # (T, 14)
         seed = o["sim_seed"] if seed is None else seed
+        runs[0] += 1
+        label = f"simulator run {runs[0]} of {planned}"
+
+        def progress(f: float) -> None:
+            report(share(f), f"{label}: step {round(f * steps)}/{steps}")
+
+        progress(0.0)
         try:
             states = simulate_schedule(ctx.scene, o["sim_config"], schedule, seed, progress)
         except Exception as exc:  # noqa: BLE001 -- named as a simulator job's failure is
@@ -213,24 +235,25 @@ def _design(ctx: Any, o: dict[str, Any], report: Callable[[float], None]) -> dic
                     raise SimulationSkipped(
                         f"{work:.3g}x the work of a design-centre run (server limit {sim_max_work:g}x)"
                     )
-                return simulated(raw, steps, lambda _f: None, seed)  # progress stands still meanwhile
+                # the share stands still meanwhile: the loop decides how many runs it makes
+                return simulated(raw, steps, lambda _f: None, f"at most {o['refine'].max_runs}", seed)
 
             return simulate
 
         # a recipe met in its loop run is confirmed by an independent run (the next seed) before it is the
         # answer: the strategy `nemsim bench design-cost` measures as "design"
-        return refine_with_simulator(
+        return label_recipes(refine_with_simulator(
             ctx,
             spec,
             simulated_metrics(simulator(o["sim_seed"]), ctx.scene),
             refine=o["refine"],
             seed=o["seed"],
             sim_seed=o["sim_seed"],
-            on_progress=lambda f, _msg: report(0.98 * f),
+            on_progress=lambda f, msg: report(0.98 * f, msg),
             confirm=simulated_metrics(simulator(o["sim_seed"] + CONFIRM_SEED_OFFSET), ctx.scene),
-        )
+        ), spec)
     share = SEARCH_SHARE if o["verify"] else 0.98
-    result = search(ctx, spec, seed=o["seed"], on_progress=lambda f, _msg: report(share * f))
+    result = search(ctx, spec, seed=o["seed"], on_progress=lambda f, msg: report(share * f, msg))
     if o["verify"]:
         top = min(o["verify_top"], len(result["recipes"]))
         span = (0.98 - share) / max(top, 1)
@@ -243,12 +266,9 @@ def _design(ctx: Any, o: dict[str, Any], report: Callable[[float], None]) -> dic
                     f"recipe {i + 1}: {work:.3g}x the work of a design-centre run (server limit "
                     f"{sim_max_work:g}x)"
                 )
-        counter = {"i": 0}
-
         def simulate_top(raw: np.ndarray, steps: int) -> np.ndarray:
-            base = share + span * counter["i"]
-            counter["i"] += 1
-            return simulated(raw, steps, lambda f: report(base + span * f))
+            base = share + span * runs[0]
+            return simulated(raw, steps, lambda f: base + span * f, str(top))
 
         if skipped:
             result["verification"] = {"seed": o["sim_seed"], "recipes": [], "skipped": skipped}
@@ -257,10 +277,10 @@ def _design(ctx: Any, o: dict[str, Any], report: Callable[[float], None]) -> dic
                 "seed": o["sim_seed"],
                 "recipes": verify_recipes(result, spec, ctx.scene, simulate_top, top),
             }
-    return result
+    return label_recipes(result, spec)
 
 
-def task_function(task: str) -> Callable[[Path, Any, Callable[[float], None]], None]:
+def task_function(task: str) -> Callable[[Path, Any, Report], None]:
     """The function of `task` (TASKS): fn(job folder, inputs, report(share of the work done, 0..1))."""
     if task == "simulate":
         return simulate_task

@@ -1,17 +1,21 @@
 """The README's toy workflow, run line by line exactly as written (parsed from the README: they cannot drift).
 
-The block between ``<!-- toy-workflow:begin -->`` and ``<!-- toy-workflow:end -->`` may hold only ``nemsim``
-commands (one ending in ``&`` runs in the background), ``curl`` requests and ``kill %1``. ``nemsim`` runs as
-``python -m nemsim.cli`` of this tree; ``curl`` lines are interpreted here with urllib (options -s -f -w -X -H
--d --retry --retry-connrefused --retry-delay), so the test does not depend on a curl binary; the server's port
-is swapped for a free one. Everything runs in a temporary directory.
+The block between ``<!-- toy-workflow:begin -->`` and ``<!-- toy-workflow:end -->`` may hold only
+``. .venv/bin/activate``, ``nemsim`` commands (one ending in ``&`` runs in the background), ``curl`` requests
+and ``kill %1``. As in a fresh shell, ``nemsim`` is found only on the PATH that the activation line sets (the
+``bin`` folder of the interpreter running the tests, the ``.venv`` that ``make test`` builds), so a block that
+calls it first fails; ``curl`` lines are interpreted here with urllib (options -s -f -w -X -H -d --retry
+--retry-connrefused --retry-delay), so the test does not depend on a curl binary; the server's port is swapped
+for a free one. Everything runs in a temporary directory, in the block's order.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -25,6 +29,7 @@ from service.protocol import free_port
 
 ROOT = Path(__file__).parents[1]
 BEGIN, END = "<!-- toy-workflow:begin -->", "<!-- toy-workflow:end -->"
+ACTIVATE = [".", ".venv/bin/activate"]
 
 
 def readme_commands(text: str) -> list[list[str]]:
@@ -75,21 +80,41 @@ def _curl(words: list[str]) -> bytes:
     raise AssertionError("unreachable")
 
 
+def _without_venv(path: str) -> str:
+    """``path`` (a PATH) without the folder of the tests' own interpreter: a shell before activation."""
+    venv_bin = str(Path(sys.executable).parent)
+    return os.pathsep.join(p for p in path.split(os.pathsep) if p and p != venv_bin)
+
+
+def test_readme_activates_the_venv_before_any_nemsim_command():
+    """Read top to bottom, the README's shell blocks say how to put `nemsim` on the PATH before using it."""
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```bash\n(.*?)```", text, re.S)
+    lines = [ln.strip() for block in blocks for ln in block.splitlines()]
+    first = next(i for i, ln in enumerate(lines) if ln.startswith("nemsim "))
+    assert any(shlex.split(ln, comments=True) == ACTIVATE for ln in lines[:first]), lines[first]
+
+
 @pytest.mark.slow
 def test_readme_toy_workflow(tmp_path):
     commands = readme_commands((ROOT / "README.md").read_text())
     assert [c[1] for c in commands if c[0] == "nemsim"][:4] == ["design", "generate", "data", "splits"]
     port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+    env = {**os.environ, "PATH": _without_venv(os.environ.get("PATH", "")), "PYTHONPATH": str(ROOT),
+           "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
     background: list[subprocess.Popen] = []
     server_log = tmp_path / "server.log"
     try:
         for words in commands:
             words = [w.replace("localhost:8001", f"localhost:{port}") for w in words]
-            if words[0] == "nemsim":
+            if words == ACTIVATE:
+                env["PATH"] = os.pathsep.join([str(Path(sys.executable).parent), env["PATH"]])
+            elif words[0] == "nemsim":
                 bg = words[-1] == "&"
                 args = [a if a != "8001" else str(port) for a in (words[1:-1] if bg else words[1:])]
-                argv = [sys.executable, "-m", "nemsim.cli", *args]
+                nemsim = shutil.which("nemsim", path=env["PATH"])
+                assert nemsim, f"`{' '.join(words)}` comes before `. .venv/bin/activate` puts it on the PATH"
+                argv = [nemsim, *args]
                 if bg:
                     log = server_log.open("w")
                     background.append(subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=log,

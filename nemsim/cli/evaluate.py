@@ -36,7 +36,8 @@ def register(sub: Subparsers) -> None:
     p.add_argument("--checkpoint", required=True, type=Path,
                    help="checkpoint .pt (e.g. OUT/best.pt of `nemsim train`); its scene must match --data")
     p.add_argument("--data", required=True, type=Path, help="HDF5 dataset file")
-    p.add_argument("--setting", required=True, choices=SETTINGS, help="split setting whose cases are scored")
+    p.add_argument("--setting", default="control-id", choices=SETTINGS,
+                   help="split setting whose cases are scored (default control-id)")
     p.add_argument("--split", default="test", choices=("train", "val", "test"),
                    help="which part of the setting (default test)")
     p.add_argument("--splits", type=Path,

@@ -30,14 +30,18 @@ async def post_design(
 ) -> JSONResponse:
     """Find recipes whose predicted profile meets the targets (a job: poll its Location).
 
-    The result lists `k` ranked recipes with predicted metrics, conformal intervals, a distance-to-training-
-    data flag and the search's cost; `status` is `met` or `unreachable` (then the closest recipe and its
-    miss). With `verify`, the simulator runs the top recipes and the result reports achieved against target.
+    The result lists `k` ranked recipes with predicted metrics, conformal intervals (cut to each metric's
+    physical range), a distance-to-training-data flag and the search's cost; `status` is `met` or
+    `unreachable` (then the closest recipe and its miss). Each recipe's `verdict` keeps the surrogate's word
+    apart from the simulator's: `predicted` / `predicted_miss` (not simulated), `confirmed` /
+    `simulator_miss` (simulated), with `intervals_within_tolerance` per interval level. With `verify`,
+    the simulator runs the top recipes and the result reports achieved against target.
     With `refine`, the simulator works inside the design loop (simulator-corrected rounds); the status is
     then `verified`, `unverified` or `unreachable` and the top recipe is the best simulated one. Every
     result reports `simulator_calls` (the simulator runs the design made) and, when the benchmark
     `nemsim bench design-cost` has a committed result for the served checkpoint,
-    `expected_calls_to_target` (its simulator calls per target reached).
+    `expected_calls_to_target` (its simulator calls per target reached: one average for every design, as
+    `expected_calls_basis` says). While it runs, `GET /jobs/{id}` reports its `phase`.
     """
     try:
         spec = spec_from_dict(body.spec_dict())

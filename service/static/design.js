@@ -1,7 +1,8 @@
 // Inverse design on the page: targets in nm -> a `POST /design` job (progress, cancel) -> ranked recipes
 // with the model's intervals and a training-data flag -> "Load & run" puts a recipe into the controls and
-// runs it, after which "Verify with simulator" checks it. Built on the API as it is; a result's
-// `simulator_calls` and `expected_calls_to_target` are shown when the server reports them.
+// runs it, after which "Verify with simulator" checks it. Built on the API as it is: each card says what its
+// `verdict` says (predicted by the surrogate, or confirmed by the simulator), the job's `phase` is the progress
+// line, and `expected_calls_to_target` is shown as what it is, the benchmark's average.
 
 const METRICS = [ // what `POST /design` accepts, with its default tolerance (nm) and physical range
   ['etch_depth', 'etch depth', 5, (s) => s.si_top * s.voxel_nm],
@@ -10,6 +11,12 @@ const METRICS = [ // what `POST /design` accepts, with its default tolerance (nm
   ['mask_loss', 'mask loss', 2, (s) => (s.resist_top - s.si_top) * s.voxel_nm],
   ['bowing', 'bowing', 2, (s) => Math.min(s.nx, s.ny) * s.voxel_nm],
 ];
+const VERDICT = { // a recipe's `verdict` -> [class, words]
+  confirmed: ['ok', 'confirmed by the simulator: meets every target'],
+  simulator_miss: ['warn', 'missed a target in the simulator'],
+  predicted: ['ok', 'predicted to meet every target (not simulated)'],
+  predicted_miss: ['warn', 'predicted to miss a target'],
+};
 const FLAG = {
   inside: 'near the training data',
   far: '⚠ far from every training case: less reliable',
@@ -59,7 +66,7 @@ async function run(page, state) {
     const { data } = await page.api('POST', '/design', body);
     state.job = data.location; $('design-cancel').hidden = false;
     const job = await page.followJob(data.location, (j) => {
-      $('design-progress').value = j.progress; status(`searching: ${j.status} (${Math.round(100 * j.progress)}%)`);
+      $('design-progress').value = j.progress; status(`${j.phase || j.status} (${Math.round(100 * j.progress)}%)`);
     });
     if (job.status === 'cancelled') { status('cancelled'); return; }
     if (job.status !== 'done') { status(`the design failed: ${job.message || job.status}`); return; }
@@ -75,9 +82,10 @@ function costLine(res) {
   const c = res.cost || {}, parts = [];
   if (c.rollouts !== undefined) parts.push(`${c.rollouts} surrogate rollouts`);
   if (c.wall_s !== undefined) parts.push(`${c.wall_s.toFixed(1)} s`);
-  for (const [key, label] of [['simulator_calls', 'simulator calls'], ['expected_calls_to_target', 'expected simulator calls to reach the target']]) {
-    const v = res[key] ?? c[key];
-    if (v !== undefined && v !== null) parts.push(`${label}: ${typeof v === 'number' ? +v.toPrecision(3) : esc(v)}`);
+  if (res.simulator_calls !== undefined) parts.push(`simulator calls: ${res.simulator_calls}`);
+  const avg = res.expected_calls_to_target;
+  if (typeof avg === 'number') {
+    parts.push(`<span title="${esc(res.expected_calls_basis || '')}">benchmark average, the same for every design: ${+avg.toPrecision(3)} simulator calls per target reached</span>`);
   }
   return parts.join(' · ');
 }
@@ -90,20 +98,25 @@ function render(page, res) {
   let html = `<p class="${res.status === 'met' || res.status === 'verified' ? 'ok' : 'warn'}">${esc(res.message || res.status)}</p>`;
   html += `<p class="hint">targets at t = ${(+res.time_s).toFixed(1)} s · ${costLine(res)}${bands}</p>`;
   recipes.forEach((r, i) => {
+    const sim = r.simulated_targets; // present when the simulator ran this recipe
     const rows = Object.entries(r.targets).map(([m, t]) => {
-      const iv = level && r.intervals[level] && r.intervals[level][m];
-      const band = iv ? ` [${iv[0] === null ? '−∞' : nm(iv[0])}, ${iv[1] === null ? '∞' : nm(iv[1])}]` : '';
+      const iv = level && r.intervals[level] && r.intervals[level][m]; // cut to the physical range by the server
+      const band = iv ? ` [${nm(iv[0])}, ${nm(iv[1])}]` : '';
       const goal = `${+t.target.toPrecision(4)} ± ${+t.tol.toPrecision(3)}`;
-      return `<tr><td class="left">${m}</td><td>${nm(t.value)}${band}</td><td>${goal}</td><td>${t.met ? '✓' : '✗'}</td></tr>`;
+      const met = sim ? sim[m].met : t.met, simCell = sim ? `<td>${nm(sim[m].value)}</td>` : '';
+      return `<tr><td class="left">${m}</td><td>${nm(t.value)}${band}</td>${simCell}<td>${goal}</td><td>${met ? '✓' : '✗'}</td></tr>`;
     }).join('');
     const changed = page.specs.filter((s) => r.controls[s.name] !== page.defaults[s.name])
       .map((s) => `${s.name} = ${page.fmt(r.controls[s.name])} ${s.unit}`).join('<br>') || '(the defaults)';
-    const flag = (r.training_data && FLAG[r.training_data.flag]) || '', met = Object.values(r.targets).every((t) => t.met);
+    const flag = (r.training_data && FLAG[r.training_data.flag]) || '';
+    const [cls, words] = VERDICT[r.verdict] || VERDICT.predicted_miss;
+    const wide = r.verdict === 'predicted' && level && r.intervals_within_tolerance && !r.intervals_within_tolerance[level]
+      ? `<div class="hint">its ${Math.round(100 * level)} % interval is wider than the tolerance: only the simulator can confirm it</div>` : '';
     html += `<div class="recipe-card"><div class="bar"><b>#${r.rank}</b>
-      <span class="${met ? 'ok' : 'warn'}">${met ? 'meets every target' : 'misses a target'}</span>
+      <span class="${cls}">${words}</span>
       <button class="load" data-i="${i}">Load &amp; run</button></div>
-      <div class="hint">${esc(flag)}</div>
-      <table><tr><th>metric (nm)</th><th>predicted</th><th>target</th><th></th></tr>${rows}</table>
+      ${wide}<div class="hint">${esc(flag)}</div>
+      <table><tr><th>metric (nm)</th><th>predicted</th>${sim ? '<th>simulator</th>' : ''}<th>target</th><th></th></tr>${rows}</table>
       <details><summary>controls</summary><div class="hint">${changed}</div></details></div>`;
   });
   const box = $('design-result'); box.innerHTML = html; box.dataset.done = '1';

@@ -27,6 +27,9 @@ def test_inverse_prints_a_table_and_writes_json(tiny_checkpoint, tmp_path, capsy
     res = json.loads(out.read_text())
     assert res["status"] in ("met", "unreachable") and len(res["recipes"]) == 2
     assert res["spec"]["targets"]["etch_depth"] == {"value": 10.0, "tol": 5.0}
+    # nothing was simulated: every recipe is a prediction, and the table says so
+    assert {r["verdict"] for r in res["recipes"]} <= {"predicted", "predicted_miss"}
+    assert "| verdict |" in text and "confirmed" not in text and "predicted to" in text
 
 
 def test_inverse_json_to_stdout(tiny_checkpoint, tmp_path, capsys):

@@ -12,12 +12,16 @@ import numpy as np
 SMALL_SEARCH = {"screen": 4, "starts": 1, "iterations": 1, "batch": 4, "method": "adam"}
 
 
-def _poll(client, location: str, timeout_s: float = 120.0) -> tuple[dict, list[float]]:
+def _poll(client, location: str, timeout_s: float = 120.0, phases: list | None = None
+          ) -> tuple[dict, list[float]]:
+    """The finished job and every progress seen; with ``phases``, every phase seen is appended to it."""
     seen = []
     deadline = time.monotonic() + timeout_s
     while True:
         body = client.get(location).json()
         seen.append(body["progress"])
+        if phases is not None:
+            phases.append(body["phase"])
         if body["status"] in ("done", "failed", "cancelled") or time.monotonic() > deadline:
             return body, seen
         time.sleep(0.02)
@@ -42,10 +46,15 @@ def test_design_job_202_progress_and_result(make_client, monkeypatch):
     assert r.status_code == 202, r.text
     created = r.json()
     assert created["kind"] == "design" and r.headers["location"] == created["location"]
-    done, seen = _poll(client, created["location"])
+    phases: list = []
+    done, seen = _poll(client, created["location"], phases=phases)
     assert done["status"] == "done", done
     assert done["progress"] == 1.0 and all(0.0 <= p <= 1.0 for p in seen)
     assert seen == sorted(seen)  # progress never goes back
+    # what it is doing, from before the child reports anything; nothing once it is done
+    assert phases[-1] is None and any(isinstance(p, str) and p for p in phases[:-1])
+    stages = ("waiting", "starting", "loading", "screen", "gradient", "re-eval", "simulator run 1 of 1: step")
+    assert all(p is None or p.startswith(stages) for p in phases), phases
     res = done["result"]
     assert res["status"] in ("met", "unreachable") and len(res["recipes"]) == 2
     top = res["recipes"][0]
@@ -55,6 +64,11 @@ def test_design_job_202_progress_and_result(make_client, monkeypatch):
     ver = res["verification"]["recipes"]
     assert len(ver) == 1 and set(ver[0]["achieved"]) >= {"etch_depth", "mask_loss"}
     assert isinstance(ver[0]["met"], bool)
+    # the simulated recipe is confirmed or refuted by its run, the other one only predicted
+    assert top["verified_by"] == "simulator" and top["simulated"] == ver[0]["achieved"]
+    assert top["verdict"] == ("confirmed" if ver[0]["met"] else "simulator_miss")
+    second = res["recipes"][1]
+    assert second["verified_by"] == "surrogate" and second["verdict"] in ("predicted", "predicted_miss")
     assert res["simulator_calls"] == 1  # the one verification run
     assert "expected_calls_to_target" not in res  # no design-cost benchmark for the test checkpoint
 
@@ -91,6 +105,7 @@ def test_refined_design_job_reports_its_rounds(make_client, monkeypatch):
     assert (res["status"] == "verified") == any(v["met"] for v in runs if v["run"] != "loop")
     top = res["recipes"][0]
     assert top["verified_by"] == "simulator" and set(top["simulated"]) >= {"etch_depth"}
+    assert (top["verdict"] == "confirmed") == (res["status"] == "verified")
     assert (
         res["refinement"]["rounds"][0]["simulated"][0]["simulated"]["etch_depth"]
         == runs[0]["achieved"]["etch_depth"]
@@ -132,6 +147,7 @@ def test_refined_design_skips_recipes_beyond_the_work_limit(make_client, monkeyp
     assert res["simulator_calls"] == 0
     assert res["status"] in ("met", "unreachable")  # nothing simulated: the surrogate's word
     assert all(r["verified_by"] == "surrogate" for r in res["recipes"])
+    assert all(r["verdict"] in ("predicted", "predicted_miss") for r in res["recipes"])
 
 
 def test_bad_design_requests_are_422(make_client):
@@ -213,9 +229,11 @@ def test_expected_calls_come_from_the_served_checkpoints_benchmark(tmp_path):
 
     folder = tmp_path / "small" / "design_cost"
     folder.mkdir(parents=True)
-    rep = {"checkpoint_id": "0123456789ab", "summary": {"design": {"calls_per_hit": 2.5}}}
+    rep = {"checkpoint_id": "0123456789ab", "summary": {"design": {"calls_per_hit": 2.5, "reachable": 22}}}
     (folder / "results.json").write_text(json.dumps(rep))
-    assert expected_calls_to_target(_Served("m@0123456789ab"), tmp_path) == 2.5
+    value, basis = expected_calls_to_target(_Served("m@0123456789ab"), tmp_path)
+    # labelled as what it is: the benchmark's average, one figure for every design
+    assert value == 2.5 and "average over 22" in basis and "the same figure for every design" in basis
     assert expected_calls_to_target(_Served("m@ffffffffffff"), tmp_path) is None  # another checkpoint
     assert expected_calls_to_target(_Served("m@0123456789ab", "tiny"), tmp_path / "x") is None  # none
     rep["checkpoint_id"] = "aaaaaaaaaaaa"
@@ -227,3 +245,32 @@ def test_expected_calls_come_from_the_served_checkpoints_benchmark(tmp_path):
     assert out["simulator_calls"] == 2 and "expected_calls_to_target" not in out
     assert with_call_counts({"simulator_calls": 3}, _Served("t@bbbbbbbbbbbb", "tiny"))["simulator_calls"] == 3
     assert with_call_counts({}, _Served("t@bbbbbbbbbbbb", "tiny"))["simulator_calls"] == 0
+
+
+def test_a_design_child_reports_its_phases(tiny_checkpoint):
+    """The child's progress moves during the screening and names each simulator run (k of n, its steps);
+    its share never goes back. A simulator-corrected design counts its runs against its limit."""
+    from nemsim.analysis.inverse import RefineConfig, load_inverse_context, simulator_config, spec_from_dict
+    from service.sim_child import _design
+
+    ctx = load_inverse_context(tiny_checkpoint)
+    search = {**SMALL_SEARCH, "screen": 8}
+    spec = spec_from_dict({"targets": {"etch_depth": 20}, "step": 2, "k": 2, "search": search})
+    o = {"spec": spec, "seed": 0, "verify": True, "verify_top": 2, "sim_seed": 1, "sim_max_work": 1e9,
+         "refine": None, "sim_config": simulator_config(ctx.loaded)}
+    calls: list = []
+    res = _design(ctx, o, lambda share, phase=None: calls.append((share, phase)))
+    shares = [s for s, _ in calls]
+    assert shares == sorted(shares) and shares[-1] <= 1.0
+    at = dict((p, s) for s, p in calls)
+    assert 0 < at["screening: 4/8 recipes rolled out"] < at["screening: 8/8 recipes rolled out"]
+    assert at["simulator run 1 of 2: step 0/2"] < at["simulator run 2 of 2: step 2/2"]
+    assert [r["verdict"] in ("confirmed", "simulator_miss") for r in res["recipes"]] == [True, True]
+
+    calls.clear()
+    o["refine"] = RefineConfig(rounds=0, max_runs=3)
+    res = _design(ctx, o, lambda share, phase=None: calls.append((share, phase)))
+    runs = [p for s, p in calls if p and p.startswith("simulator run")]
+    assert runs and all(p.startswith(("simulator run 1 of at most 3", "simulator run 2 of at most 3"))
+                        for p in runs), runs
+    assert len({p.split(":")[0] for p in runs}) == res["simulator_calls"]

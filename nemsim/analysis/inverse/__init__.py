@@ -8,7 +8,7 @@ Modules, in import order (each imports only the ones above it):
   ``spec``              what to design (``InverseSpec``), its JSON form, the objective;
   ``context``           the loaded checkpoint (``InverseContext``), differentiable rollouts to a state;
   ``surrogate_search``  the search on the surrogate (screening, Adam or CMA-ES, re-evaluation);
-  ``verify``            the simulator's metrics of a recipe against its targets;
+  ``verify``            the simulator's metrics of a recipe against its targets; each recipe's verdict;
   ``refine``            simulator-corrected rounds (the simulator inside the design loop);
   ``run``               the CLI's whole design in one process; ``report`` its readable table.
 """
@@ -44,9 +44,12 @@ from nemsim.analysis.inverse.spec import (
 )
 from nemsim.analysis.inverse.surrogate_search import LocalRegion, search
 from nemsim.analysis.inverse.verify import (
+    VERDICTS,
     Simulate,
     SimulateMetrics,
     SimulationSkipped,
+    interval_inside,
+    label_recipes,
     simulated_metrics,
     verify_recipe,
     verify_recipes,
@@ -57,6 +60,7 @@ __all__ = [
     "MIN_TOL_NM",
     "REFINE_WITH_VERIFY",
     "TARGET_METRICS",
+    "VERDICTS",
     "InverseContext",
     "InverseSpec",
     "LocalRegion",
@@ -74,6 +78,8 @@ __all__ = [
     "check_targets",
     "check_tolerance",
     "format_result",
+    "interval_inside",
+    "label_recipes",
     "load_inverse_context",
     "misses",
     "objective",

@@ -66,7 +66,7 @@ import numpy as np
 from nemsim.analysis.inverse.context import InverseContext
 from nemsim.analysis.inverse.spec import InverseSpec, Progress, SearchCancelled, Target, misses, objective
 from nemsim.analysis.inverse.surrogate_search import LocalRegion, search
-from nemsim.analysis.inverse.verify import SimulateMetrics, SimulationSkipped, verify_recipe
+from nemsim.analysis.inverse.verify import SimulateMetrics, SimulationSkipped, interval_inside, verify_recipe
 
 # verification (CLI --verify, service "verify": true) refines unless told not to: on held-out targets it met
 # more of them in an independent simulator run than verifying the surrogate's top recipe, within the
@@ -172,25 +172,6 @@ class _Simulated:
         """Ranking: targets missed by the mean of its runs, then the sum of tolerance-scaled misses."""
         t = misses(self.mean(), spec)
         return sum(not v["met"] for v in t.values()), sum(v["miss"] / v["tol"] for v in t.values())
-
-
-def _inside(rec: dict[str, Any], spec: InverseSpec, level: float) -> bool:
-    """Whether the recipe's interval at ``level`` lies inside every target's tolerance band. The interval
-    at level 0 is the prediction itself; at level 1 it is unbounded (never inside)."""
-    if level >= 1:
-        return False
-    per: dict[str, Any] | None
-    if level == 0:
-        per = {m: (v, v) for m, v in rec["predicted"].items()}
-    else:
-        per = (rec.get("intervals") or {}).get(f"{level:g}")
-    if per is None:
-        return False
-    for m, t in spec.targets.items():
-        lo, hi = per.get(m, (None, None))
-        if lo is None or hi is None or lo < t.value - t.tol or hi > t.value + t.tol:
-            return False
-    return True
 
 
 def _beyond(rec: dict[str, Any], spec: InverseSpec, level: float) -> list[str]:
@@ -330,7 +311,7 @@ def refine_with_simulator(
         if not loop.can_run():
             break
         progress(0.45 + 0.15 * i / len(top), f"simulating round-0 recipe {i + 1}/{len(top)}")
-        s = loop.run(rec, 0, claim=i == 0 and _inside(rec, spec, cfg.claim_level))
+        s = loop.run(rec, 0, claim=i == 0 and interval_inside(rec, spec, cfg.claim_level))
         if s is not None:
             rounds[0]["simulated"].append(_sim_record(s, names))
             if loop.verified() is not None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from nemsim.analysis.inverse.verify import VERDICTS
 from nemsim.controls import CONTROL_SPECS, control_index
 
 
@@ -22,9 +23,7 @@ def format_result(result: dict[str, Any]) -> str:
             if "0.9" in result["recipes"][0]["intervals"]
             else next(iter(result["recipes"][0]["intervals"]))
         )
-    head = ["rank"] + [f"{n} (target)" for n in names] + ["objective", "data"]
-    if result["recipes"] and "verified_by" in result["recipes"][0]:
-        head.append("verified by")
+    head = ["rank"] + [f"{n} (target)" for n in names] + ["objective", "data", "verdict"]
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---:|" * len(head))
     for r in result["recipes"]:
@@ -40,12 +39,7 @@ def format_result(result: dict[str, Any]) -> str:
                 st = r["simulated_targets"][n]
                 value, met = f"{value} / sim {st['value']:.1f}", st["met"]
             cells.append(f"{value} ({t['target']:g}±{t['tol']:g}){'' if met else ' MISS'}")
-        cells += [f"{r['objective']:.3g}", r["training_data"]["flag"]]
-        if "verified_by" in r:
-            cells.append(
-                ("simulator " + ("MET" if r["simulator_met"] else "miss"))
-                if r["verified_by"] == "simulator" else "surrogate"
-            )
+        cells += [f"{r['objective']:.3g}", r["training_data"]["flag"], _verdict(r, level)]
         lines.append("| " + " | ".join(cells) + " |")
     if level is not None:
         lines.append(f"(brackets: {100 * float(level):.0f} % conformal interval, nm)")
@@ -96,6 +90,15 @@ def _round_line(rd: dict[str, Any]) -> str:
         verdict = " MET" if s["met"] else f" (miss {', '.join(s['missed'])})"
         runs.append(f"predicted -> simulated {pairs}{verdict}")
     return line + ("; ".join(runs) or "nothing simulated")
+
+
+def _verdict(r: dict[str, Any], level: str | None) -> str:
+    """The recipe's verdict (``label_recipes``); a prediction whose interval is wider than a tolerance
+    says so."""
+    text = VERDICTS[r["verdict"]]
+    if r["verdict"] == "predicted" and level is not None and not r["intervals_within_tolerance"][level]:
+        text += f"; its {100 * float(level):.0f} % interval is wider than a tolerance"
+    return text
 
 
 def _f(v: float | None) -> str:

@@ -11,7 +11,7 @@ from nemsim.analysis.inverse.context import InverseContext, simulator_config
 from nemsim.analysis.inverse.refine import RefineConfig, refine_with_simulator
 from nemsim.analysis.inverse.spec import InverseSpec, check_targets, spec_to_dict
 from nemsim.analysis.inverse.surrogate_search import search
-from nemsim.analysis.inverse.verify import simulated_metrics, verify_recipes
+from nemsim.analysis.inverse.verify import label_recipes, simulated_metrics, verify_recipes
 
 
 def run_inverse(
@@ -29,8 +29,9 @@ def run_inverse(
 
     With ``refine`` (a ``RefineConfig``) the simulator is used inside the
     design loop instead (simulator-corrected rounds; implies ``verify``, and ``verify_top`` is the
-    config's). ValueError if a target or tolerance lies outside its physical range in the checkpoint's
-    scene (``check_targets``).
+    config's). Each recipe says whether the surrogate predicts it or the simulator confirmed it
+    (``label_recipes``). ValueError if a target or tolerance lies outside its physical range in the
+    checkpoint's scene (``check_targets``).
     """
     check_targets(spec.targets, ctx.scene)
     bar = None
@@ -75,4 +76,4 @@ def run_inverse(
             "recipes": verify_recipes(result, spec, ctx.scene, simulate, verify_top),
         }
     result["spec"] = spec_to_dict(spec)
-    return result
+    return label_recipes(result, spec)

@@ -88,10 +88,10 @@ def _number(value: Any, where: str) -> float:
 def target_range(metric: str, scene: Scene) -> tuple[float, float, str]:
     """(low, high, what bounds it): the physical range of profile metric ``metric`` in ``scene``, nm.
 
-    The etch depth lies between 0 and the Si thickness, the widths and the bowing between 0 and the domain
-    width, the mask loss between 0 and the mask thickness.
+    The etch depth lies between 0 and the Si thickness, the widths (the neck's too) and the bowing between 0
+    and the domain width, the mask loss between 0 and the mask thickness.
     """
-    if metric not in TARGET_METRICS:
+    if metric not in (*TARGET_METRICS, "neck_width"):
         raise ValueError(f"unknown metric {metric!r}; expected one of {list(TARGET_METRICS)}")
     vox = scene.voxel_nm
     if metric == "etch_depth":

@@ -43,6 +43,7 @@ from nemsim.analysis.inverse.spec import (
     misses,
     objective,
     search_score,
+    target_range,
 )
 from nemsim.controls import (
     CONTROL_NAMES,
@@ -118,7 +119,8 @@ class _Evaluator:
     def __init__(self, ctx: InverseContext, step: int, batch: int, cost: _Cost, check: Callable[[], None]):
         self.ctx, self.step, self.batch, self.cost, self.check = ctx, step, batch, cost, check
 
-    def __call__(self, u: np.ndarray) -> dict[str, np.ndarray]:
+    def __call__(self, u: np.ndarray, done: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+        """Exact metrics {name: (B,)} of u (B, 14); done(recipes rolled out so far) after every batch."""
         out: dict[str, list[np.ndarray]] = {}
         for s in range(0, len(u), self.batch):
             self.check()
@@ -127,6 +129,8 @@ class _Evaluator:
             self.cost.forward_rollouts += len(ub)
             for k, v in profile_metrics_batch(x.numpy(), self.ctx.scene).items():
                 out.setdefault(k, []).append(v)
+            if done is not None:
+                done(s + len(ub))
         return {k: np.concatenate(v) for k, v in out.items()}
 
 
@@ -197,7 +201,6 @@ def search(
     n_free = int(free.sum())
 
     # 1. screening
-    progress(0.0, "screening")
     if n_free:
         with warnings.catch_warnings():  # any screen size, not only powers of 2
             warnings.simplefilter("ignore", UserWarning)
@@ -210,7 +213,9 @@ def search(
         warm = np.clip(np.asarray(local.warm, dtype=np.float64).reshape(-1, N_CONTROLS), lo, hi)
         warm[:, ~free] = fixed[~free]
         u_screen = np.concatenate([warm, u_screen])  # (W + N, 14)
-    m_screen = evaluate(u_screen)
+    n = len(u_screen)
+    progress(0.0, f"screening: 0/{n} recipes rolled out")
+    m_screen = evaluate(u_screen, lambda k: progress(0.25 * k / n, f"screening: {k}/{n} recipes rolled out"))
     pool.add(u_screen, m_screen)
     trace = [round(float(np.min(objective(m_screen, spec))), 4)]  # best objective per stage/iteration
     progress(0.25, "screened")
@@ -377,7 +382,7 @@ def _final_recipes(
             "predicted": {k: round(v, 3) for k, v in at.items()},
             "targets": misses(at, spec),
             "objective": round(float(objective(at, spec)), 5),
-            "intervals": _intervals_at(ctx.calibration, at, step),
+            "intervals": _intervals_at(ctx.calibration, at, step, ctx.scene),
             "training_data": ctx.support.describe(u[i]),
         }
         missed = sum(not v["met"] for v in rec["targets"].values())
@@ -393,18 +398,27 @@ def _final_recipes(
     return keep[: spec.k]
 
 
-def _intervals_at(cal: Calibration | None, at: dict[str, float], step: int) -> dict[str, Any] | None:
-    """{level: {metric: [lo, hi]}} at the target step, None without a calibration."""
+def _intervals_at(
+    cal: Calibration | None, at: dict[str, float], step: int, scene: Any
+) -> dict[str, Any] | None:
+    """{level: {metric: [lo, hi]}} at the target step, None without a calibration. Each interval is cut to
+    the metric's physical range in ``scene`` (``target_range``: no depth beyond the Si thickness, no
+    negative width), an unbounded side included."""
     if cal is None:
         return None
     s = min(step, cal.steps)
     out: dict[str, Any] = {}
     for level in cal.levels:
-        out[f"{level:g}"] = {
-            m: [None if v is None else round(v, 3) for v in cal.interval(m, s, at[m], level)]
-            for m in cal.metrics
-            if m in at
-        }
+        per: dict[str, list[float]] = {}
+        for m in cal.metrics:
+            if m not in at:
+                continue
+            lo, hi = cal.interval(m, s, at[m], level)
+            low, high, _ = target_range(m, scene)
+            lo = low if lo is None else min(max(lo, low), high)
+            hi = high if hi is None else min(max(hi, low), high)
+            per[m] = [round(lo, 3), round(hi, 3)]
+        out[f"{level:g}"] = per
     return out
 
 
