@@ -162,7 +162,10 @@ class Settings(BaseSettings):
     handler_timeout_s: float = Field(
         default=300.0, gt=0, description="a request not answered within this gets 504"
     )
-    max_connections: int = Field(default=512, ge=1, description="open connections; more are dropped at once")
+    max_connections: int = Field(
+        default=512, ge=1, description="open connections; a new one beyond them closes the one that waited "
+        "longest without a request, or is dropped at once when every one is busy",
+    )
     limit_concurrency: int = Field(
         default=256, ge=1, description="requests in flight; more get 503 at once (probes exempt)"
     )
@@ -171,7 +174,9 @@ class Settings(BaseSettings):
     )
     max_connections_per_client: int = Field(
         default=32, ge=1, description="open connections one client address may hold (trusted proxies "
-        "exempt); more are dropped at once, so one address cannot take every connection",
+        "exempt); a new one beyond them closes that address's connection that waited longest without a "
+        "request, or is answered 503 + Retry-After when every one is busy: one address cannot take every "
+        "connection, nor lock out another client on it (every local client on loopback)",
     )
 
     # --- access control and operations (service.access, service.metrics) ---

@@ -12,8 +12,14 @@ file limit. `GuardedH11Protocol` adds, per connection:
   body not complete within `body_timeout_s` of its head -> 408 and close (a silent connection is
   just closed);
 * at most `max_connections` open connections, and at most `max_connections_per_client` from one client
-  address (trusted proxies exempt): more are dropped at once, before any byte is read, so sockets that
-  never send a request (which the app never sees) cannot take every connection from other clients.
+  address (trusted proxies exempt). A new connection beyond either cap makes room (`_make_room`): the
+  server closes the connection that has waited longest without a request in progress (one that never
+  sent a request first, then idle keep-alive ones; a head still arriving counts as waiting), of that
+  address for its cap, of any for the global one. Only when every such connection is busy is the new one
+  refused: beyond its address's cap with 503 + Retry-After (a lingering close, never a reset), beyond
+  the global cap dropped at once. So sockets that never send a request (which the app never sees) cannot
+  lock anyone out, not even another client on the same address (on loopback every local client shares
+  127.0.0.1, the explorer page included), and the cap still bounds what one address holds.
 
 A request h11 cannot parse gets 400 in the same JSON shape (uvicorn's own answer is plain text).
 uvicorn's own settings do the rest (`nemsim serve` passes them): `timeout_keep_alive` (idle keep-alive
@@ -51,12 +57,13 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 LINGER_S = 2.0  # read-and-drop window after an early error answer
 LINGER_MAX_BYTES = 8 << 20  # ... and at most this much
-DROP_LOG_S = 10.0  # at most one warning about dropped connections per this many seconds
+DROP_LOG_S = 10.0  # at most one warning about closed or refused connections per this many seconds
+CAP_RETRY_AFTER_S = 1  # Retry-After of a connection refused at its address's cap
 
 
 class GuardedH11Protocol(H11Protocol):
     settings: Any = None  # a Settings to use instead of get_settings() (`with_settings`)
-    # connections dropped by the caps since the last warning, and when it was logged (the process's)
+    # connections closed or refused by the caps since the last warning, and when it was logged (the process's)
     _drops: ClassVar[dict[str, float]] = {"count": 0, "logged_at": -math.inf}
 
     @classmethod
@@ -79,37 +86,65 @@ class GuardedH11Protocol(H11Protocol):
         self._head = bytearray()  # the head received so far (at most max_head + 1 bytes)
         self._dropping = False
         self._dropped = 0
+        self._served = 0  # responses completed on this connection
+        self._waiting_since = 0.0  # when it last began to wait for a request head
 
     # --- connection lifetime -----------------------------------------------------------------------
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-        if len(self.connections) >= self.max_connections:
-            self._drop(transport, f"the connection cap ({self.max_connections}) is reached")
-            return
         peer = get_remote_addr(transport)
-        if peer is not None and self._over_client_cap(peer[0]):
-            self._drop(transport, f"{peer[0]} holds {self.max_per_client} connections (the per-client cap)")
+        host = peer[0] if peer is not None else None
+        if len(self.connections) >= self.max_connections and not self._make_room(None):
+            transport.abort()
+            self._warn(f"the connection cap ({self.max_connections}) is reached with every connection busy: "
+                       "dropping new connections at once")
             return
+        over = host is not None and not in_networks(host, self.trusted) and not self._make_room(host)
         super().connection_made(transport)
         self._await_head()
+        if over:
+            self._warn(f"{host} holds {self.max_per_client} busy connections (the per-client cap): "
+                       "answering new ones 503")
+            self._refuse(503, f"this address holds {self.max_per_client} connections with requests in "
+                         "progress (the per-client cap); retry shortly",
+                         (("retry-after", str(CAP_RETRY_AFTER_S)),))
 
-    def _drop(self, transport: asyncio.Transport, why: str) -> None:
-        """Close a new connection at once; warn at most once per DROP_LOG_S (a flood must not flood the
-        log)."""
-        transport.abort()
+    def _waiting(self) -> bool:
+        """No request in progress: waiting for a head (none sent yet, idle keep-alive, or arriving)."""
+        return self._phase == "head" and not self._dropping
+
+    def _make_room(self, host: str | None) -> bool:
+        """Whether a new connection from `host` (None: the global cap) fits: below the cap, or once the
+        connection of that address (any, for None) that has waited longest without ever being answered,
+        else longest idle, is closed. False when every such connection has a request in progress."""
+        cap = self.max_connections if host is None else self.max_per_client
+        if len(self.connections) < cap:
+            return True  # (fewer connections in all than the cap: no need to count)
+        mine = [  # (those being closed no longer count)
+            c for c in self.connections
+            if isinstance(c, GuardedH11Protocol) and not c.transport.is_closing()
+            and (host is None or (c.client or ("",))[0] == host)
+        ]
+        if len(mine) < cap:
+            return True
+        waiting = [c for c in mine if c._waiting()]
+        if not waiting:
+            return False
+        oldest = min(waiting, key=lambda c: (c._served > 0, c._waiting_since))
+        oldest._cancel_timer()
+        oldest.transport.close()
+        self._warn(f"{'the connection cap' if host is None else host + ' at the per-client cap'}: closing "
+                   "the connections that waited longest without a request to make room for new ones")
+        return True
+
+    def _warn(self, message: str) -> None:
+        """Log `message` at most once per DROP_LOG_S (a flood must not flood the log), with the count of
+        connections closed or refused since the last such warning."""
         drops = GuardedH11Protocol._drops
         drops["count"] += 1
         now = time.monotonic()
         if now - drops["logged_at"] >= DROP_LOG_S:
-            self.logger.warning(
-                "%s: dropping new connections at once (%d since the last such warning)", why, drops["count"]
-            )
+            self.logger.warning("%s (%d since the last such warning)", message, drops["count"])
             drops["count"], drops["logged_at"] = 0, now
-
-    def _over_client_cap(self, host: str) -> bool:
-        if len(self.connections) < self.max_per_client or in_networks(host, self.trusted):
-            return False  # (fewer connections in all than the cap: no need to count)
-        held = sum(1 for c in self.connections if (getattr(c, "client", None) or ("",))[0] == host)
-        return held >= self.max_per_client
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_timer()
@@ -118,6 +153,7 @@ class GuardedH11Protocol(H11Protocol):
         super().connection_lost(exc)
 
     def on_response_complete(self) -> None:
+        self._served += 1
         super().on_response_complete()
         if not self.transport.is_closing():
             self._await_head()
@@ -160,6 +196,7 @@ class GuardedH11Protocol(H11Protocol):
     # --- timers -----------------------------------------------------------------------------------
     def _await_head(self) -> None:
         self._phase = "head"
+        self._waiting_since = time.monotonic()
         self._head.clear()
         self._arm(self.head_timeout_s)
 
@@ -195,14 +232,15 @@ class GuardedH11Protocol(H11Protocol):
         self._refuse(400, "the request is not valid HTTP/1.1")
 
     # --- answering early --------------------------------------------------------------------------
-    def _refuse(self, status: int, message: str) -> None:
+    def _refuse(self, status: int, message: str, headers: tuple[tuple[str, str], ...] = ()) -> None:
         self._cancel_timer()
         body = json.dumps(error_body(message, message)).encode()
+        extra = "".join(f"{name}: {value}\r\n" for name, value in headers)
         head = (
             f"HTTP/1.1 {status} {http.HTTPStatus(status).phrase}\r\n"
             "content-type: application/json\r\n"
             f"content-length: {len(body)}\r\n"
-            "connection: close\r\n\r\n"
+            f"{extra}connection: close\r\n\r\n"
         ).encode("ascii")
         self.logger.info("%s: %d %s", self.client, status, message)
         self.transport.write(head + body)

@@ -87,8 +87,22 @@ def test_stalled_body_408(server):
 
 
 def test_connection_cap(server):
+    """At the cap a new connection closes the one that waited longest without a request and is served;
+    with every connection busy (a body still arriving) it is dropped at once."""
     held = [socket.create_connection(server, timeout=5) for _ in range(8)]
+    busy: list[socket.socket] = []
     try:
+        time.sleep(0.1)
+        assert _exchange(server, b"GET /health HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n").startswith(
+            b"HTTP/1.1 200"
+        )
+        assert held[0].recv(10) == b""  # the longest waiting, closed to make room
+        for s in held:
+            s.close()
+        time.sleep(0.1)
+        busy = [socket.create_connection(server, timeout=5) for _ in range(8)]
+        for s in busy:
+            s.sendall(b"POST /rollout HTTP/1.1\r\nhost: localhost\r\ncontent-length: 10\r\n\r\n{")
         time.sleep(0.1)
         with socket.create_connection(server, timeout=5) as extra:
             try:  # a complete request: a served connection would answer it
@@ -98,12 +112,8 @@ def test_connection_cap(server):
                 answer = b""
             assert answer == b""  # dropped at once, nothing answered
     finally:
-        for s in held:
+        for s in held + busy:
             s.close()
-    time.sleep(0.2)
-    assert _exchange(server, b"GET /health HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n").startswith(
-        b"HTTP/1.1 200"
-    )
 
 
 def test_handler_timeout_504(make_client, served, default_controls, monkeypatch):
