@@ -598,6 +598,8 @@ class _Run:
             loss_sum[0] += loss.detach().double() * x.shape[0]  # no host-device copy: the step is not
             loss_sum[1] += x.shape[0]  # synchronized with the device (the losses are read in ``losses``)
             self.pending.append(loss.detach())
+            if len(self.pending) >= 4 * FINAL_LOSS_STEPS:  # read them now and then: the list stays short
+                self.losses()
             spent = self.tick()
             if self.bar is not None and (st.step % BAR_EVERY == 0 or spent):
                 done = st.step if self.budget_s is None else round(min(self.now_wall, self.budget_s))
