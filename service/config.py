@@ -108,6 +108,13 @@ class Settings(BaseSettings):
         "rollout computations; rollouts whose follow-ups or repeats were requested stay longer, up to half "
         "this many more, as the memory budget allows. Later: 404, and POST /rollout again gives the same id",
     )
+    response_max_mb: int = Field(
+        default=96,
+        ge=1,
+        description="large response bodies (every field, meshes) being sent at once, in MB; a body beyond "
+        "it gets 503 + Retry-After (one body is always sent), so concurrent clients cannot push the server "
+        "past its memory budget (`service.memory.ResponseBudget`)",
+    )
     cache_max_mb: int = Field(
         default=128,
         ge=1,

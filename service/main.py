@@ -29,7 +29,7 @@ from service import errors, openapi
 from service.access import AccessMiddleware
 from service.config import Settings, get_settings
 from service.jobs import JobQueue
-from service.memory import release_free_memory
+from service.memory import ResponseBudget, release_free_memory
 from service.metrics import Metrics
 from service.middleware import BodySizeLimitMiddleware, HandlerTimeoutMiddleware
 from service.routes import health, inverse, jobs, mechanisms, operations, page, rollouts
@@ -176,6 +176,7 @@ def create_app(settings: Settings | None = None, served: ServedModel | None = No
     app.state.service = ServiceState()
     app.state.gates = Gates.from_settings(settings)
     app.state.jobs = JobQueue.from_settings(settings)
+    app.state.response_budget = ResponseBudget(settings.response_max_mb << 20)
     app.state.on_load_failure = stop_process if settings.exit_on_load_failure else None
     if served is not None:
         app.state.service.served, app.state.service.status = served, "ready"

@@ -15,6 +15,7 @@ from __future__ import annotations
 import ctypes
 import gc
 import sys
+import threading
 from typing import Any
 
 _LIBC: list[Any] = []  # glibc, once loaded; [None] where there is none (not Linux, musl)
@@ -38,6 +39,35 @@ def trim_heap() -> None:
     libc = _libc()
     if libc is not None:
         libc.malloc_trim(0)
+
+
+class ResponseBudget:
+    """Bytes of large response bodies (every field, meshes) being sent at once, at most `max_bytes`.
+
+    A body is streamed piece by piece from the compact cache, yet each one in flight keeps a thread, its
+    decode buffers and its socket's buffers busy: many at once grew the server past its memory budget, and
+    glibc kept the peak. `reserve` refuses a body that would pass the budget (the route answers 503 +
+    Retry-After); `release` hands it back once sent or abandoned, and the heap is trimmed whenever the last
+    one is done (`trim_heap`), so the resident size comes back down after a burst."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes, self.used = max_bytes, 0
+        self._lock = threading.Lock()
+
+    def reserve(self, n: int) -> bool:
+        """Take `n` bytes if they fit (one body always fits an idle budget); whether they were taken."""
+        with self._lock:
+            if self.used and self.used + n > self.max_bytes:
+                return False
+            self.used += n
+            return True
+
+    def release(self, n: int) -> None:
+        with self._lock:
+            self.used -= n
+            idle = self.used == 0
+        if idle:
+            trim_heap()
 
 
 def release_free_memory() -> None:

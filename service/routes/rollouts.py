@@ -29,11 +29,13 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
+from starlette.types import Receive, Scope, Send
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, transform
 from nemsim.inference import MEDIA_TYPES, Refused
 from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
 from service.inverse import rollout_intervals, rollout_trust
+from service.memory import ResponseBudget
 from service.openapi import ErrorBody
 from service.scheduler import Gates
 from service.schemas import (
@@ -88,11 +90,14 @@ def _fields_payload(served: ServedModel, result: RolloutResult, data: str) -> Fi
     )
 
 
-def _base64_pieces(blocks: Iterable[np.ndarray]) -> Iterator[bytes]:
-    """base64 of the blocks' bytes in sequence, piece by piece (whole 3-byte groups but for the last)."""
+MESH_PIECE_BYTES = 3 << 18  # a mesh's bytes are base64-encoded this much at a time (a multiple of 3)
+
+
+def _base64_pieces(chunks: Iterable[bytes]) -> Iterator[bytes]:
+    """base64 of the chunks' bytes in sequence, piece by piece (whole 3-byte groups but for the last)."""
     carry = b""
-    for block in blocks:
-        raw = carry + block.astype("<f2", copy=False).tobytes()
+    for chunk in chunks:
+        raw = carry + chunk
         cut = len(raw) - len(raw) % 3
         carry = raw[cut:]
         yield base64.b64encode(memoryview(raw)[:cut])
@@ -100,21 +105,54 @@ def _base64_pieces(blocks: Iterable[np.ndarray]) -> Iterator[bytes]:
         yield base64.b64encode(carry)
 
 
-def _streamed_fields(response: RolloutResponse, slot: str, result: RolloutResult) -> Response:
-    """`response` with its fields' data (the placeholder `slot`) streamed, state block by state block, as
-    it is decoded: every state of a trajectory as one JSON string is tens of MB, and building it whole
-    (array, base64, string, JSON) took several times that at once per response."""
-    head, tail = response.model_dump_json().encode().split(f'"{slot}"'.encode())
-    n_bytes = 2 * int(np.prod(result.states.shape))  # float16
-    length = len(head) + len(tail) + 2 + 4 * -(-n_bytes // 3)
+def _pieces(raw: bytes) -> Iterator[bytes]:
+    view = memoryview(raw)
+    for i in range(0, len(raw), MESH_PIECE_BYTES):
+        yield bytes(view[i : i + MESH_PIECE_BYTES])
+
+
+class _BudgetedStream(StreamingResponse):
+    """A streamed body that hands its bytes back to the response budget once sent, failed or abandoned."""
+
+    def __init__(self, content: Iterator[bytes], length: int, budget: ResponseBudget) -> None:
+        super().__init__(content, media_type="application/json", headers={"Content-Length": str(length)})
+        self.budget, self.length = budget, length
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self.budget.release(self.length)
+
+
+def _streamed(response: RolloutResponse, slots: dict[str, tuple[int, Iterable[bytes]]],
+              budget: ResponseBudget) -> Response:
+    """`response` with the data of its `slots` (placeholder -> (byte count, the bytes in chunks)) streamed
+    as base64, chunk by chunk (the fields decoded state block by state block): every state of a trajectory
+    is tens of MB of JSON, and building a body whole (arrays, base64, strings, JSON) took several times
+    that at once per response. 503 + Retry-After when the body does not fit the response budget."""
+    text = response.model_dump_json().encode()
+    order = sorted(slots, key=lambda slot: text.index(f'"{slot}"'.encode()))
+    length = len(text) - sum(len(slot) for slot in slots) + sum(4 * -(-slots[k][0] // 3) for k in slots)
+    if not budget.reserve(length):
+        raise HTTPException(
+            status_code=503,
+            detail=f"{budget.used >> 20} MB of large responses are being sent (the server's budget is "
+            f"{budget.max_bytes >> 20} MB); retry shortly",
+            headers={"Retry-After": "1"},
+        )
 
     def body() -> Iterator[bytes]:
-        yield head + b'"'
-        yield from _base64_pieces(result.states.blocks())
-        yield b'"' + tail
+        rest = text
+        for slot in order:
+            head, rest = rest.split(f'"{slot}"'.encode(), 1)
+            yield head + b'"'
+            yield from _base64_pieces(slots[slot][1])
+            rest = b'"' + rest
+        yield rest
 
     # a plain iterator: Starlette runs each step in its thread pool, off the event loop
-    return StreamingResponse(body(), media_type="application/json", headers={"Content-Length": str(length)})
+    return _BudgetedStream(body(), length, budget)
 
 
 def cached_rollout(served: ServedModel, rollout_id: str) -> RolloutResult:
@@ -179,8 +217,14 @@ async def post_rollout(
         fields = await run_in_threadpool(_fields_payload, served, result, slot)
     t1 = time.perf_counter()
     meshes = []
+    slots: dict[str, tuple[int, Iterable[bytes]]] = {}  # streamed data: placeholder -> (bytes, chunks)
+    if slot:
+        n_bytes = 2 * int(np.prod(result.states.shape))  # float16
+        slots[slot] = (n_bytes, (b.astype("<f2", copy=False).tobytes() for b in result.states.blocks()))
     for spec in body.meshes:
         raw = await _mesh_bytes(request, served, gates, result, spec.step, spec.channel, spec.format)
+        mesh_slot = f"mesh-{uuid.uuid4().hex}"
+        slots[mesh_slot] = (len(raw), _pieces(raw))
         meshes.append(
             MeshPayload(
                 step=spec.step,
@@ -188,7 +232,7 @@ async def post_rollout(
                 format=spec.format,
                 media_type=MEDIA_TYPES[spec.format],
                 url=_mesh_url(result.id, spec.step, spec.channel, spec.format),
-                data=base64.b64encode(raw).decode("ascii"),
+                data=mesh_slot,
             )
         )
     t2 = time.perf_counter()
@@ -218,7 +262,9 @@ async def post_rollout(
             meshes_ms=1e3 * (t2 - t1),
         ),
     )
-    return _streamed_fields(response, slot, result) if slot else json_response(response)
+    if not slots:
+        return json_response(response)
+    return _streamed(response, slots, request.app.state.response_budget)
 
 
 @router.get(

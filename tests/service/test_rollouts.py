@@ -380,3 +380,24 @@ def test_every_answer_says_how_far_from_the_training_data_it_lies(client, defaul
         json.dumps({"checkpoint_id": "another", "summary": summary}))
     not_its_model = rollout_trust(served, raw[None], to_normalized(raw[None]), benchmarks=other)
     assert not_its_model["measured"] is None
+
+
+def test_large_bodies_share_a_response_budget(make_client, default_controls, decode_fields):
+    """Every field and meshes stream within the response budget: a body that does not fit beside those in
+    flight gets 503 + Retry-After; once they are sent it is answered in full (meshes byte for byte as
+    GET /mesh serves them) and the budget is whole again."""
+    c = make_client(response_max_mb=1)
+    budget = c.app.state.response_budget
+    body = {"controls": default_controls, "steps": 2, "fields": "all",
+            "meshes": [{"step": 2, "channel": "si", "format": "ply"}]}
+    assert budget.reserve(budget.max_bytes)  # bodies in flight, the budget used up
+    r = c.post("/rollout", json=body)
+    assert r.status_code == 503 and r.headers["retry-after"] == "1", r.text[:300]
+    budget.release(budget.max_bytes)
+    r = c.post("/rollout", json=body)
+    assert r.status_code == 200 and int(r.headers["content-length"]) == len(r.content)
+    out = r.json()
+    assert decode_fields(out["fields"]).shape[0] == 3
+    [mesh] = out["meshes"]
+    assert base64.b64decode(mesh["data"]) == c.get(mesh["url"]).content
+    assert budget.used == 0
