@@ -130,7 +130,8 @@ def probe_design_job(server: LiveServer, *, steps: int, cap_s: float) -> dict[st
         r = http.post("/rollout", json={"controls": centre_controls(), "steps": steps})
         r.raise_for_status()
         metrics = r.json()["metrics"]
-        targets = {m: round(float(metrics[m][-1]), 1) for m in ("etch_depth", "bottom_width")}
+        last = {m: metrics[m][-1] for m in ("etch_depth", "bottom_width")}  # None: not defined yet
+        targets = {m: round(float(v), 1) for m, v in last.items() if v is not None}
         wait_until(lambda: not job_children(server.jobs_dir), 60.0)  # the previous probe's jobs are gone
         before = memory_mib(server.pid)
         t0 = time.monotonic()
