@@ -78,8 +78,9 @@ def probes_markdown(report: dict[str, Any]) -> str:
         cut = s["cut_s"] or {}
         out.append(
             f"- **slowloris** ({s['sockets']} sockets from one address, one header byte per "
-            f"{s['byte_interval_s']:g} s): {s['dropped_at_once']} dropped at once (per-client "
-            f"connection cap), "
+            f"{s['byte_interval_s']:g} s): {s['dropped_at_once']} cut within 1 s, beyond the per-client "
+            f"connection cap ({s['at_once']['answered_503']} answered 503 + Retry-After, "
+            f"{s['at_once']['closed']} closed to make room for newer ones, {s['at_once']['reset']} reset); "
             f"{s['held_then_cut']} held then cut ({s['answered_408_then_closed']} with a 408) after "
             f"{_f(cut.get('min'))}-{_f(cut.get('max'))} s (median {_f(cut.get('p50'))} s); still open at the "
             f"{s['cap_s']:g} s cap: {s['still_open_at_cap']}; server alive: {s['server_alive']}; the other "

@@ -170,8 +170,9 @@ class Settings(BaseSettings):
         default=300.0, gt=0, description="a request not answered within this gets 504"
     )
     max_connections: int = Field(
-        default=512, ge=1, description="open connections; a new one beyond them closes the one that waited "
-        "longest without a request, or is dropped at once when every one is busy",
+        default=512, ge=1, description="open connections; a new one beyond them closes one being refused, "
+        "else one waiting beyond its address's cap, else the one that waited longest without a request (not "
+        "one just opened), or is dropped at once when none qualifies",
     )
     limit_concurrency: int = Field(
         default=256, ge=1, description="requests in flight; more get 503 at once (probes exempt)"
@@ -180,10 +181,11 @@ class Settings(BaseSettings):
         default=5, ge=1, description="uvicorn: idle keep-alive connections close after this"
     )
     max_connections_per_client: int = Field(
-        default=32, ge=1, description="open connections one client address may hold (trusted proxies "
-        "exempt); a new one beyond them closes that address's connection that waited longest without a "
-        "request, or is answered 503 + Retry-After when every one is busy: one address cannot take every "
-        "connection, nor lock out another client on it (every local client on loopback)",
+        default=32, ge=1, description="connections one client address is served on (trusted proxies "
+        "exempt); one beyond them waits for its request, which then closes that address's connection that "
+        "waited longest without one (not one just opened) or, with none such, is answered 503 + "
+        "Retry-After: one address cannot shut out others, nor another client on it (every local client on "
+        "loopback), and a burst from it gets answers, not resets",
     )
 
     # --- access control and operations (service.access, service.metrics) ---

@@ -11,15 +11,19 @@ file limit. `GuardedH11Protocol` adds, per connection:
 * a head not complete within `head_timeout_s` of the connection (or of the previous response) and a
   body not complete within `body_timeout_s` of its head -> 408 and close (a silent connection is
   just closed);
-* at most `max_connections` open connections, and at most `max_connections_per_client` from one client
-  address (trusted proxies exempt). A new connection beyond either cap makes room (`_make_room`): the
-  server closes the connection that has waited longest without a request in progress (one that never
-  sent a request first, then idle keep-alive ones; a head still arriving counts as waiting), of that
-  address for its cap, of any for the global one. Only when every such connection is busy is the new one
-  refused: beyond its address's cap with 503 + Retry-After (a lingering close, never a reset), beyond
-  the global cap dropped at once. So sockets that never send a request (which the app never sees) cannot
-  lock anyone out, not even another client on the same address (on loopback every local client shares
-  127.0.0.1, the explorer page included), and the cap still bounds what one address holds.
+* at most `max_connections_per_client` connections served per client address (trusted proxies exempt).
+  A connection beyond them waits for its first request (`_take_slot`), which then closes that address's
+  connection that has waited longest without a request in progress (one never answered first, then idle
+  keep-alive ones; a head still arriving counts as waiting) and takes its place, provided that one has
+  waited at least `CLOSE_AFTER_S` (a connection accepted a moment earlier, in a burst of clients
+  connecting at once, may have its request on the way: closing it would reset that client); with none
+  such, the request is answered 503 + Retry-After (a lingering close, never a reset). Sockets that never
+  send a request (which the app never sees) therefore displace nobody, however fast they are reopened,
+  and lock nobody out, not even another client on the same address (on loopback every local client
+  shares 127.0.0.1, the explorer page included);
+* at most `max_connections` open connections in all. A new one beyond them closes, first, the oldest one
+  being refused (answered already), else the oldest one waiting beyond its address's cap (it has sent
+  nothing), else as above among all; with none such it is dropped at once.
 
 A request h11 cannot parse gets 400 in the same JSON shape (uvicorn's own answer is plain text).
 uvicorn's own settings do the rest (`nemsim serve` passes them): `timeout_keep_alive` (idle keep-alive
@@ -41,7 +45,6 @@ from typing import Any, ClassVar
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
-from uvicorn.protocols.utils import get_remote_addr
 
 from service.access import in_networks
 from service.errors import error_body
@@ -59,6 +62,7 @@ LINGER_S = 2.0  # read-and-drop window after an early error answer
 LINGER_MAX_BYTES = 8 << 20  # ... and at most this much
 DROP_LOG_S = 10.0  # at most one warning about closed or refused connections per this many seconds
 CAP_RETRY_AFTER_S = 1  # Retry-After of a connection refused at its address's cap
+CLOSE_AFTER_S = 0.5  # a connection is closed to make room only once it has waited this long for a request
 
 
 class GuardedH11Protocol(H11Protocol):
@@ -84,6 +88,8 @@ class GuardedH11Protocol(H11Protocol):
         self._timer: asyncio.TimerHandle | None = None
         self._phase = "head"  # head | body | app
         self._head = bytearray()  # the head received so far (at most max_head + 1 bytes)
+        self._host: str | None = None  # the client's address
+        self._slot = True  # counts toward its address's cap (set in connection_made, taken in _take_slot)
         self._dropping = False
         self._dropped = 0
         self._served = 0  # responses completed on this connection
@@ -91,49 +97,67 @@ class GuardedH11Protocol(H11Protocol):
 
     # --- connection lifetime -----------------------------------------------------------------------
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-        peer = get_remote_addr(transport)
-        host = peer[0] if peer is not None else None
-        if len(self.connections) >= self.max_connections and not self._make_room(None):
+        if len(self.connections) >= self.max_connections and not self._make_room():
             transport.abort()
-            self._warn(f"the connection cap ({self.max_connections}) is reached with every connection busy: "
-                       "dropping new connections at once")
+            self._warn(f"the connection cap ({self.max_connections}) is reached with every connection busy "
+                       "or just opened: dropping new connections at once")
             return
-        over = host is not None and not in_networks(host, self.trusted) and not self._make_room(host)
         super().connection_made(transport)
+        self._host = (self.client or (None,))[0]
+        # beyond its address's cap it waits, without a place under the cap, for its request (`_take_slot`)
+        self._slot = self._host is None or in_networks(self._host, self.trusted)
+        self._slot = self._slot or len(self._slot_holders()) < self.max_per_client
         self._await_head()
-        if over:
-            self._warn(f"{host} holds {self.max_per_client} busy connections (the per-client cap): "
-                       "answering new ones 503")
-            self._refuse(503, f"this address holds {self.max_per_client} connections with requests in "
-                         "progress (the per-client cap); retry shortly",
-                         (("retry-after", str(CAP_RETRY_AFTER_S)),))
 
-    def _waiting(self) -> bool:
-        """No request in progress: waiting for a head (none sent yet, idle keep-alive, or arriving)."""
-        return self._phase == "head" and not self._dropping
-
-    def _make_room(self, host: str | None) -> bool:
-        """Whether a new connection from `host` (None: the global cap) fits: below the cap, or once the
-        connection of that address (any, for None) that has waited longest without ever being answered,
-        else longest idle, is closed. False when every such connection has a request in progress."""
-        cap = self.max_connections if host is None else self.max_per_client
-        if len(self.connections) < cap:
-            return True  # (fewer connections in all than the cap: no need to count)
-        mine = [  # (those being closed no longer count)
+    def _slot_holders(self) -> list[GuardedH11Protocol]:
+        """The open connections that count toward this one's address's cap (those refused do not)."""
+        return [
             c for c in self.connections
-            if isinstance(c, GuardedH11Protocol) and not c.transport.is_closing()
-            and (host is None or (c.client or ("",))[0] == host)
+            if isinstance(c, GuardedH11Protocol) and c._slot and not c._dropping
+            and not c.transport.is_closing() and c._host == self._host
         ]
-        if len(mine) < cap:
-            return True
-        waiting = [c for c in mine if c._waiting()]
-        if not waiting:
+
+    def _take_slot(self) -> bool:
+        """Give this connection, now sending its first request, a place under its address's cap: a free
+        one, else that of the connection of that address that has waited longest (at least
+        `CLOSE_AFTER_S`) without ever being answered, else longest idle, closed. False when none qualifies.
+        (Taking places only for requests, never at connect, means sockets that never send one cannot
+        displace anybody, however fast they are reopened.)"""
+        holders = self._slot_holders()
+        if len(holders) >= self.max_per_client and not self._close_one(holders, f"{self._host} at the "
+                                                                        "per-client cap"):
             return False
-        oldest = min(waiting, key=lambda c: (c._served > 0, c._waiting_since))
-        oldest._cancel_timer()
-        oldest.transport.close()
-        self._warn(f"{'the connection cap' if host is None else host + ' at the per-client cap'}: closing "
-                   "the connections that waited longest without a request to make room for new ones")
+        self._slot = True
+        return True
+
+    def _make_room(self) -> bool:
+        """Whether a new connection fits under the global cap: below it, or once one connection is closed:
+        the oldest one being refused (already answered), else the oldest one beyond its address's cap
+        (which has sent nothing yet), else as `_take_slot` picks among all. False when none qualifies."""
+        if len(self.connections) < self.max_connections:
+            return True  # (fewer connections in all than the cap: no need to count)
+        live = [
+            c for c in self.connections if isinstance(c, GuardedH11Protocol) and not c.transport.is_closing()
+        ]
+        return len(live) < self.max_connections or self._close_one(live, "the connection cap")
+
+    def _close_one(self, candidates: list[GuardedH11Protocol], where: str) -> bool:
+        """Close the first of `candidates` in the order `_make_room` gives, among those being refused,
+        without a place under their address's cap, or waiting at least `CLOSE_AFTER_S` without a request
+        in progress (a connection accepted a moment earlier may have its request on the way). False when
+        none of them qualifies."""
+        since = time.monotonic() - CLOSE_AFTER_S
+        victims = [
+            c for c in candidates
+            if c._dropping or not c._slot or (c._phase == "head" and c._waiting_since <= since)
+        ]
+        if not victims:
+            return False
+        victim = min(victims, key=lambda c: (not c._dropping, c._slot, c._served > 0, c._waiting_since))
+        victim._cancel_timer()
+        victim.transport.close()
+        self._warn(f"{where}: closing the connections that waited longest without a request to make room "
+                   "for new ones")
         return True
 
     def _warn(self, message: str) -> None:
@@ -160,6 +184,12 @@ class GuardedH11Protocol(H11Protocol):
 
     # --- reading ----------------------------------------------------------------------------------
     def data_received(self, data: bytes) -> None:
+        if not (self._slot or self._dropping or self._take_slot()):
+            self._warn(f"{self._host} holds {self.max_per_client} connections, each busy or just opened "
+                       "(the per-client cap): answering new ones 503")
+            self._refuse(503, f"this address holds {self.max_per_client} connections with requests in "
+                         "progress or just opened (the per-client cap); retry shortly",
+                         (("retry-after", str(CAP_RETRY_AFTER_S)),))
         if self._dropping:
             self._dropped += len(data)
             if self._dropped > LINGER_MAX_BYTES:

@@ -1,8 +1,8 @@
-"""Guards at the service's edges: a per-client connection cap (one address cannot hold every connection,
-nor lock out another client on it), the Host allow-list without API keys (DNS rebinding), forwarded
-addresses trusted only from configured proxies, readable answers to unparsable bodies, the 405 `Allow`
-header, /metrics route labels of refused requests, and `nemsim serve` exiting 3 on a checkpoint that can
-never load."""
+"""Guards at the service's edges: a per-client connection cap (one address cannot shut out others, nor
+another client on it, and a burst from it gets answers, not resets), the Host allow-list without API keys
+(DNS rebinding), forwarded addresses trusted only from configured proxies, readable answers to unparsable
+bodies, the 405 `Allow` header, /metrics route labels of refused requests, and `nemsim serve` exiting 3 on
+a checkpoint that can never load."""
 
 from __future__ import annotations
 
@@ -69,11 +69,17 @@ def _closed(s: socket.socket) -> bool:
         return True
 
 
+def _refused_503(answer: bytes) -> bool:
+    return answer.startswith(b"HTTP/1.1 503") and b"retry-after: 1\r\n" in answer.lower()
+
+
 def test_waiting_connections_make_room_for_the_same_address(real_server, monkeypatch):
-    """An address at its cap with connections that never sent a request: every new connection from it is
-    served (on loopback every local client shares 127.0.0.1) and closes the one that waited longest, so the
-    address still holds no more than its cap; one warning for the lot."""
-    from service.protocol import GuardedH11Protocol
+    """An address at its cap with connections that never sent a request: a new connection from it that sends
+    one closes the one that has waited longest (on loopback every local client shares 127.0.0.1), so the
+    address is still served on no more than its cap, but never one just opened (its request may be on the
+    way): with only those, it gets 503 + Retry-After. Connections that send nothing close none. One warning
+    for the lot."""
+    from service.protocol import CLOSE_AFTER_S, GuardedH11Protocol
 
     monkeypatch.setattr(GuardedH11Protocol, "_drops", {"count": 0, "logged_at": -math.inf})
     addr = real_server(max_connections=64, max_connections_per_client=4, head_timeout_s=5.0)
@@ -81,17 +87,60 @@ def test_waiting_connections_make_room_for_the_same_address(real_server, monkeyp
     handler = logging.Handler(logging.WARNING)
     handler.emit = lambda record: warnings.append(record.getMessage())  # type: ignore[method-assign]
     logging.getLogger("uvicorn.error").addHandler(handler)
-    held = [socket.create_connection(addr, timeout=5, source_address=("127.0.0.1", 0)) for _ in range(10)]
+    held = [socket.create_connection(addr, timeout=5, source_address=("127.0.0.1", 0)) for _ in range(8)]
     try:
-        assert _get(addr, source="127.0.0.1").startswith(b"HTTP/1.1 200")
+        assert _refused_503(_get(addr, source="127.0.0.1"))  # the 4 under the cap were just opened
         assert _get(addr, source=OTHER_CLIENT).startswith(b"HTTP/1.1 200")  # another address: untouched
+        time.sleep(CLOSE_AFTER_S + 0.2)
+        assert _get(addr, source="127.0.0.1").startswith(b"HTTP/1.1 200")
         time.sleep(0.2)
-        assert [_closed(s) for s in held] == [True] * 7 + [False] * 3  # oldest first; 3 + 1 served = cap
+        assert [_closed(s) for s in held] == [True] + [False] * 7  # the one that waited longest
     finally:
         logging.getLogger("uvicorn.error").removeHandler(handler)
         for s in held:
             s.close()
     assert len([w for w in warnings if "per-client cap" in w]) == 1, warnings
+
+
+def test_connections_beyond_an_address_cap_go_first_at_the_global_cap(real_server):
+    """At the global cap, a new connection from another address closes one that an address holds beyond its
+    cap (it has sent nothing) before any other, however recent: the connections under the cap stay."""
+    addr = real_server(max_connections=8, max_connections_per_client=2)
+    held = [socket.create_connection(addr, timeout=5, source_address=("127.0.0.1", 0)) for _ in range(8)]
+    try:
+        time.sleep(0.1)
+        assert _get(addr, source=OTHER_CLIENT).startswith(b"HTTP/1.1 200")
+        time.sleep(0.2)
+        assert [_closed(s) for s in held] == [False] * 2 + [True] + [False] * 5
+    finally:
+        for s in held:
+            s.close()
+
+
+@pytest.mark.parametrize("clients", [48, 96])
+def test_a_burst_from_one_address_gets_answers_not_resets(real_server, clients):
+    """`clients` clients on 127.0.0.1 (beyond its cap of 32) connect at once and each sends one request:
+    every one gets 200 or 503 + Retry-After, none a reset (connections just opened, their requests on the
+    way, are not closed to make room for the next)."""
+    addr = real_server()  # the default caps
+    start = threading.Barrier(clients)
+    answers: list[bytes | str] = ["not run"] * clients
+
+    def one(i: int) -> None:
+        start.wait(10)
+        try:
+            answers[i] = _get(addr, source="127.0.0.1", wait_s=10) or "reset"
+        except OSError as exc:
+            answers[i] = repr(exc)
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    bad = [a for a in answers if isinstance(a, str) or not (a.startswith(b"HTTP/1.1 200") or _refused_503(a))]
+    served = sum(isinstance(a, bytes) and a.startswith(b"HTTP/1.1 200") for a in answers)
+    assert not bad and served >= 32, (served, bad[:3], len(bad))
 
 
 def test_busy_connections_at_the_cap_get_503_not_a_reset(real_server):
@@ -108,7 +157,7 @@ def test_busy_connections_at_the_cap_get_503_not_a_reset(real_server):
             s.sendall(head)
         time.sleep(0.3)
         answer = _get(addr, source="127.0.0.1")
-        assert answer.startswith(b"HTTP/1.1 503") and b"retry-after: 1\r\n" in answer.lower(), answer
+        assert _refused_503(answer), answer
         assert b"per-client cap" in answer
         assert not any(_closed(s) for s in busy)
     finally:
