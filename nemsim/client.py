@@ -246,7 +246,8 @@ class Client:
     def mesh(
         self, rollout_id: str, step: int | None = None, channel: Channel = "si", format: MeshFormat = "glb"
     ) -> bytes:
-        """The surface file of one channel at one step (default: the final state) of a rollout, in nm."""
+        """The surface file of one channel at one step (default: the final state) of a rollout, in nm
+        (x, y from the hole axis, z above the initial Si top: ``nemsim.geometry.frame``)."""
         query = [("step", step), ("channel", channel), ("format", format)]
         return self._request("GET", f"/rollouts/{self._segment(rollout_id)}/mesh", query=query)[0]
 

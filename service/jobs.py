@@ -436,11 +436,12 @@ def error_mesh(sim_field: np.ndarray, pred_field: np.ndarray, scene: Any, fmt: s
     says "inside material" (negative), blue "outside", saturated at one voxel."""
     from scipy.ndimage import map_coordinates
 
+    from nemsim.geometry.frame import frame_to_index
     from nemsim.geometry.mesh import export_mesh, surface_mesh
 
     mesh = surface_mesh(sim_field.astype(np.float32), scene, meta)
     if len(mesh.vertices):
-        zyx = (np.asarray(mesh.vertices)[:, ::-1] / scene.voxel_nm + 0.5).T  # (3, V) padded voxel index
+        zyx = frame_to_index(np.asarray(mesh.vertices), scene).T  # (3, V) padded voxel index
         err = map_coordinates(pred_field.astype(np.float32), zyx, order=1, mode="nearest")  # (V,)
         err_nm = err * float(scene.d_max_nm)
         t = np.clip(err_nm / scene.voxel_nm, -1.0, 1.0)  # (V,)

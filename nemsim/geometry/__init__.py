@@ -1,4 +1,5 @@
-"""Geometry of SDF states: profile metrics (``profile``) and surface meshes (``mesh``).
+"""Geometry of SDF states: profile metrics (``profile``), surface meshes (``mesh``) and the frame of
+reference of both (``frame``).
 
 Import-light: import the submodules you need.
 """

@@ -2,18 +2,19 @@
 
 Coordinates. The field is a padded, transposed (D, H, W) = (z, y, x) channel (index = native + 1).
 Marching cubes (scikit-image, level 0, unit spacing) gives vertices in index coordinates; we undo the
-padding (-1) and the transposition ((z, y, x) -> (x, y, z)) and convert voxel-centre coordinates to nm
-with the voxel spanning [i, i + 1) * voxel_nm, i.e. position_nm = (native + 0.5) * voxel_nm. So the
-initial Si top surface of a scene sits at z = si_top * voxel_nm and the box spans
-[0, nx * voxel_nm] x [0, ny * voxel_nm] x [0, nz * voxel_nm]; the padding voxels extend the surface by
-half a voxel beyond the box so that it reaches the box faces. Faces are wound so that normals point out
-of the material (towards increasing SDF, i.e. into vacuum).
+padding (-1) and the transposition ((z, y, x) -> (x, y, z)), convert voxel-centre coordinates to nm with
+the voxel spanning [i, i + 1) * voxel_nm and move the origin into ``nemsim.geometry.frame``'s frame: x, y
+from the hole axis, z above the initial Si top (depth below it = -z). So the initial Si top of a scene
+lies at z = 0, the hole axis at x = y = 0 and the box spans +-nx * voxel_nm / 2 laterally and
+[-si_top, nz - si_top] * voxel_nm vertically; the padding voxels extend the surface by half a voxel beyond
+the box so that it reaches the box faces. Faces are wound so that normals point out of the material
+(towards increasing SDF, i.e. into vacuum). Every file states the frame (``metadata["frame"]``).
 
 Provenance: ``metadata`` (a JSON-serializable dict) is stored in ``mesh.metadata`` and embedded where the
 format allows it: glb mesh ``extras``, ply ``comment`` header lines (one ``key=json`` per line), an obj
-``#`` comment header, (truncated to 80 bytes) the binary stl header, and in vtp an XML comment (every
-entry, ``key: json``) plus ``FieldData`` (the numeric entries, one Float64 tuple each, which ParaView
-lists in its information panel).
+``#`` comment header, the binary stl header (the frame in short, then what fits in 80 bytes), and in vtp
+an XML comment (every entry, ``key: json``) plus ``FieldData`` (the numeric entries, one Float64 tuple
+each, which ParaView lists in its information panel).
 
 VTP is VTK's XML PolyData (``VTKFile`` version 1.0, ``header_type="UInt64"``), what ParaView and VTK
 based tools (ViennaPS among them) read natively. It is written here with the standard library rather
@@ -33,6 +34,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from nemsim.geometry.frame import FRAME, FRAME_SHORT, box_corner_nm
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -50,7 +53,7 @@ MEDIA_TYPES = {
 
 
 def surface_mesh(field: Any, scene: Scene, metadata: dict | None = None) -> trimesh.Trimesh:
-    """Zero level set of one normalized SDF channel as a triangle mesh in nm, (x, y, z) order.
+    """Zero level set of one normalized SDF channel as a triangle mesh in nm, (x, y, z) in the frame.
 
     Args:
         field: (D, H, W) normalized SDF channel of ``scene`` (numpy or CPU torch); negative inside.
@@ -69,6 +72,7 @@ def surface_mesh(field: Any, scene: Scene, metadata: dict | None = None) -> trim
         raise ValueError(f"field shape {f.shape} != scene {scene.name!r} field shape {scene.field_shape}")
     meta = dict(metadata or {})
     meta.setdefault("units", "nm")
+    meta.setdefault("frame", FRAME)
     meta.setdefault("scene", scene.name)
     if not (float(f.min()) < 0.0 < float(f.max())):
         empty = np.zeros((0, 3))
@@ -78,7 +82,8 @@ def surface_mesh(field: Any, scene: Scene, metadata: dict | None = None) -> trim
     verts, faces, _, _ = marching_cubes(
         f, level=0.0, spacing=(1.0, 1.0, 1.0), gradient_direction="ascent", allow_degenerate=False
     )
-    xyz = (verts[:, ::-1] - 1.0 + 0.5) * scene.voxel_nm  # (V, 3): unpad, (z,y,x)->(x,y,z), centres -> nm
+    # (V, 3): unpad, (z,y,x)->(x,y,z), centres -> nm from the box corner, then into the frame
+    xyz = (verts[:, ::-1] - 1.0 + 0.5) * scene.voxel_nm + box_corner_nm(scene)
     # process=True merges the duplicate vertices marching cubes emits where the SDF is exactly 0 at a voxel
     return trimesh.Trimesh(vertices=xyz, faces=faces, process=True, metadata=meta)
 
@@ -186,6 +191,8 @@ def export_mesh(mesh: trimesh.Trimesh, fmt: str) -> bytes:
         return _vtp(mesh, meta)
     data = bytearray(stl.export_stl(mesh))
     # binary STL: 80-byte free header (must not start with "solid", or readers take it for ASCII)
-    summary = "NEMSim " + " ".join(f"{k}={v}" for k, v in meta.items() if isinstance(v, (str, int, float)))
+    # the frame first, in short: what is cut at 80 bytes is provenance, not the meaning of the coordinates
+    rest = " ".join(f"{k}={v}" for k, v in meta.items() if isinstance(v, (str, int, float)) and k != "frame")
+    summary = f"NEMSim {FRAME_SHORT}; {rest}"
     data[:80] = summary.encode("ascii", errors="replace")[:80].ljust(80, b" ")
     return bytes(data)

@@ -6,10 +6,12 @@ Exports of a cached rollout, by its id (404 once it left the cache, as for its m
   the column name, so a spreadsheet keeps it; `neck_depth`: the row the neck is measured on), undefined
   values (`nemsim.geometry.profile`: the hole has not reached the row a width is measured on) as empty
   cells; `#` comment lines first name the model, the scene and the controls (a recipe adds one column per
-  control instead) and say what an empty cell and `neck_depth` mean. Built on a worker thread without a
-  gate: a few hundred rows cost less than a gate's bookkeeping.
+  control instead), say what an empty cell and `neck_depth` mean and state the frame of reference
+  (`nemsim.geometry.frame`: depths below the initial Si top, widths across the hole axis). Built on a
+  worker thread without a gate: a few hundred rows cost less than a gate's bookkeeping.
 * `trajectory.h5`: the states in the simulator's data-file layout (`nemsim.data.hdf5`, one case), so
-  `nemsim.data.hdf5.open_trajectories` and every HDF5 tool read it (`_write_trajectory`). Decoding and
+  `nemsim.data.hdf5.open_trajectories` and every HDF5 tool read it (`_write_trajectory`); the root
+  attributes `frame`, `x_nm`, `y_nm` and `z_nm` place the grid in the frame of the meshes. Decoding and
   compressing every state is real work: it waits at the mesh gate like a mesh export.
 """
 
@@ -32,6 +34,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.types import Receive, Scope, Send
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, transform
+from nemsim.geometry.frame import FRAME, grid_axes_nm
 from nemsim.inference import MEDIA_TYPES, Refused
 from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
 from service.inverse import rollout_intervals, rollout_trust
@@ -328,6 +331,10 @@ def metrics_csv(served: ServedModel, result: RolloutResult) -> str:
         f"# empty cell: {UNDEFINED}; neck_depth: the row neck_width is measured on (the neck width jumps "
         "where the neck moves to another row)\n"
     )
+    out.write(
+        f"# frame: {FRAME}; depths (etch_depth, neck_depth) are below the initial Si top, widths across "
+        "the hole axis\n"
+    )
     names = list(result.metrics)
     header = ["step", "time [s]"] + [f"{n} [nm]" for n in names]
     if varying:
@@ -348,7 +355,8 @@ def _write_trajectory(served: ServedModel, result: RolloutResult) -> bytes:
     `controls_raw` (1, 14) the first transition's controls and `controls_raw_schedule` (1, T, 14) every
     transition's, `case_ids` [0], `seeds` [-1] (no simulator seed), `complete` [1]; the root attributes
     of the data files (scene JSON, control and channel names, `d_max`, rules SHA-256, `generator`
-    naming the model) plus `source`, `model_id`, `rollout_id`, `voxel_nm` and `controls` (JSON). Extra:
+    naming the model) plus `source`, `model_id`, `rollout_id`, `voxel_nm`, `controls` (JSON), `frame` and
+    the voxel centres' coordinates in that frame, `x_nm` (W,), `y_nm` (H,), `z_nm` (D,). Extra:
     `metrics/<name>` (T+1,) nm, NaN where undefined (attribute `nan` says so). `check_dataset`'s data-set
     checks (T = the scene's horizon, controls inside the design ranges) may flag a rollout that differs from
     a simulated case."""
@@ -382,6 +390,8 @@ def _write_trajectory(served: ServedModel, result: RolloutResult) -> bytes:
             rollout_id=result.id,
             voxel_nm=float(scene.voxel_nm),
             controls=json.dumps(array_to_controls(raw[0])),
+            frame=FRAME,
+            **{f"{axis}_nm": values for axis, values in grid_axes_nm(scene).items()},
         )
         filt, level, shuffle = DEFAULT_COMPRESSION
         states = f.create_dataset(

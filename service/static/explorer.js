@@ -619,7 +619,7 @@ async function start() {
   });
   wire();
   $('run').disabled = false;
-  state.setStep = setStep;
+  state.setStep = setStep; state.view = view;
   document.body.dataset.ready = '1';
 }
 start();

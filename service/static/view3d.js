@@ -1,6 +1,8 @@
-// The 3-D view: the mask and Si surfaces in nm (the meshes' own unit), a cutaway through the hole axis, nm
-// rulers along two edges of the box, and the simulator's surface coloured by the surrogate's error with its
-// colour bar. Also the PNG of the view as shown (legend and colour bar drawn in).
+// The 3-D view: the mask and Si surfaces in nm (the meshes' own unit and frame: x, y from the hole axis, z up
+// from the initial Si top), a cutaway through the hole axis, nm rulers along two edges of the box in the
+// frame of the 2-D views (x from the hole axis, depth below the initial Si top), and the simulator's surface
+// coloured by the surrogate's error with its colour bar. Also the PNG of the view (legend and colour bar
+// drawn in).
 //
 // Choices: the rulers are geometry in the scene (not an overlay), so they stay true under orbit and zoom,
 // and they lie in the cutaway plane, where the cut surfaces are, so perspective does not scale them
@@ -10,8 +12,8 @@ import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
 import { FONT, drawColourBar, ticksWithin } from '/static/plot.js';
 
 const LEGEND = {
-  plain: 'grey: mask · orange: Si · rulers in nm',
-  error: 'grey: mask (surrogate) · Si: the simulator\'s surface coloured by the surrogate\'s error (colour bar) · rulers in nm',
+  plain: 'grey: mask · orange: Si · rulers: nm from the hole axis, depth below the initial Si top',
+  error: 'grey: mask (surrogate) · Si: the simulator\'s surface coloured by the surrogate\'s error (colour bar) · rulers: nm from the hole axis, depth below the initial Si top',
 };
 
 export function createView(canvas, scene, els) {
@@ -38,8 +40,12 @@ export function createView(canvas, scene, els) {
   const si = new THREE.Mesh(new THREE.BufferGeometry(), mat(0xe0913c));
   const err = new THREE.Mesh(new THREE.BufferGeometry(), new THREE.MeshStandardMaterial({ vertexColors: true, side: THREE.DoubleSide, clippingPlanes: clip() }));
   err.visible = false;
-  const rulers = buildRulers(size);
-  world.add(mask, si, err, rulers);
+  // the scene is laid out from the box corner; the meshes' frame has its origin on the hole axis at the Si top
+  const surfaces = new THREE.Group();
+  surfaces.position.set(size.x / 2, size.y / 2, scene.si_top * vx);
+  surfaces.add(mask, si, err);
+  const rulers = buildRulers(size, scene.si_top * vx);
+  world.add(surfaces, rulers);
   const view = { renderer, camera, controls, mask, si, err, size };
 
   view.render = () => {
@@ -105,11 +111,12 @@ function drawOverlayBar(c, voxelNm) {
 }
 
 // --- rulers -------------------------------------------------------------------------------------------
-/** Rulers in the plane y = 0 of the group (moved to the cut face): along x at the bottom of the box and up
- * the left edge, ticks at round nm with labels; the last label carries the unit. */
-function buildRulers(size) {
+/** Rulers in the plane y = 0 of the group (moved to the cut face): along x at the bottom of the box (nm from
+ * the hole axis) and up the left edge (depth below the initial Si top, `siTop` nm above the box's bottom),
+ * ticks at round nm with labels; the last label carries the unit. */
+function buildRulers(size, siTop) {
   const group = new THREE.Group(), pts = [], tick = 0.025 * size.z;
-  const xt = ticksWithin(0, size.x, 4), zt = ticksWithin(0, size.z, 5);
+  const xt = ticksWithin(-size.x / 2, size.x / 2, 4), zt = ticksWithin(siTop - size.z, siTop, 5);
   pts.push(0, 0, 0, size.x, 0, 0, 0, 0, 0, 0, 0, size.z);
   const label = (text, x, z, align) => {
     const s = textSprite(text, 0.045 * size.z);
@@ -117,12 +124,14 @@ function buildRulers(size) {
     s.position.set(x, 0, z); group.add(s);
   };
   xt.ticks.forEach((v, k) => {
-    pts.push(v, 0, 0, v, 0, -tick);
-    label(xt.label(v) + (k === xt.ticks.length - 1 ? ' nm' : ''), v, -tick, 'below');
+    const x = v + size.x / 2;
+    pts.push(x, 0, 0, x, 0, -tick);
+    label(xt.label(v) + (k === xt.ticks.length - 1 ? ' nm' : ''), x, -tick, 'below');
   });
-  zt.ticks.forEach((v, k) => {
-    pts.push(0, 0, v, -tick, 0, v);
-    label(zt.label(v) + (k === zt.ticks.length - 1 ? ' nm' : ''), -tick, v, 'right');
+  zt.ticks.forEach((d, k) => {
+    const z = siTop - d;
+    pts.push(0, 0, z, -tick, 0, z);
+    label(zt.label(d) + (k === zt.ticks.length - 1 ? ' nm deep' : ''), -tick, z, 'right');
   });
   const geom = new THREE.BufferGeometry();
   geom.setAttribute('position', new THREE.Float32BufferAttribute(pts, 3));

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS
+from nemsim.geometry.frame import FRAME
 
 
 def _rollout(client, **body) -> dict:
@@ -39,6 +40,7 @@ def test_metrics_csv_is_the_rollouts_metrics(client, default_controls):
     comments, header, rows = _csv(r.text)
     assert body["model_id"] in comments[0] and "scene tiny" in comments[0] and "voxel 8 nm" in comments[0]
     assert json.loads(comments[1].split(": ", 1)[1]) == pytest.approx(body["controls"])
+    assert comments[3].startswith(f"# frame: {FRAME}; depths (etch_depth, neck_depth) are below the initial")
     names = list(body["metrics"])
     assert header == ["step", "time [s]"] + [f"{n} [nm]" for n in names]
     assert [row[0] for row in rows] == ["0", "1", "2", "3"]
@@ -82,6 +84,11 @@ def test_trajectory_h5_holds_the_rollouts_states(
         np.testing.assert_array_equal(f["states"][0], fields)
         assert f.attrs["model_id"] == body["model_id"] and f.attrs["rollout_id"] == body["id"]
         assert f.attrs["voxel_nm"] == tiny_scene.voxel_nm
+        assert f.attrs["frame"] == FRAME  # the meshes' frame: the Si top at z = 0, the hole axis at x = y = 0
+        v, half = tiny_scene.voxel_nm, tiny_scene.nx * tiny_scene.voxel_nm / 2
+        assert [len(f.attrs[f"{a}_nm"]) for a in "zyx"] == list(tiny_scene.field_shape)
+        assert f.attrs["x_nm"][1] == -half + v / 2 and f.attrs["x_nm"][-2] == half - v / 2
+        assert f.attrs["z_nm"][tiny_scene.si_top] == -v / 2  # the top Si voxel's centre
         assert json.loads(f.attrs["scene"])["name"] == "tiny"
         assert json.loads(f.attrs["controls"]) == pytest.approx(body["controls"])
         depth = f["metrics/etch_depth"][()]
@@ -135,6 +142,9 @@ def test_vtp_mesh_is_the_same_surface_as_ply(client, default_controls):
     assert arrays["step"].ravel().tolist() == [2.0]  # numeric provenance as FieldData
     head = r.content.split(b"<VTKFile")[0].decode()  # every provenance entry in the leading comment
     assert f'rollout_id: "{body["id"]}"' in head and f'model_id: "{body["model_id"]}"' in head
+    assert f"frame: {json.dumps(FRAME)}" in head
+    points = arrays["Points"]  # the frame: the box's faces at +-half a box (and half a voxel of padding)
+    assert points[:, 0].min() == pytest.approx(-points[:, 0].max()) and points[:, 0].min() < -40
 
 
 def test_inline_vtp_mesh(client, default_controls):

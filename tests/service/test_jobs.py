@@ -3,6 +3,7 @@ mesh, unknown id 404, cancel (pending and running), a full queue 503 + Retry-Aft
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -42,6 +43,11 @@ def test_simulation_job_compares_surrogate_with_simulator(make_client, default_c
     assert mesh.status_code == 200 and mesh.content[:4] == b"glTF"
     ply = client.get(res["mesh"].replace("format=glb", "format=ply"))
     assert ply.status_code == 200 and b"property uchar red" in ply.content  # coloured by the error
+    # at step 0 both start from the same state: the error read at the simulator's surface (a mesh in the
+    # frame, mapped back onto the surrogate's grid) is nil
+    first = client.get(re.sub(r"step=\d+", "step=0", res["mesh"]).replace("format=glb", "format=ply"))
+    error = re.search(rb"comment max_abs_error_nm=([0-9.e+-]+)", first.content)
+    assert error is not None and float(error[1]) < 0.05, error
 
 
 def test_unknown_job_is_404_with_the_error_shape(make_client):

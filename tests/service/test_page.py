@@ -266,6 +266,25 @@ def test_a_busy_server_is_waited_out_not_drawn_empty(page):
     assert len(asked) == 3 and all(len(t) == 2 and t[1] - t[0] >= 0.95 for t in asked.values())
 
 
+def test_the_3d_view_places_the_meshes_frame_in_its_box(page):
+    """Meshes come with x, y from the hole axis and z above the initial Si top; the view moves them into
+    its box (corner at the origin), so the initial Si top lies at si_top voxels up and the surface spans the
+    box, half a padding voxel beyond each face."""
+    run_and_wait(page)
+    page.evaluate("() => window.explorer.setStep(0)")
+    page.wait_for_function("() => window.explorer.meshReady(0)")
+    got = page.evaluate(
+        """async () => {
+          const THREE = await import('/static/vendor/three/three.module.min.js');
+          const b = new THREE.Box3().setFromObject(window.explorer.view.si), s = window.explorer.model.scene;
+          return { min: b.min.toArray(), max: b.max.toArray(), scene: [s.nx, s.ny, s.si_top, s.voxel_nm] };
+        }"""
+    )
+    nx, ny, si_top, v = got["scene"]
+    assert got["min"][:2] == pytest.approx([-v / 2, -v / 2], abs=1e-3)
+    assert got["max"] == pytest.approx([(nx + 0.5) * v, (ny + 0.5) * v, si_top * v], abs=1e-3)
+
+
 def test_the_page_fits_1280x720_to_1920x1080(page):
     run_and_wait(page)
     page.wait_for_function("() => window.explorer.mechanisms && window.explorer.fit.mech !== undefined")
