@@ -37,6 +37,13 @@ async function followJob(location, onUpdate) {
   }
 }
 function showError(msg) { const e = $('error'); e.textContent = msg; e.hidden = !msg; }
+/** A failed Run leaves the previous results on screen, greyed (and their trust verdict with them), so they
+ * are not read as the answer to the inputs now set; the next successful Run restores them. */
+function markStale(on) {
+  const stale = on && !!state.run;
+  document.body.classList.toggle('stale', stale);
+  if (stale) $('error').textContent += ' (the greyed results are those of the previous Run)';
+}
 
 // --- controls ---------------------------------------------------------------------------------------
 const fwd = (s, v) => (s.kind === 'log' ? Math.log10(Math.max(v, 1e-30)) : v);
@@ -403,7 +410,7 @@ function showWarnings(data) {
 async function run() {
   showError('');
   let body;
-  try { body = requestBody(); } catch (e) { showError(e.message); return; }
+  try { body = requestBody(); } catch (e) { showError(e.message); markStale(true); return; }
   if (state.playing) togglePlay();
   $('run').disabled = true; $('run').textContent = 'Running…'; $('play').disabled = true;
   const t0 = performance.now();
@@ -411,7 +418,7 @@ async function run() {
     const { data } = await api('POST', '/rollout', body);
     (state.rolloutMs = state.rolloutMs || []).push(performance.now() - t0);
     data.t0 = t0;
-    state.run = data; state.body = body; state.sim = null;
+    state.run = data; state.body = body; state.sim = null; markStale(false);
     $('comparison').innerHTML = ''; $('rmse').hidden = true; $('job-status').textContent = '';
     showWarnings(data);
     for (const s of state.specs) state.inputs[s.name].div.classList.remove('api-out');
@@ -437,7 +444,7 @@ async function run() {
       $('mech-note').textContent = 'A recipe changes the controls over time; the mechanisms are computed for one constant set: press Compute to analyse the controls set on the left.';
     }
   } catch (e) {
-    showError(e.message);
+    showError(e.message); markStale(true);
   } finally { $('run').disabled = false; $('run').textContent = 'Run'; $('play').disabled = !state.run; }
 }
 
@@ -518,9 +525,11 @@ async function verify() {
     jobs.end(); $('job-progress').hidden = true; $('job-cancel').hidden = true;
   }
 }
+/** The job's field RMSE (normalized SDF) in nm: the SDF is normalized by, and clipped at, d_max. */
+const sdfNm = (v) => (v === null ? null : v * state.model.scene.d_max_nm);
 function drawRmse(res) {
   const { ctx, w: cw, h: ch } = fitCanvas($('rmse'), 150);
-  const r = res.rmse_per_step, times = res.times_s || r.map((_, k) => k / 10);
+  const r = res.rmse_per_step.map(sdfNm), times = res.times_s || r.map((_, k) => k / 10);
   const yt = niceTicks(0, Math.max(1e-6, ...r.filter((v) => v !== null))), xt = niceTicks(0, last(times));
   const L = 8 + Math.max(...yt.ticks.map((v) => ctx.measureText(yt.label(v)).width)), T = 18, B = 30, w = cw - L - 8, h = ch - T - B;
   const X = (t) => L + (w * t) / xt.hi, Y = (v) => T + h * (1 - v / yt.hi);
@@ -528,7 +537,7 @@ function drawRmse(res) {
   ctx.textAlign = 'right'; for (const v of yt.ticks) ctx.fillText(yt.label(v), L - 4, Y(v) + 4);
   ctx.textAlign = 'center'; for (const t of xt.ticks) ctx.fillText(xt.label(t), X(t), T + h + 13);
   ctx.fillText('time (s)', L + w / 2, ch - 4);
-  ctx.textAlign = 'left'; ctx.fillText('RMSE of the normalized SDF (surrogate vs simulator, per state)', 2, 11);
+  ctx.textAlign = 'left'; ctx.fillText(`nm: RMSE of the signed distance (surrogate vs simulator, per state; clipped at ±${state.model.scene.d_max_nm} nm)`, 2, 11);
   ctx.strokeStyle = '#d62728'; ctx.beginPath(); let pen = false;
   r.forEach((v, k) => { if (v === null) { pen = false; return; } pen ? ctx.lineTo(X(times[k]), Y(v)) : ctx.moveTo(X(times[k]), Y(v)); pen = true; });
   ctx.stroke();
@@ -537,7 +546,7 @@ function showComparison(res) {
   state.sim = { metrics: res.simulator_metrics, times_s: res.times_s, result: res };
   const surrogate = res.surrogate_metrics;
   $('rmse').hidden = false; drawRmse(res);
-  let html = `<p>avg RMSE ${res.avg_rmse.toFixed(4)} (normalized SDF), simulator ${res.simulator_s.toFixed(1)} s, seed ${res.seed}</p>`;
+  let html = `<p>avg RMSE ${sdfNm(res.avg_rmse).toFixed(2)} nm (signed distance), simulator ${res.simulator_s.toFixed(1)} s, seed ${res.seed}</p>`;
   html += '<table><tr><th>final (nm)</th><th>surrogate</th><th>simulator</th><th>difference</th></tr>';
   for (const n of Object.keys(res.final_differences)) {
     const s = last(surrogate[n]), m = last(state.sim.metrics[n]);

@@ -148,6 +148,7 @@ def test_page_runs_and_draws_without_console_errors(page):
     assert nchart > 500, "the metrics chart is empty"
     assert page.locator("#final-metrics tr").count() >= 4
     assert page.is_hidden("#error")
+    assert "ΔR: the change in Si removed" in page.inner_text("#mech-caption")  # the red bars explained
     page.wait_for_load_state("networkidle")
     assert sum("/mesh?" in url for url in page.requests) == 2  # the surfaces on screen, nothing more
     assert page.console_errors == []
@@ -225,12 +226,21 @@ def test_design_asks_for_a_target_before_sending_anything(page):
     assert not any(url.endswith("/design") for url in page.requests)
 
 
-def test_bad_request_shows_a_readable_message(page):
+def test_bad_request_shows_a_readable_message_and_greys_the_old_results(page):
+    run_and_wait(page)
     set_control(page, "energy_std_cl_plus", -5)
     page.click("#run")
     page.wait_for_selector("#error:not([hidden])", timeout=10_000)
     text = page.inner_text("#error")
     assert "energy_std_cl_plus" in text and "physically impossible" in text
+    assert "greyed results are those of the previous Run" in text
+    look = """() => ['trust', 'centre', 'right'].map((id) => {
+      const s = getComputedStyle(document.getElementById(id)); return [+s.opacity, s.filter]; })"""
+    assert all(opacity < 0.5 and "grayscale" in f for opacity, f in page.evaluate(look))  # verdict included
+    page.click("#reset")
+    run_and_wait(page, runs=2)
+    assert page.is_hidden("#error")
+    assert all(opacity == 1 and f == "none" for opacity, f in page.evaluate(look))
 
 
 def test_a_simulator_job_can_be_cancelled_from_the_page(page):

@@ -175,6 +175,9 @@ def visit_verify(page, shots) -> None:
     page.wait_for_selector("#comparison[data-done='1']", timeout=JOB_MS)
     text = page.inner_text("#comparison")
     assert "avg RMSE" in text and "etch_depth" in text
+    sim, d_max = page.evaluate("() => [window.explorer.sim.result, window.explorer.model.scene.d_max_nm]")
+    rmse_nm = sim["avg_rmse"] * d_max
+    assert f"avg RMSE {rmse_nm:.2f} nm" in text  # the field RMSE in nm (normalized SDF x d_max)
     assert page.is_visible("#rmse") and canvas_stats(page, "#rmse")[0] > 100
     assert "simulator" in page.inner_text("#final-metrics")  # its curves join the chart and table
     assert page.is_hidden("#colourbar") and "orange: Si" in page.inner_text("#legend-text")
