@@ -130,8 +130,11 @@ const last = (vals) => vals[vals.length - 1];
 // --- canvases fit their column ----------------------------------------------------------------------
 // Each canvas is as wide as its panel (CSS) and drawn at the screen's resolution, in CSS pixels; the
 // page redraws when the window changes size, so nothing is cut at 1280 x 720 or stretched at 1920 x 1080.
+// A PNG export redraws its canvas at EXPORT_SCALE pixels per CSS pixel, whatever the screen's.
+const EXPORT_SCALE = 2;
+let drawScale = 0; // pixels per CSS pixel while drawing; 0: the screen's devicePixelRatio
 function fitCanvas(c, cssH) {
-  const dpr = window.devicePixelRatio || 1, w = Math.max(120, Math.floor(c.clientWidth || c.parentElement.clientWidth));
+  const dpr = drawScale || window.devicePixelRatio || 1, w = Math.max(120, Math.floor(c.clientWidth || c.parentElement.clientWidth));
   const W = Math.round(w * dpr), H = Math.round(cssH * dpr);
   if (c.width !== W) c.width = W;
   if (c.height !== H) c.height = H;
@@ -582,14 +585,20 @@ async function exportFile(kind) {
     else {
       const which = $('export-view').value;
       name = `nemsim_${id}_step${step}_${which}.png`;
-      saveBlob(which === '3d' ? await view.png(`NEMSim ${run.model_id} · t = ${run.times_s[step].toFixed(1)} s (step ${step})`) : await canvasPng($(which)), name);
+      const caption = `NEMSim ${run.model_id} · t = ${run.times_s[step].toFixed(1)} s (step ${step})`;
+      saveBlob(which === '3d' ? await view.png(caption, EXPORT_SCALE) : await canvasPng($(which)), name);
     }
     $('export-status').textContent = `saved ${name}`;
   } catch (e) { showError(e.message); }
 }
+/** A 2-D view as a PNG blob: redrawn at EXPORT_SCALE, copied, and redrawn for the screen (one task: the
+ * page never shows the export's frame). */
 function canvasPng(c) {
+  const redraw = () => (c.id === 'chart' ? drawChart() : drawPlanes(state.step));
+  drawScale = EXPORT_SCALE; redraw();
   const out = document.createElement('canvas'); out.width = c.width; out.height = c.height;
   const ctx = out.getContext('2d'); ctx.fillStyle = '#fff'; ctx.fillRect(0, 0, out.width, out.height); ctx.drawImage(c, 0, 0);
+  drawScale = 0; redraw();
   return new Promise((resolve) => out.toBlob(resolve, 'image/png'));
 }
 

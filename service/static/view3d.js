@@ -6,7 +6,8 @@
 //
 // Choices: the rulers are geometry in the scene (not an overlay), so they stay true under orbit and zoom,
 // and they lie in the cutaway plane, where the cut surfaces are, so perspective does not scale them
-// differently from the hole; the renderer keeps its drawing buffer, so the PNG is the frame on screen.
+// differently from the hole; the renderer keeps its drawing buffer, so the PNG is the view on screen,
+// rendered again at the export's scale.
 import * as THREE from '/static/vendor/three/three.module.min.js';
 import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
 import { FONT, drawColourBar, ticksWithin } from '/static/plot.js';
@@ -54,9 +55,10 @@ export function createView(canvas, scene, els) {
     els.legend.textContent = err.visible ? LEGEND.error : LEGEND.plain;
     els.colourbar.hidden = !err.visible;
   };
+  let w = 0, h = 0; // CSS pixels
   view.resize = () => {
-    const w = Math.max(200, Math.floor(canvas.parentElement.clientWidth));
-    const h = Math.round(Math.max(220, Math.min(0.8 * w, 0.6 * window.innerHeight)));
+    w = Math.max(200, Math.floor(canvas.parentElement.clientWidth));
+    h = Math.round(Math.max(220, Math.min(0.8 * w, 0.6 * window.innerHeight)));
     renderer.setPixelRatio(window.devicePixelRatio || 1);
     renderer.setSize(w, h, false);
     canvas.style.height = `${h}px`;
@@ -69,19 +71,20 @@ export function createView(canvas, scene, els) {
     err.visible = !!geom; if (geom) si.visible = false;
     view.render();
   };
-  /** The view as a PNG blob: the frame on screen, the colour bar when shown, and a caption line. */
-  view.png = (caption) => {
-    view.render();
-    const dpr = window.devicePixelRatio || 1, foot = Math.round(34 * dpr);
-    const out = document.createElement('canvas'); out.width = canvas.width; out.height = canvas.height + foot;
+  /** The view as a PNG blob at `scale` pixels per CSS pixel: the view on screen rendered at that scale, the
+   * colour bar when shown, and a caption line; then rendered for the screen again. */
+  view.png = (caption, scale) => {
+    renderer.setPixelRatio(scale); renderer.setSize(w, h, false); view.render();
+    const out = document.createElement('canvas'); out.width = canvas.width; out.height = canvas.height + Math.round(34 * scale);
     const ctx = out.getContext('2d');
     ctx.fillStyle = '#fff'; ctx.fillRect(0, 0, out.width, out.height);
     ctx.drawImage(canvas, 0, 0);
-    ctx.scale(dpr, dpr);
-    if (err.visible) drawColourBar(ctx, { x: canvas.width / dpr - 236, y: 8, w: 224 }, vx);
+    view.resize(); view.render();
+    ctx.scale(scale, scale);
+    if (err.visible) drawColourBar(ctx, { x: w - 236, y: 8, w: 224 }, vx);
     ctx.font = FONT; ctx.fillStyle = '#334'; ctx.textAlign = 'left';
-    ctx.fillText(els.legend.textContent, 6, canvas.height / dpr + 13);
-    ctx.fillText(caption, 6, canvas.height / dpr + 28);
+    ctx.fillText(els.legend.textContent, 6, h + 13);
+    ctx.fillText(caption, 6, h + 28);
     return new Promise((resolve) => out.toBlob(resolve, 'image/png'));
   };
   /** Pixels of the frame covered by surfaces (the rulers left out): what "not blank" means. */

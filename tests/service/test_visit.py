@@ -210,13 +210,18 @@ def visit_exports(page) -> None:
             assert len(data) == 84 + 50 * struct.unpack("<I", data[80:84])[0] > 84
         if fmt == "vtp":
             assert b"VTKFile" in data and b"PolyData" in data
-    for which in ("3d", "profile"):
+    for which, canvas in (("3d", "#canvas3d"), ("profile", "#profile"), ("chart", "#chart")):
         page.select_option("#export-view", which)
+        shown = page.evaluate(f"() => [document.querySelector('{canvas}').clientWidth, "
+                              f"document.querySelector('{canvas}').clientHeight, window.devicePixelRatio]")
         name, data = downloaded(page, "#export-png")
         assert name == f"nemsim_{rid}_step{step}_{which}.png" and data[:8] == b"\x89PNG\r\n\x1a\n"
         width, height = struct.unpack(">II", data[16:24])
-        assert width >= 200 and height >= 200
+        # twice the size on screen whatever the screen's pixel ratio (1 here), the 3-D view's caption below
+        assert shown[2] == 1, shown
+        assert width == 2 * shown[0] and height >= 2 * shown[1], (which, width, height, shown)
         assert len(data) > 5_000  # drawn, not an empty frame
+    assert page.evaluate("() => document.getElementById('chart').width") == shown[0]  # the screen's again
 
 
 def test_a_user_visit_fails_no_request_and_logs_no_error(page, shots, monkeypatch):
