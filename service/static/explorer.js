@@ -142,7 +142,12 @@ function fitCanvas(c, cssH) {
   ctx.font = FONT;
   return { ctx, w, h: cssH, dpr };
 }
-const planeHeight = () => Math.round(Math.min(380, Math.max(260, 0.42 * window.innerHeight)));
+// the planes take the window's height below their top (the 3-D view above takes 0.4 of it, view3d.js), so
+// both are in view unscrolled from 1280 x 720 up, whatever the legends above them wrap to
+function planeHeight() {
+  const top = $('section').getBoundingClientRect().top + window.scrollY;
+  return Math.round(Math.min(380, Math.max(200, window.innerHeight - top - 14)));
+}
 let resizeQueued = false;
 function redrawAll() {
   resizeQueued = false;
@@ -618,6 +623,9 @@ function wire() {
   for (const t of ['controls', 'design']) $(`tab-${t}-btn`).addEventListener('click', () => showTab(t));
   for (const [id, kind] of [['export-csv', 'csv'], ['export-h5', 'h5'], ['export-mesh', 'mesh'], ['export-png', 'png']]) $(id).addEventListener('click', () => exportFile(kind));
   window.addEventListener('resize', () => { if (!resizeQueued) { resizeQueued = true; requestAnimationFrame(redrawAll); } });
+  // the planes fill the height below the 3-D view and the time bar: redrawn when a legend there wraps anew
+  const above = new ResizeObserver(() => { if (state.slices) drawPlanes(state.step); });
+  for (const el of [$('view3d'), $('time').parentElement]) above.observe(el);
 }
 async function start() {
   let info;

@@ -58,7 +58,8 @@ export function createView(canvas, scene, els) {
   let w = 0, h = 0; // CSS pixels
   view.resize = () => {
     w = Math.max(200, Math.floor(canvas.parentElement.clientWidth));
-    h = Math.round(Math.max(220, Math.min(0.8 * w, 0.6 * window.innerHeight)));
+    // 0.4 of the window's height leaves room below for the cross-section (explorer.js, planeHeight)
+    h = Math.round(Math.max(220, Math.min(0.8 * w, 0.4 * window.innerHeight)));
     renderer.setPixelRatio(window.devicePixelRatio || 1);
     renderer.setSize(w, h, false);
     canvas.style.height = `${h}px`;

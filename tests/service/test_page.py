@@ -276,6 +276,34 @@ def test_a_busy_server_is_waited_out_not_drawn_empty(page):
     assert len(asked) == 3 and all(len(t) == 2 and t[1] - t[0] >= 0.95 for t in asked.values())
 
 
+def test_after_run_the_results_are_in_view_at_1280x720(page):
+    """With a warning and the trust verdict beside the controls, Run leaves the 3-D view, the cross-section
+    and the metrics chart wholly on screen at 1280x720, unscrolled; a recipe's table sits above the
+    controls, and the first control stays in view below the verdict and the warnings."""
+    page.set_viewport_size({"width": 1280, "height": 720})
+    set_control(page, "energy_mean_ar_plus", 700)  # outside the trained range: a warning and a verdict
+    page.evaluate("() => window.scrollTo(0, 0)")  # as loaded (filling the control may have scrolled)
+    run_and_wait(page)
+    assert page.is_visible("#warnings") and page.is_visible("#trust")
+    got = page.evaluate(
+        """() => ({ scrolled: window.scrollY, boxes: Object.fromEntries(
+          ['canvas3d', 'section', 'chart', 'controls'].map((id) => {
+            const r = document.getElementById(id).getBoundingClientRect();
+            return [id, [r.left, r.top, r.right, r.bottom]]; })) })"""
+    )
+    assert got["scrolled"] == 0
+    boxes = got["boxes"]
+    for name in ("canvas3d", "section", "chart"):
+        left, top, right, bottom = boxes[name]
+        assert 0 <= left and right <= 1280 and 0 <= top and bottom <= 720, (name, boxes[name])
+        assert bottom - top >= 150 and right - left >= 150, (name, boxes[name])  # shown, not squeezed
+    first = page.locator("#controls .ctl").first.bounding_box()
+    assert first is not None and first["y"] + first["height"] <= 720
+    page.check("#recipe-mode")
+    recipe, controls = (page.locator(sel).bounding_box() for sel in ("#recipe", "#controls"))
+    assert recipe["y"] + recipe["height"] <= controls["y"]
+
+
 def test_the_3d_view_places_the_meshes_frame_in_its_box(page):
     """Meshes come with x, y from the hole axis and z above the initial Si top; the view moves them into
     its box (corner at the origin), so the initial Si top lies at si_top voxels up and the surface spans the
