@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 
-from nemsim.training.config import CPU_BF16_FLAGS, cpu_info
+from nemsim.inference.precision import CPU_BF16_FLAGS, cpu_info
 
 # instruction-set extensions that change the speed of bf16 inference and training
 _FLAGS = (*CPU_BF16_FLAGS, "amx_tile")

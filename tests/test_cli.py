@@ -376,9 +376,9 @@ def test_design_pairs_write_a_seed_id_column_and_need_an_even_n(tmp_path, capsys
 def test_version_prints_the_version_and_the_served_runtime(capsys, monkeypatch, flags, runtime, named):
     from importlib.metadata import version
 
-    from nemsim.training import config
+    from nemsim.inference import precision
 
-    monkeypatch.setattr(config, "cpu_info", lambda: {"model name": "Some CPU 9000", "flags": flags})
+    monkeypatch.setattr(precision, "cpu_info", lambda: {"model name": "Some CPU 9000", "flags": flags})
     with pytest.raises(SystemExit) as exc:
         main(["--version"])
     first, second = capsys.readouterr().out.strip().splitlines()

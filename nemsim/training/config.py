@@ -55,38 +55,12 @@ from typing import Any, Literal
 
 # The faster setting of one NEMSim training step on the small scene: channels_last_3d off, bf16 autocast on
 # where the hardware computes in bfloat16 (benchmarks/small/README.md, "Training-step precision and memory
-# format"; ``native_bf16``).
+# format"; ``nemsim.inference.precision.native_bf16``).
 DEFAULT_CHANNELS_LAST = False
 DEFAULT_BF16 = None  # None: ``native_bf16`` of the training device
-CPU_BF16_FLAGS = ("avx512_bf16", "amx_bf16")  # /proc/cpuinfo flags of CPUs that compute in bfloat16
 LR_SCALING = {"none": 0.0, "sqrt": 0.5, "linear": 1.0}  # lr_scaling -> exponent p of (batch / base)^p
 # what ``TrainConfig.cuda`` may change: the batch that fills the device and what goes with it
 DEVICE_FIELDS = ("batch_size", "val_batch_size", "lr", "checkpoint_every", "num_workers", "bf16")
-
-
-def cpu_info() -> dict[str, str]:
-    """Each /proc/cpuinfo field's first value ("model name", "flags", ...); {} where there is none."""
-    info = Path("/proc/cpuinfo")
-    if not info.is_file():
-        return {}
-    out: dict[str, str] = {}
-    for line in info.read_text(errors="replace").splitlines():
-        key, sep, value = line.partition(":")
-        if sep:
-            out.setdefault(key.strip(), value.strip())
-    return out
-
-
-def cpu_flags() -> set[str]:
-    """The instruction-set flags of this machine's first CPU (empty where /proc/cpuinfo has none)."""
-    return set(cpu_info().get("flags", "").split())
-
-
-def native_bf16(device_type: str) -> bool:
-    """Whether bfloat16 autocast is the faster training forward on ``device_type``: a CUDA GPU, or a CPU
-    with AVX-512 BF16 or AMX. A CPU without them emulates bfloat16 arithmetic, several times slower than
-    float32 (benchmarks/small/README.md)."""
-    return device_type == "cuda" or bool(cpu_flags() & set(CPU_BF16_FLAGS))
 
 
 @dataclass(frozen=True)

@@ -49,9 +49,10 @@ from nemsim.data.dataset import as_batch
 from nemsim.evaluation.evaluate import rmse_summary, rollout_errors
 from nemsim.evaluation.rollout import steps_per_call
 from nemsim.inference.checkpoint import checkpoint_dict, read_checkpoint, unwrap, write_checkpoint_dict
+from nemsim.inference.precision import native_bf16
 from nemsim.scenes import Scene
 from nemsim.training.average import WeightAverage
-from nemsim.training.config import TrainConfig, native_bf16
+from nemsim.training.config import TrainConfig
 
 log = logging.getLogger(__name__)
 

@@ -19,8 +19,8 @@ from torch import nn
 
 from nemsim.evaluation.rollout import rollout
 from nemsim.inference import runtime
+from nemsim.inference.precision import cpu_flags
 from nemsim.inference.runtime import compile_model, openvino_available
-from nemsim.training.config import cpu_flags
 
 torch.set_num_threads(1)
 

@@ -93,7 +93,7 @@ def test_wall_budget_schedule_spans_the_budget():
 
 
 def test_bf16_by_default_only_where_the_device_computes_in_it(monkeypatch):
-    from nemsim.training import config as config_mod
+    from nemsim.inference import precision as config_mod
 
     assert TrainConfig().bf16 is None  # resolved by the training run for its device
     monkeypatch.setattr(config_mod, "cpu_flags", lambda: {"avx2", "fma"})
