@@ -10,7 +10,8 @@ Every case is built from a valid body by one mutation, and knows what the server
 * `malformed`: wrong types, missing or extra keys, fractional exponents, two control sources, broken or
   non-UTF-8 JSON, 100,000-deep nesting, a body over the size limit: must be refused too.
 * `valid`: a body inside every guard (few: each runs a rollout or starts a job, which is cancelled at
-  once): should be accepted (2xx, or 429 at the client's job cap).
+  once), a control left out among them (it takes its default): should be accepted (2xx, or 429 at the
+  client's job cap).
 
 Reported: status counts per route and class, answers >= 500, accepted `guard` and `malformed` cases (with
 examples), refused `valid` ones, and error bodies that are not JSON or show a traceback or a file path.
@@ -68,7 +69,7 @@ class CaseMaker:
             "step": [0, -1, 10_001, horizon + 1, 2**63, HUGE],
             "k": [0, -1, 11, 2**63],
             "verify_top": [0, -1, 4],
-            "refine_rounds": [-1, 4],
+            "refine_rounds": [-1, 6],
             "seed": [-1, 2**31, 2**63],
             "sim_seed": [-1, 2**63, 10**30],
         }
@@ -147,8 +148,9 @@ class CaseMaker:
         )
         if kind == "wrong_type":
             body["controls"][name] = self._wrong_type()
-        elif kind == "missing":
+        elif kind == "missing":  # a control left out takes its default: a valid body
             del body["controls"][name]
+            return kind, "valid", body
         elif kind == "extra":
             body[self.r.choice(["control", "Steps", "__proto__", "x" * 300])] = 1
         elif kind == "fraction":
