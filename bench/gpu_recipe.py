@@ -48,17 +48,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def environment(device: str) -> dict[str, Any]:
-    env: dict[str, Any] = {"python": platform.python_version(), "cpu_count": os.cpu_count(),
-                           "platform": platform.platform(), "device": device}  # fmt: skip
+    """Versions, device and machine (``bench.gpu.environment``; the bare machine without torch)."""
     try:
         import torch
-
-        env.update(torch=torch.__version__, torch_cuda=torch.version.cuda)
-        if device.startswith("cuda") and torch.cuda.is_available():
-            env["gpu"] = torch.cuda.get_device_name(0)
     except ImportError:
-        pass
-    return env
+        return {"python": platform.python_version(), "cpu_count": os.cpu_count(), "device": device}
+    from bench.gpu import environment as of_device
+
+    return of_device(torch.device(device))
 
 
 def stage_rows(runs: Path, recipe: dict[str, Any]) -> list[dict[str, Any]]:

@@ -96,6 +96,11 @@ class _H5Backed(Dataset):
             self._pid = os.getpid()
         return self._states
 
+    def transform(self, states: torch.Tensor) -> torch.Tensor:
+        """States (..., C, D, H, W) as the items carry them (here unchanged; ``TransitionDataset`` may
+        symmetrize and fold them)."""
+        return states
+
     def close(self) -> None:
         if self._file is not None and self._pid == os.getpid():
             self._file.close()
@@ -287,12 +292,12 @@ class MemoryTransitions(Dataset):
         self._offsets = torch.arange(self.unroll + 1, device=self.device)  # (n+1,)
 
     @staticmethod
-    def state_shape(sets: list[TransitionDataset]) -> tuple[int, ...]:
+    def state_shape(sets: list[_H5Backed]) -> tuple[int, ...]:
         """(C, D, H', W') of one state as ``sets`` yield it (after their transform)."""
         return tuple(sets[0].transform(torch.zeros(1, *sets[0].scene.state_shape)).shape[1:])
 
     @classmethod
-    def nbytes_of(cls, sets: list[TransitionDataset]) -> int:
+    def nbytes_of(cls, sets: list[_H5Backed]) -> int:
         """Bytes the states of ``sets`` take in memory (float16, after their transform)."""
         return sum(len(s.rows) for s in sets) * sets[0].n_states * int(np.prod(cls.state_shape(sets))) * 2
 
@@ -343,7 +348,7 @@ KEEP_DECODED = 2  # decodes kept: a run's training set and its validation set
 def decoded_states(sets: list, device: torch.device, progress: bool = False,
                    desc: str = "decode") -> tuple[torch.Tensor, torch.Tensor]:
     """(states (N, T, C, D, H', W') float16, u (N, T-1, 14) float32) on ``device`` of the cases of ``sets``
-    (``_H5Backed`` datasets; states shaped by each set's ``transform`` where it has one), in order.
+    (``_H5Backed`` datasets; states shaped by each set's ``transform``), in order.
 
     The trajectories are inflated on every core (``read_cases``) and shaped on ``device`` (float32 there,
     stored float16). The last ``KEEP_DECODED`` results are kept for the same files (path, size,
@@ -365,7 +370,7 @@ def decoded_states(sets: list, device: torch.device, progress: bool = False,
         del _DECODED[next(iter(_DECODED))]
     first = sets[0]
     n_cases = sum(len(s.rows) for s in sets)
-    shape = MemoryTransitions.state_shape(sets) if hasattr(first, "transform") else first.scene.state_shape
+    shape = MemoryTransitions.state_shape(sets)
     states = torch.empty((n_cases, first.n_states, *shape), dtype=torch.float16, device=device)
     u = torch.empty((n_cases, first.n_states - 1, first.u.shape[-1]), dtype=torch.float32, device=device)
     bar = None
@@ -377,7 +382,7 @@ def decoded_states(sets: list, device: torch.device, progress: bool = False,
     for s in sets:
         for k, traj in read_cases(s.path, s.rows):
             x = torch.from_numpy(traj).to(device, non_blocking=False)  # (T, C, D, H, W), stored dtype
-            states[g].copy_(s.transform(x.float()) if hasattr(s, "transform") else x)
+            states[g].copy_(s.transform(x.float()))
             u[g].copy_(torch.from_numpy(np.array(s.u[k], dtype=np.float32)))
             g += 1
             if bar is not None:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import gc
 import json
 import logging
-import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -247,7 +246,7 @@ def _memory_sets(sets: list[Any], val: Any, cfg: Any) -> tuple[Any, Any]:
 
     device = pick_device(cfg.device)
     probe = MemoryTransitions.nbytes_of(sets)
-    val_bytes = len(val.rows) * val.n_states * math.prod(val.scene.state_shape) * 2
+    val_bytes = MemoryTransitions.nbytes_of([val])
     if device.type == "cuda" and probe + val_bytes > 0.5 * torch.cuda.mem_get_info(device)[0]:
         device = torch.device("cpu")
     device = device if device.type == "cuda" else torch.device("cpu")
