@@ -12,6 +12,11 @@ Choices where the paper is silent:
   * ``symmetry``: every shipped scene is a centred circular opening on a square grid and declares the
     square's 8-fold symmetry about the hole axis ("d4"; ``nemsim.symmetry`` has its mirror planes and
     fundamental domain); a layout without it declares "none" and keeps the full domain.
+  * ``kind``: the feature's shape, "hole" (a cylinder, ``opening_radius_vox`` its radius) or "trench" (a
+    slot |x - cx| < ``opening_radius_vox`` along the whole y axis, symmetry "mirror_x_translate_y": the
+    mirror x -> -x about the line's axis plus every translation along y). The named scenes are the default
+    hole; a case's own geometry is a ``nemsim.geometry.feature.Feature`` applied to its scene
+    (``Scene.with_feature``), which keeps the grid and pitch and derives si_top and the opening.
   * CD crops scale with the scene: the paper's mask crop is depth 80..121 and the Si crop depth 0..80
     (both inclusive) for Si below z=80 and resist up to z=120, i.e. mask = [si_top, resist_top + 1] and
     Si = [0, si_top] in depth index.
@@ -21,8 +26,14 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
-SYMMETRIES = ("d4", "none")  # what a scene may declare (nemsim.symmetry)
+if TYPE_CHECKING:
+    from nemsim.geometry.feature import Feature
+
+SYMMETRIES = ("d4", "mirror_x_translate_y", "none")  # what a scene may declare (nemsim.symmetry)
+KINDS = ("hole", "trench")  # feature shapes (module docstring)
+TRENCH_SYMMETRY = "mirror_x_translate_y"  # a line along y: the mirror x -> -x and translations along y
 
 
 def check_symmetry(name: str) -> str:
@@ -46,7 +57,7 @@ class Scene:
     voxel_nm: float  # isotropic voxel edge, nm
     si_top: int  # Si occupies 0 <= z < si_top
     resist_top: int  # resist occupies si_top <= z < resist_top, except the opening
-    opening_radius_vox: float  # radius of the centred cylindrical opening in the resist, voxels
+    opening_radius_vox: float  # radius of the centred hole (half-width of a trench) in the resist, voxels
     d_max_nm: float = 30.0  # SDF clipping distance, nm (normalized SDF = clip(phi / d_max, -1, 1))
     horizon_s: float = 10.0  # macro time simulated, s
     snapshot_dt_s: float = 0.1  # one saved state every snapshot_dt_s
@@ -54,6 +65,7 @@ class Scene:
     # the group the mean evolution is invariant under (``nemsim.symmetry``): "d4", the square's 8 symmetries
     # about the hole axis (a centred opening on a square grid), or "none" (the full domain everywhere)
     symmetry: str = "d4"
+    kind: str = "hole"  # "hole" or "trench" (module docstring); a per-case scene's comes from its Feature
 
     def __post_init__(self) -> None:
         if not (0 < self.si_top < self.resist_top < self.nz):
@@ -62,6 +74,15 @@ class Scene:
                 f"< nz ({self.nz})"
             )
         check_symmetry(self.symmetry)
+        if self.kind not in KINDS:
+            raise ValueError(f"scene {self.name!r}: unknown feature kind {self.kind!r}; "
+                             f"expected one of {KINDS}")
+        if self.kind == "trench" and self.symmetry == "d4":
+            raise ValueError(f"scene {self.name!r}: a trench has symmetry {TRENCH_SYMMETRY!r} (or 'none'), "
+                             "not the square's 'd4'")
+        if self.kind == "hole" and self.symmetry == TRENCH_SYMMETRY:
+            raise ValueError(f"scene {self.name!r}: symmetry {TRENCH_SYMMETRY!r} is a trench's; a hole "
+                             "declares 'd4' or 'none'")
         if self.symmetry == "d4" and self.nx != self.ny:
             raise ValueError(f"scene {self.name!r}: the square's symmetry needs nx == ny, "
                              f"got {self.nx}, {self.ny}")
@@ -127,8 +148,17 @@ class Scene:
         c = quadrant_size(self.field_shape[-1])
         return (2, self.field_shape[0], c, c)
 
+    def with_feature(self, feature: Feature) -> Scene:
+        """The per-case scene of ``feature`` on this scene's grid (``Feature.apply``)."""
+        return feature.apply(self)
+
     def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
+        """JSON of every field; ``kind`` is left out for a hole, so a hole scene's record is what it was
+        before features existed (files and checkpoints compare it)."""
+        record = asdict(self)
+        if record["kind"] == "hole":
+            del record["kind"]
+        return json.dumps(record, sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str) -> "Scene":

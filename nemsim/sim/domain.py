@@ -7,10 +7,12 @@ A ``Domain`` holds, for every native voxel (x, y, z), the integer amounts of the
 
 (vacuum = 0). Arrays are indexed [x, y, z(, species)] with z growing upward; particles enter at z = nz.
 
-Initial geometry (every scene): Si fills 0 <= z < si_top; resist fills si_top <= z < resist_top except a
-centred cylindrical opening of radius ``opening_radius_vox``; the layers above are empty. Choice where the
-paper is silent: voxels cut by the cylinder wall get the resist amount of their covered area fraction
-(estimated on a 16 x 16 sub-grid), so the initial opening is sub-voxel accurate instead of a staircase.
+Initial geometry (every scene): Si fills 0 <= z < si_top; resist fills si_top <= z < resist_top except the
+opening, the layers above are empty. The opening is the scene's feature (``scene.kind``,
+``nemsim.geometry.feature``): a centred cylinder of radius ``opening_radius_vox`` (hole) or the slot
+|x - cx| < ``opening_radius_vox`` along all y (trench). Choice where the paper is silent: voxels cut by the
+opening's wall get the resist amount of their covered area fraction (estimated on a 16 x 16 sub-grid), so
+the initial opening is sub-voxel accurate instead of a staircase.
 
 Quarter domain (``SimConfig.domain`` = "quarter", ``config`` module docstring): ``lower_quadrant`` is the
 voxel state of columns [0, nx/2) x [0, ny/2), the box the particles fly in between mirror walls, and
@@ -69,12 +71,16 @@ def compute_fill(mat: np.ndarray, capacity: int, resist_capacity: int) -> np.nda
 
 
 def opening_coverage(scene: Scene, sub: int = 16) -> np.ndarray:
-    """(nx, ny) float64 fraction of each column's area lying outside the cylindrical opening."""
+    """(nx, ny) float64 fraction of each column's area lying outside the opening (the hole's cylinder or
+    the trench's slot, module docstring)."""
     cx, cy = scene.opening_centre  # voxel-centre coordinates: voxel i spans [i - 0.5, i + 0.5]
     offs = (np.arange(sub) + 0.5) / sub - 0.5  # (sub,) sub-sample offsets inside a voxel
     xs = (np.arange(scene.nx)[:, None] + offs[None, :]).reshape(-1)  # (nx*sub,)
     ys = (np.arange(scene.ny)[:, None] + offs[None, :]).reshape(-1)
-    outside = (xs[:, None] - cx) ** 2 + (ys[None, :] - cy) ** 2 >= scene.opening_radius_vox**2
+    if scene.kind == "trench":
+        outside = np.broadcast_to(np.abs(xs[:, None] - cx) >= scene.opening_radius_vox, (len(xs), len(ys)))
+    else:
+        outside = (xs[:, None] - cx) ** 2 + (ys[None, :] - cy) ** 2 >= scene.opening_radius_vox**2
     return outside.reshape(scene.nx, sub, scene.ny, sub).mean(axis=(1, 3))  # (nx, ny)
 
 
