@@ -45,6 +45,17 @@ floor (mask loss, bottom width) or is read on the axis (the depth: one voxel col
 four) has 1.8-2.8x the full domain's seed-to-seed standard deviation, and the seed-to-seed Avg RMSE of the
 states is 12 % higher. Odd nx or ny is refused: a mirror plane through a voxel centre would split voxels.
 "full" is the data sets' simulator and is not written into ``to_meta``.
+
+Cross-section (``domain`` = "section", trenches only): a trench's mean evolution is invariant under the
+mirror through its axis and every translation along the line (y), so its state is a cross-section in x and
+z. "section" runs the Monte Carlo on a slab of the box, x in [0, nx/2) (the whole [0, nx) for an odd nx) by
+``section_ny`` rows of y, between the same mirror walls (x: the trench's mirror and, by periodicity, the
+outer faces; y: a mirror is a symmetry of a line's mean evolution, and a flight folded between y walls is a
+flight along the line), launching over the slab's top area (``simulated_scene``). The particle physics per
+unit area is unchanged; only the number of columns the state averages over shrinks (nx/2 x section_ny
+instead of nx x ny), so its noise per voxel is larger. Each state is the slab's fractions averaged over its
+rows, mirrored into the full x extent and through Psi as one row, then repeated along y: the states have the
+scene's full shape (``process``).
 """
 
 from __future__ import annotations
@@ -72,10 +83,11 @@ _TARGET_MASS_AMU = (("Si", 28.09), ("SiCl", 63.54), ("SiCl2", 98.99), ("SiCl3", 
 _RECORD_DEFAULTS: dict[str, Any] = {
     "particle_budget": 1.0, "sputter_calibration": "paper", "resist_sputter_scale": 1.0,
     "ion_reflect_diffuse": 0.0, "ion_reflect_spread_deg": 0.0, "ion_reflect_energy": 0.0,
-    "ion_wing_fraction": 0.0, "ion_wing_m": 5.0, "rng_mode": "stream", "domain": "full",
+    "ion_wing_fraction": 0.0, "ion_wing_m": 5.0, "rng_mode": "stream", "domain": "full", "section_ny": 2,
 }  # fmt: skip
 RNG_MODES = ("stream", "counter")  # kernels module docstring, "Random numbers"
-DOMAINS = ("full", "quarter")  # module docstring, "Simulated domain"
+DOMAINS = ("full", "quarter", "section")  # module docstring, "Simulated domain" and "Cross-section"
+MIRROR_DOMAINS = ("quarter", "section")  # simulated between mirror walls
 
 
 @dataclass(frozen=True)
@@ -132,6 +144,7 @@ class SimConfig:
     # simulated domain (module docstring, "Simulated domain"): "full" = the scene's periodic box (the data
     # sets); "quarter" = its lower quadrant between mirror walls, unfolded into the full box at every state
     domain: str = "full"
+    section_ny: int = 2  # rows of y the "section" domain simulates (module docstring, "Cross-section")
     queue_capacity: int = 1 << 15  # FIFO ring buffer for secondary products (drained after each primary)
     projectile_mass_amu: tuple[tuple[str, float], ...] = _PROJECTILE_MASS_AMU
     target_mass_amu: tuple[tuple[str, float], ...] = _TARGET_MASS_AMU
@@ -179,9 +192,22 @@ class SimConfig:
             raise ValueError(f"rng_mode is one of {RNG_MODES}, got {self.rng_mode!r}")
         if self.domain not in DOMAINS:
             raise ValueError(f"domain is one of {DOMAINS}, got {self.domain!r}")
+        if not (isinstance(self.section_ny, int) and self.section_ny >= 1):
+            raise ValueError(f"section_ny must be an int >= 1 (rows of y in the cross-section), "
+                             f"got {self.section_ny!r}")
 
     def check_scene(self, scene: Scene) -> None:
-        """Raise ValueError if this config cannot simulate ``scene`` (the quarter needs even nx and ny)."""
+        """Raise ValueError if this config cannot simulate ``scene`` (the quarter needs even nx and ny; the
+        cross-section a trench)."""
+        if self.domain == "section":
+            if scene.kind != "trench" or scene.symmetry == "none":
+                raise ValueError(f"domain 'section' simulates a trench's cross-section; scene "
+                                 f"{scene.name!r} is a {scene.kind} with symmetry {scene.symmetry!r}: "
+                                 "use 'full' or 'quarter'")
+            if self.section_ny > scene.ny:
+                raise ValueError(f"domain 'section' needs section_ny <= ny; scene {scene.name!r} has ny "
+                                 f"{scene.ny}, section_ny {self.section_ny}")
+            return
         if self.domain == "quarter" and getattr(scene, "symmetry", "d4") == "none":
             raise ValueError(f"domain 'quarter' needs a scene with the square's symmetry; scene "
                              f"{scene.name!r} declares none: use domain 'full'")
@@ -198,6 +224,9 @@ class SimConfig:
         self.check_scene(scene)
         if self.domain == "full":
             return scene
+        if self.domain == "section":  # half of an even x extent, the whole of an odd one
+            nx = scene.nx // 2 if scene.nx % 2 == 0 else scene.nx
+            return replace(scene, name=f"{scene.name}-section", nx=nx, ny=self.section_ny)
         return replace(scene, name=f"{scene.name}-quarter", nx=scene.nx // 2, ny=scene.ny // 2)
 
     def resolved(self, scene: Scene) -> SimConfig:

@@ -110,6 +110,23 @@ def unfold_quadrant(q: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([half, half[:, ::-1]], axis=1))
 
 
+def section_slab(dom: Domain, nx: int, ny: int) -> Domain:
+    """The voxel state of columns [0, nx) x [0, ny) of ``dom`` (a copy): a trench's cross-section slab
+    (``SimConfig.domain`` = "section"; a trench's x0 is the same in every row of y)."""
+    return Domain(dom.mat[:nx, :ny].copy(), dom.fill[:nx, :ny].copy(), dom.capacity, dom.resist_capacity)
+
+
+def unfold_section(q: np.ndarray, nx: int, ny: int) -> np.ndarray:
+    """(nx, ny, ...) full field from a cross-section slab's field q (sx, sy, ...): mirrored across the trench
+    axis when sx < nx (``unfold_quadrant``'s x mirror), and repeated along y as the unfolded traversal between
+    the slab's y mirror walls sees it (rows 0..sy-1, then sy-1..0, and so on)."""
+    if q.shape[0] < nx:
+        q = np.concatenate([q, q[::-1]], axis=0)
+    sy = q.shape[1]
+    j = np.arange(ny) % (2 * sy)
+    return np.ascontiguousarray(q[:, np.where(j < sy, j, 2 * sy - 1 - j)])
+
+
 def unfold_domain(dom: Domain) -> Domain:
     """The full-box ``Domain`` of a lower-quadrant one (amounts and fill mirrored, ``unfold_quadrant``)."""
     return Domain(unfold_quadrant(dom.mat), unfold_quadrant(dom.fill), dom.capacity, dom.resist_capacity)

@@ -182,7 +182,7 @@ def transport_params(config: SimConfig, cap: float, rcap: float) -> TransportPar
                            float(config.particle_weight), float(cos_full), float(cos_zero),
                            bool(config.excess_probability_yield), float(config.ion_reflect_diffuse),
                            float(lobe_k), float(config.ion_reflect_energy), float(config.ion_wing_fraction),
-                           float(config.ion_wing_m), config.domain == "quarter")  # fmt: skip
+                           float(config.ion_wing_m), config.domain in ("quarter", "section"))  # fmt: skip
 
 
 class WorkBuffers(NamedTuple):

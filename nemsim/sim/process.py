@@ -33,6 +33,13 @@ SDF units: RMS 7e-4 in the initial state and 1e-3 after 2 s, against 8e-3 betwee
 (``mirror_mean``), exactly symmetric, and so is its ``initial_state``.
 The counters, the totals and ``TrajectoryResult.domain`` describe the simulated quadrant
 (``TrajectoryResult.full_domain``: mirrored).
+
+Cross-section (``config.domain`` = "section", a trench; ``config`` module docstring): the particles fly in a
+slab of the box between mirror walls (``domain.section_slab``); each state is Psi of the slab's (mask, Si)
+fractions averaged over its rows and mirrored across the trench's axis, computed on one row of y, symmetrized
+under the x mirror like the quarter's, and repeated along y: the recorded states have the scene's full shape
+and are exactly y-invariant and x-symmetric. ``initial_state`` goes through the same path, so it is every
+trajectory's first state under the same config.
 """
 
 from __future__ import annotations
@@ -41,7 +48,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -50,7 +57,15 @@ from nemsim.rules.compile import RuleTensors
 from nemsim.scenes import Scene
 
 from .config import SimConfig
-from .domain import Domain, initial_domain, lower_quadrant, unfold_domain, unfold_quadrant
+from .domain import (
+    Domain,
+    initial_domain,
+    lower_quadrant,
+    section_slab,
+    unfold_domain,
+    unfold_quadrant,
+    unfold_section,
+)
 from .events import EventTables, build_event_tables
 from .kernels import (
     COUNTER_NAMES,
@@ -76,7 +91,8 @@ class TrajectoryResult:
     domain: final voxel state of the simulated box: the scene's, or with ``config.domain`` = "quarter" its
       lower quadrant (nx/2, ny/2, nz); ``full_domain()`` is always the scene's box.
     initial_totals / final_totals: (5,) species amounts in the simulated box.
-    wall_s: wall-clock seconds. simulated: the ``SimConfig.domain`` simulated ("full" or "quarter").
+    wall_s: wall-clock seconds. simulated: the ``SimConfig.domain`` simulated ("full", "quarter" or
+      "section"). full_shape: the scene's (nx, ny) (the box ``full_domain`` unfolds a section slab into).
     """
 
     states: np.ndarray
@@ -87,9 +103,16 @@ class TrajectoryResult:
     final_totals: np.ndarray
     wall_s: float
     simulated: str = "full"
+    full_shape: tuple[int, int] | None = None
 
     def full_domain(self) -> Domain:
-        """The final voxel state on the scene's whole box (the quadrant mirrored in "quarter" mode)."""
+        """The final voxel state on the scene's whole box (the quadrant mirrored in "quarter" mode, the slab
+        unfolded in "section" mode)."""
+        if self.simulated == "section":
+            assert self.full_shape is not None
+            d = self.domain
+            return Domain(unfold_section(d.mat, *self.full_shape), unfold_section(d.fill, *self.full_shape),
+                          d.capacity, d.resist_capacity)
         return unfold_domain(self.domain) if self.simulated == "quarter" else self.domain
 
 
@@ -131,20 +154,43 @@ def mirror_mean(state: np.ndarray) -> np.ndarray:
     return (a + a[..., ::-1, :]) * np.float32(0.25)
 
 
-def _state(mask: np.ndarray, si: np.ndarray, scene: Scene, cfg: SimConfig) -> np.ndarray:
-    """The recorded state of full-box (mask, Si) fractions: Psi, symmetrized in "quarter" mode."""
+def _simulated_box(scene: Scene, cfg: SimConfig) -> Domain:
+    """The initial voxel state of the box the particles fly in (the scene's, its quadrant or a slab)."""
+    assert cfg.capacity is not None and cfg.resist_capacity is not None
+    dom = initial_domain(scene, cfg.capacity, cfg.resist_capacity)
+    if cfg.domain == "quarter":
+        return lower_quadrant(dom)
+    if cfg.domain == "section":
+        sim = cfg.simulated_scene(scene)
+        return section_slab(dom, sim.nx, sim.ny)
+    return dom
+
+
+def _state(dom: Domain, scene: Scene, cfg: SimConfig) -> np.ndarray:
+    """The recorded (2, D, H, W) state of the simulated box's voxels: Psi of the full box's fractions,
+    symmetrized in "quarter" mode; of the cross-section's row in "section" mode (module docstring)."""
+    mask, si = dom.fractions()
+    if cfg.domain == "section":
+        mask, si = (unfold_section(f.mean(axis=1, keepdims=True), scene.nx, 1) for f in (mask, si))
+        x = psi(mask, si, replace(scene, ny=1), cfg.psi_sigma_vox)  # (2, D, 3, W): one row of y, padded
+        x = (x[:, :, 1:2] + x[:, :, 1:2, ::-1]) * np.float32(0.5)  # exactly symmetric under the x mirror
+        return np.ascontiguousarray(np.broadcast_to(x, scene.state_shape))
+    if cfg.domain == "quarter":
+        mask, si = unfold_quadrant(mask), unfold_quadrant(si)
     x = psi(mask, si, scene, cfg.psi_sigma_vox)
     return mirror_mean(x) if cfg.domain == "quarter" else x
 
 
 def initial_state(scene: Scene, config: SimConfig | None = None) -> np.ndarray:
-    """x_0: (2, D, H, W) float32 normalized SDF (Ψ) of the scene's initial geometry, identical to every
-    trajectory's first state under ``config``. The surrogate's rollouts (service, counterfactual) start
-    from it."""
+    """x_0: (2, D, H, W) float32 normalized SDF (Ψ) of the scene's initial geometry (its feature: a per-case
+    scene, ``Feature.apply``), identical to every trajectory's first state under ``config``. The
+    surrogate's rollouts (service, counterfactual) start from it."""
     cfg = (config or SimConfig()).resolved(scene)
-    assert cfg.capacity is not None and cfg.resist_capacity is not None
-    dom = initial_domain(scene, cfg.capacity, cfg.resist_capacity)
-    return _state(*dom.fractions(), scene, cfg)
+    if cfg.domain == "quarter" and (scene.nx % 2 or scene.ny % 2):  # no quadrant to simulate, but x0's
+        # fractions are symmetric: the full box's state, mirrored as a quarter's states are
+        full = replace(cfg, domain="full")
+        return mirror_mean(_state(_simulated_box(scene, full), scene, full))
+    return _state(_simulated_box(scene, cfg), scene, cfg)
 
 
 def run_trajectory(
@@ -177,18 +223,11 @@ def run_trajectory(
     if not 0 <= n_tr <= scene.n_transitions:
         raise ValueError(f"n_transitions must be in [0, {scene.n_transitions}], got {n_transitions}")
     tables = tables if tables is not None else build_event_tables(rules, cfg)
-    quarter = cfg.domain == "quarter"
     rate_per_flux = cfg.particle_rate_per_flux(cfg.simulated_scene(scene))  # checks the scene's sizes
-
-    dom = initial_domain(scene, cfg.capacity, cfg.resist_capacity)
-    if quarter:
-        dom = lower_quadrant(dom)
+    dom = _simulated_box(scene, cfg)
 
     def state() -> np.ndarray:
-        mask, si = dom.fractions()
-        if quarter:
-            mask, si = unfold_quadrant(mask), unfold_quadrant(si)
-        return _state(mask, si, scene, cfg)
+        return _state(dom, scene, cfg)
 
     initial_totals = dom.totals()
     states = np.empty((n_tr + 1, *scene.state_shape), dtype=np.float32)
@@ -241,6 +280,7 @@ def run_trajectory(
         final_totals=dom.totals(),
         wall_s=wall,
         simulated=cfg.domain,
+        full_shape=(scene.nx, scene.ny),
     )
     log.debug("trajectory: %.2f s, %d primaries", wall, result.counters["primary"])
     return result
