@@ -1,4 +1,4 @@
-"""Profile metrics of an etched hole, in nm, from a normalized SDF state and its Scene.
+"""Profile metrics of an etched feature (hole or trench), in nm, from a normalized SDF state and its Scene.
 
 The paper names the morphology quantities (etch depth, top-opening width, neck width, bottom width, bowing;
 [supp_protocols] "Selection of OOD Control Axes") but does not define them; DESIGN.md adds mask thickness
@@ -36,6 +36,12 @@ lower down the neck moves to another row and its width jumps; ``neck_depth`` (nm
 names the row the neck was measured on, so a jump of ``neck_width`` shows as a change of ``neck_depth``.
 ``profile_metrics_batch`` gives a number at every step, which searches and losses need; where a metric is
 undefined that number stands in for it (0, a width of the rounded floor, or for the neck the top width).
+
+Trenches (``scene.kind == "trench"``, a per-case scene from ``nemsim.geometry.feature``): the metrics read
+the state's mean over y (the line's direction, its mean profile: a 3-D simulator's noise along the line
+averages out; a cross-section's state is already y-invariant); widths are across x only (the x line through
+the axis), and mask_loss's planar field is the columns at least opening half-width + d_max from the axis
+(else outside half-width + 1). Every metric reads the case's own scene (its Si top, mask top, opening).
 
 Both are vectorized over a leading step axis (T, 2, D, H, W). They also take the
 states' quadrant (T, 2, D, c, c) (``nemsim.symmetry.fold``) of fields exactly symmetric under the square's
@@ -147,6 +153,8 @@ def _widths(si: np.ndarray, scene: Scene, quadrant: bool = False) -> np.ndarray:
         y_lines = _reflect(si[..., :, -1].astype(np.float64), scene.ny + 2)  # (T, D, H)
     else:
         x_lines = _interp_at(si, 2, ax_y)  # (T, D, W)
+        if scene.kind == "trench":  # a line along y: its width is across x (module docstring)
+            return _half_widths(x_lines, ax_x, scene.nx)
         y_lines = _interp_at(si, 3, ax_x)  # (T, D, H)
     return 0.5 * (_half_widths(x_lines, ax_x, scene.nx) + _half_widths(y_lines, ax_y, scene.ny))
 
@@ -155,7 +163,7 @@ def _field_columns_mask(scene: Scene) -> np.ndarray:
     """(ny, nx) bool: the planar mask region used for mask_loss."""
     cx, cy = scene.opening_centre
     y, x = np.mgrid[0 : scene.ny, 0 : scene.nx]
-    r = np.hypot(x - cx, y - cy)
+    r = np.abs(x - cx) if scene.kind == "trench" else np.hypot(x - cx, y - cy)
     sel = r >= scene.opening_radius_vox + scene.d_max_vox
     if not sel.any():
         sel = r > scene.opening_radius_vox + 1.0
@@ -172,6 +180,8 @@ def _measure(states: Any, scene: Scene) -> tuple[dict[str, np.ndarray], np.ndarr
         raise ValueError(
             f"states shape {x.shape}; expected (T, *{scene.state_shape}) for scene {scene.name!r}"
         )
+    if scene.kind == "trench":  # the line's mean profile (module docstring), (T, 2, D, 1, W) repeated along y
+        x = np.broadcast_to(x.mean(axis=3, keepdims=True, dtype=np.float64).astype(np.float32), x.shape)
     # no float64 copy of the whole stack: only the extracted lines/columns are promoted
     t_count = x.shape[0]
     nz = scene.nz

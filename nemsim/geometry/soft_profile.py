@@ -13,7 +13,8 @@ and it is piecewise linear in the field, so gradients flow through the voxels ne
 
 Definitions (same coordinates as ``profile``; index = native + 1; all results in nm):
   * ``etch_depth``: sum of f over the Si rows of the Si channel on the hole axis (native rows 0..si_top-1).
-  * width of a row: mean over the x and y lines through the axis of the summed f (the vacuum length).
+  * width of a row: mean over the x and y lines through the axis of the summed f (the vacuum length); a
+    trench: the x line of the state's mean over y (as ``profile``).
   * ``top_width``: the width of the top Si row.
   * ``bottom_width``: the width of the Si plane interpolated (tent weights, differentiable in the height)
     at h_b = max(0.1 * depth, 1 voxel) above the floor, the floor being si_top + 1/2 - depth.
@@ -55,10 +56,13 @@ def _at(field: torch.Tensor, dim: int, at: float) -> torch.Tensor:
 
 
 def _plane_width(si: torch.Tensor, scene: Scene) -> torch.Tensor:
-    """Width (voxels) of Si planes (..., H, W): mean vacuum length of the x and y lines through the axis."""
+    """Width (voxels) of Si planes (..., H, W): mean vacuum length of the x and y lines through the axis (a
+    trench: of the x line only)."""
     ax_x = scene.opening_centre[0] + 1.0
     ax_y = scene.opening_centre[1] + 1.0
     x_line = _at(si, si.dim() - 2, ax_y)[..., 1:-1]  # (..., nx) native samples
+    if scene.kind == "trench":
+        return _vacuum(x_line, scene).sum(-1)
     y_line = _at(si, si.dim() - 1, ax_x)[..., 1:-1]  # (..., ny)
     return 0.5 * (_vacuum(x_line, scene).sum(-1) + _vacuum(y_line, scene).sum(-1))
 
@@ -75,6 +79,8 @@ def soft_profile_metrics(states: torch.Tensor, scene: Scene) -> dict[str, torch.
     if states.dim() != 5 or tuple(states.shape[1:]) != scene.state_shape:
         raise ValueError(f"states shape {tuple(states.shape)}; expected (B, *{scene.state_shape})")
     vox = scene.voxel_nm
+    if scene.kind == "trench":  # the line's mean profile (``profile`` module docstring)
+        states = states.mean(dim=3, keepdim=True).expand_as(states)
     mask, si = states[:, 0], states[:, 1]  # (B, D, H, W)
     top = scene.si_top  # index of the top Si row
     ax_x = scene.opening_centre[0] + 1.0

@@ -113,3 +113,30 @@ def test_x0_symmetry(scene):
     x0 = initial_state(t)
     assert _close(x0[..., ::-1], x0)
     assert _close(x0, np.broadcast_to(x0[:, :, :1, :], x0.shape))  # every y row the same
+
+
+@pytest.mark.parametrize("scene", [TINY, SMALL], ids=["tiny", "small"])
+def test_profile_metrics_read_the_per_case_scene(scene):
+    """A feature cut 6 voxels into the Si by its own opening: depth 6 voxels, widths = its CD (hole: the
+    diameter; trench: across x), no mask loss, the soft metrics agree."""
+    import torch
+
+    from nemsim.geometry.profile import profile_metrics
+    from nemsim.geometry.soft_profile import soft_profile_metrics
+    from nemsim.sim.sdf import psi
+
+    cfg = SimConfig().resolved(scene)
+    for feature in (Feature("hole", 48.0, 96.0), Feature("trench", 32.0, 64.0)):
+        s = feature.apply(scene)
+        dom = initial_domain(s, cfg.capacity, cfg.resist_capacity)
+        cut = np.rint(opening_coverage(s) * cfg.capacity).astype(np.int32)  # (nx, ny) Si left per column
+        dom.mat[:, :, s.si_top - 6 : s.si_top, SI] = cut[:, :, None]
+        x = psi(*dom.fractions(), s, cfg.psi_sigma_vox)  # (2, D, H, W)
+        m = profile_metrics(x, s)
+        assert m["etch_depth"] == pytest.approx(6 * scene.voxel_nm, abs=0.5 * scene.voxel_nm)
+        assert m["neck_width"] == pytest.approx(feature.cd_nm, abs=0.5 * scene.voxel_nm)
+        assert m["top_width"] == pytest.approx(feature.cd_nm, abs=scene.voxel_nm)  # Psi rounds the corner
+        assert abs(m["mask_loss"]) < 0.25 * scene.voxel_nm
+        soft = soft_profile_metrics(torch.as_tensor(x)[None], s)
+        for name in ("etch_depth", "top_width"):
+            assert float(soft[name][0]) == pytest.approx(m[name], abs=0.5 * scene.voxel_nm)
