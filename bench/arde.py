@@ -1,0 +1,156 @@
+"""The simulator's aspect-ratio-dependent etching (ARDE): hole depth against the opening's CD.
+
+Holes of CD 24, 32, 40, 48 and 64 nm under 80 nm of mask (``nemsim.geometry.feature``) on the scene's grid,
+at three recipes (``recipes``): the centre of the control box, a high-ion-energy one (the three ion mean
+energies at the top of their range) and a low-neutral-flux one (Gamma(Cl) at the bottom of its range), the
+rest at the centre; two seeds each (recipe i, CD j, seed s: ``default_rng([s, i, j])``), on the quarter
+domain (``SimConfig.domain``), the whole horizon. The etch depth (``nemsim.geometry.profile``) at 5 s and
+10 s; the ARDE slope is the least-squares slope of depth against CD (nm of depth per nm of CD) for each seed,
+reported as the mean of the two seeds' slopes with their spread (half the difference: one run's slope is
+uncertain by about that). A hole that reached the bottom of the Si (depth >= the Si thickness less one
+voxel) is flagged: its depth is cut off there.
+
+Run: ``python -m bench.arde --scene small --out benchmarks/small/arde`` (writes arde.json and arde.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nemsim.controls import ION_ENERGIES, from_unit, set_group
+from nemsim.geometry.feature import Feature
+from nemsim.geometry.profile import profile_metrics
+from nemsim.rules.compile import RuleTensors
+from nemsim.scenes import Scene
+from nemsim.sim.config import SimConfig
+from nemsim.sim.events import build_event_tables
+from nemsim.sim.process import run_trajectory
+
+CDS_NM = (24.0, 32.0, 40.0, 48.0, 64.0)
+MASK_NM = 80.0
+SEEDS = (1, 2)
+TIMES_S = (5.0, 10.0)
+
+LITERATURE = (
+    "Literature. In Cl2 and Cl/Ar plasma etching of Si, narrower features etch more slowly at the same "
+    "time: the etch rate falls as the aspect ratio grows (aspect-ratio-dependent etching, 'RIE lag'). "
+    "Gottscho, Jurgensen and Vitkavage (J. Vac. Sci. Technol. B 10, 2133 (1992)) review the mechanisms: "
+    "ion shadowing by the opening and by charging, neutral shadowing, and the Knudsen transport of neutrals "
+    "down the feature (its conductance falls with the aspect ratio, so the neutral flux at the bottom of a "
+    "narrow feature is smaller), plus product redeposition; in the ion-assisted regime the rate is "
+    "governed by the aspect ratio rather than the CD itself. Coburn and Winters (Appl. Phys. Lett. 55, 2730 "
+    "(1989)) modelled the neutral-limited part by the conductance of the feature and a sticking "
+    "coefficient: the lag is strongest where the etch is limited by neutrals with a high sticking "
+    "probability. So the expected sign is a positive slope of depth against CD, largest where the "
+    "neutral supply limits the etch."
+)
+
+
+def recipes() -> dict[str, np.ndarray]:
+    """The named recipes, raw controls (14,) each: centre, high_ion_energy, low_neutral_flux (docstring)."""
+    centre = from_unit(np.full(14, 0.5))
+    return {
+        "centre": centre,
+        "high_ion_energy": set_group(centre, ION_ENERGIES, 1.0),
+        "low_neutral_flux": set_group(centre, ("flux_cl",), -1.0),
+    }
+
+
+def _slope(cds: np.ndarray, depths: np.ndarray) -> float:
+    """Least-squares slope of depths (n,) against cds (n,), nm / nm."""
+    return float(np.polyfit(cds, depths, 1)[0])
+
+
+def bench_arde(base: Scene, rules: RuleTensors, chosen: dict[str, np.ndarray],
+               cds: tuple[float, ...] = CDS_NM, mask_nm: float = MASK_NM,
+               config: SimConfig | None = None) -> dict[str, Any]:
+    """Simulate every (recipe, CD, seed) (module docstring); returns the JSON report."""
+    cfg = config or SimConfig(domain="quarter")
+    tables = build_event_tables(rules, cfg.resolved(base))
+    idx = {t: int(round(t / base.snapshot_dt_s)) for t in TIMES_S}
+    out = []
+    for i, (name, u) in enumerate(chosen.items()):
+        runs = []
+        for j, cd in enumerate(cds):
+            scene = Feature("hole", cd, mask_nm).apply(base)
+            si_nm = scene.si_top * scene.voxel_nm
+            for s in SEEDS:
+                c0 = time.process_time()
+                r = run_trajectory(scene, rules, u, np.random.default_rng([s, i, j]), cfg, tables=tables)
+                depth = {str(t): profile_metrics(r.states[k], scene)["etch_depth"] for t, k in idx.items()}
+                runs.append({"cd_nm": cd, "seed": s, "depth_nm": depth, "cpu_s": time.process_time() - c0,
+                             "through": depth[str(TIMES_S[-1])] >= si_nm - scene.voxel_nm})
+        slopes = {}
+        for t in TIMES_S:
+            per_seed = []
+            for s in SEEDS:
+                rs = [x for x in runs if x["seed"] == s]
+                per_seed.append(_slope(np.array([x["cd_nm"] for x in rs]),
+                                       np.array([x["depth_nm"][str(t)] for x in rs])))
+            slopes[str(t)] = {"per_seed": per_seed, "mean": float(np.mean(per_seed)),
+                              "spread": float(abs(per_seed[0] - per_seed[1]) / 2.0)}
+        out.append({"recipe": name, "controls": [float(v) for v in u], "runs": runs, "slope": slopes})
+    return {"scene": base.name, "mask_nm": mask_nm, "cds_nm": list(cds), "seeds": list(SEEDS),
+            "domain": cfg.domain, "times_s": list(TIMES_S), "recipes": out}
+
+
+def to_markdown(rep: dict[str, Any], command: str, cpu: str) -> str:
+    t_last = str(rep["times_s"][-1])
+    lines = [f"# ARDE: hole depth against CD on `{rep['scene']}`", "", f"Command: `{command}`  ",
+             f"CPU: {cpu}, one core", "",
+             f"Holes of CD {', '.join(f'{c:g}' for c in rep['cds_nm'])} nm under {rep['mask_nm']:g} nm of "
+             f"mask, {rep['domain']} domain, seeds {rep['seeds']} (bench/arde.py). Slope: least squares of "
+             "depth on CD per seed; mean of the seeds +- half their difference.", "",
+             "| recipe | t (s) | " + " | ".join(f"CD {c:g}" for c in rep["cds_nm"]) + " | slope (nm/nm) |",
+             "|---|---:|" + "---:|" * (len(rep["cds_nm"]) + 1)]
+    for row in rep["recipes"]:
+        for t in rep["times_s"]:
+            cells = []
+            for cd in rep["cds_nm"]:
+                ds = [x["depth_nm"][str(t)] for x in row["runs"] if x["cd_nm"] == cd]
+                through = any(x["through"] for x in row["runs"] if x["cd_nm"] == cd) and str(t) == t_last
+                cells.append(f"{np.mean(ds):.1f} ({ds[0]:.1f}, {ds[1]:.1f}){' *' if through else ''}")
+            sl = row["slope"][str(t)]
+            lines.append(f"| {row['recipe']} | {t:g} | " + " | ".join(cells)
+                         + f" | {sl['mean']:+.3f} +- {sl['spread']:.3f} |")
+    lines += ["", "Depths in nm: mean (seed 1, seed 2); * = reached the bottom of the Si (cut off).", "",
+              LITERATURE, ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    from bench.machine import cpu_name
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+    from nemsim.scenes import get_scene
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(prog="python -m bench.arde", description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="small")
+    ap.add_argument("--domain", default="quarter", choices=("full", "quarter"))
+    ap.add_argument("--recipes", default=",".join(recipes()), help="comma-separated names from recipes()")
+    ap.add_argument("--out", type=Path, default=None, help="writes OUT.json and OUT.md")
+    args = ap.parse_args(argv)
+    all_recipes = recipes()
+    chosen = {n: all_recipes[n] for n in args.recipes.split(",")}
+    rep = bench_arde(get_scene(args.scene), compile_rules(load_rules()), chosen,
+                     config=SimConfig(domain=args.domain))
+    command, cpu = " ".join(["python -m bench.arde", *argv]), cpu_name()
+    text = to_markdown(rep, command, cpu)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        record = {"command": command, "cpu": cpu, **rep}
+        args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
+        args.out.with_suffix(".md").write_text(text)
+    sys.stdout.write(text)
+
+
+if __name__ == "__main__":
+    main()
