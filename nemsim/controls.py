@@ -548,9 +548,14 @@ def outside_design_range(raw: np.ndarray) -> list[str]:
 # --- CSV -----------------------------------------------------------------------------------------------
 
 
-def write_controls_csv(path: str | Path, raw: np.ndarray, seed_ids: np.ndarray | None = None) -> None:
+CSV_GEOMETRY = ("feature", "cd_nm", "mask_nm")  # a design's geometry columns (``nemsim.geometry.feature``)
+
+
+def write_controls_csv(path: str | Path, raw: np.ndarray, seed_ids: np.ndarray | None = None,
+                       geometry: tuple[str, np.ndarray] | None = None) -> None:
     """Write raw controls (N, 14): header = CONTROL_NAMES, one row per case, full float precision; with
-    ``seed_ids`` (N,) a last column ``seed_id``: the case id whose simulator seed the case uses."""
+    ``seed_ids`` (N,) a column ``seed_id``: the case id whose simulator seed the case uses; with
+    ``geometry`` = (kind, (N, 2) [cd_nm, mask_nm]) the last columns ``feature``, ``cd_nm``, ``mask_nm``."""
     raw = np.asarray(raw, dtype=np.float64)
     if raw.ndim != 2 or raw.shape[1] != N_CONTROLS:
         raise ValueError(f"controls must have shape (N, {N_CONTROLS}); got {raw.shape}")
@@ -559,11 +564,15 @@ def write_controls_csv(path: str | Path, raw: np.ndarray, seed_ids: np.ndarray |
     is_int = [s.kind == "int" for s in CONTROL_SPECS]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(CONTROL_NAMES + (() if seed_ids is None else ("seed_id",)))
+        w.writerow(CONTROL_NAMES + (() if seed_ids is None else ("seed_id",))
+                   + (() if geometry is None else CSV_GEOMETRY))
         for i, row in enumerate(raw):
             cells = [str(int(v)) if k and float(v).is_integer() else repr(float(v))
                      for v, k in zip(row, is_int, strict=True)]
-            w.writerow(cells if seed_ids is None else cells + [str(int(seed_ids[i]))])
+            cells += [] if seed_ids is None else [str(int(seed_ids[i]))]
+            if geometry is not None:
+                cells += [geometry[0], *(repr(float(v)) for v in geometry[1][i])]
+            w.writerow(cells)
 
 
 def _csv_table(path: str | Path) -> tuple[list[str], list[list[str]]]:
@@ -597,16 +606,40 @@ def read_seed_ids(path: str | Path) -> np.ndarray | None:
     return out
 
 
+def read_geometry_csv(path: str | Path) -> tuple[str, np.ndarray] | None:
+    """The geometry columns of a controls CSV (``write_controls_csv``): (kind, (N, 2) float64 [cd_nm,
+    mask_nm]), or None if it has none. One kind per file; ValueError naming the row of a bad value."""
+    header, body = _csv_table(path)
+    present = [c for c in CSV_GEOMETRY if c in header]
+    if not present:
+        return None
+    if len(present) != len(CSV_GEOMETRY):
+        raise ValueError(f"{path}: geometry needs all of the columns {list(CSV_GEOMETRY)}, got {present}")
+    jk, jc, jm = (header.index(c) for c in CSV_GEOMETRY)
+    kinds = sorted({row[jk].strip() for row in body if len(row) > jk})
+    if len(kinds) > 1:
+        raise ValueError(f"{path}: one feature kind per file, got {kinds}")
+    out = np.empty((len(body), 2), dtype=np.float64)
+    for r, row in enumerate(body):
+        for k, j in enumerate((jc, jm)):
+            try:
+                out[r, k] = float(row[j])
+            except (ValueError, IndexError):
+                col = CSV_GEOMETRY[k + 1]
+                raise ValueError(f"{path}: row {r + 2}, column {col!r}: not a number") from None
+    return (kinds[0] if kinds else "hole"), out
+
+
 def read_controls_csv(path: str | Path) -> np.ndarray:
     """Read a controls CSV -> (N, 14) float64 in CONTROL_NAMES order.
 
-    The header must name each of the 14 controls exactly once (any order); optional ``case_id`` and
-    ``seed_id`` columns are ignored (``read_seed_ids`` reads the latter). Raises ValueError naming missing,
-    unknown or duplicate columns, or the row/column of a bad value.
+    The header must name each of the 14 controls exactly once (any order); optional ``case_id``, ``seed_id``
+    and geometry columns are ignored (``read_seed_ids`` and ``read_geometry_csv`` read them). Raises
+    ValueError naming missing, unknown or duplicate columns, or the row/column of a bad value.
     """
     header, body = _csv_table(path)
     dup = sorted({h for h in header if header.count(h) > 1})
-    unknown = [h for h in header if h not in CONTROL_INDEX and h not in ("case_id", "seed_id")]
+    unknown = [h for h in header if h not in CONTROL_INDEX and h not in ("case_id", "seed_id", *CSV_GEOMETRY)]
     missing = [n for n in CONTROL_NAMES if n not in header]
     problems = []
     if missing:

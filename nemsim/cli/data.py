@@ -7,6 +7,33 @@ import argparse
 from nemsim.cli.common import Subparsers, UserError, output_path, seed_arg, write_json
 
 
+def add_geometry_options(p: argparse.ArgumentParser) -> None:
+    """--feature, --cd-nm, --mask-nm: the geometry ranges sampled with the controls (``geometry_options``)."""
+    p.add_argument("--feature", choices=("hole", "trench"), default=None,
+                   help="feature kind of every case (default: the scene's 40 nm hole under 80 nm of mask); "
+                        "with --cd-nm/--mask-nm, each case gets its own CD and mask")
+    p.add_argument("--cd-nm", default=None, metavar="LO:HI",
+                   help="opening (hole diameter, trench width) in nm: a value or a range sampled as an extra "
+                        "Latin-hypercube column, e.g. 24:64 (default 40)")
+    p.add_argument("--mask-nm", default=None, metavar="LO:HI",
+                   help="mask thickness in nm: a value or a range, e.g. 40:120 (default 80; built as whole "
+                        "voxels of the scene)")
+
+
+def geometry_options(args: argparse.Namespace, n: int, seed: int):
+    """(kind, (n, 2) [cd_nm, mask_nm]) from --feature/--cd-nm/--mask-nm, or None when none is given."""
+    if args.feature is None and args.cd_nm is None and args.mask_nm is None:
+        return None
+    from nemsim.geometry.feature import geometry_design, parse_range
+
+    try:
+        cd = parse_range(args.cd_nm or "40", "--cd-nm")
+        mask = parse_range(args.mask_nm or "80", "--mask-nm")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    return args.feature or "hole", geometry_design(n, seed, cd, mask)
+
+
 def register(sub: Subparsers) -> None:
     p = sub.add_parser(
         "design",
@@ -28,9 +55,14 @@ def register(sub: Subparsers) -> None:
             "Examples: nemsim design --out data/design.csv; "
             "nemsim design --kind corners --n 300 --seed 44 --out data/design-corners.csv; "
             "nemsim design --kind pairs --n 600 --seed 45 --out data/design-pairs.csv; "
-            "nemsim design --kind lhs-log-angles --n 1000 --seed 46 --out data/design-log-angles.csv"
+            "nemsim design --kind lhs-log-angles --n 1000 --seed 46 --out data/design-log-angles.csv. "
+            "Geometry: --feature hole|trench with --cd-nm LO:HI and --mask-nm LO:HI adds the columns "
+            "feature, cd_nm, mask_nm (two more Latin-hypercube columns; the 14 controls stay as without "
+            "them), read by `nemsim generate --controls`: nemsim design --feature hole --cd-nm 24:64 "
+            "--mask-nm 40:120 --out data/design-holes.csv"
         ),
     )
+    add_geometry_options(p)
     p.add_argument("--n", type=int, default=500, help="number of cases (default 500)")
     p.add_argument("--seed", type=seed_arg, default=42, help="random seed (default 42, the paper's design)")
     p.add_argument("--kind", choices=("lhs", "corners", "pairs", "lhs-log-angles"), default="lhs",
@@ -159,8 +191,10 @@ def _cmd_design(args: argparse.Namespace) -> int:
         what = f"LHS seed {args.seed}, ion exponents log m"
     else:
         raw, what = lhs_design(args.n, args.seed), f"LHS seed {args.seed}"
-    write_controls_csv(output_path(args.out), raw, seed_ids)
-    print(f"wrote {args.out}: {args.n} cases x 14 controls ({what})")  # noqa: T201
+    geometry = geometry_options(args, args.n, args.seed)
+    write_controls_csv(output_path(args.out), raw, seed_ids, geometry)
+    extra = "" if geometry is None else f" + {geometry[0]} geometry (cd_nm, mask_nm)"
+    print(f"wrote {args.out}: {args.n} cases x 14 controls{extra} ({what})")  # noqa: T201
     return 0
 
 

@@ -12,6 +12,7 @@ from nemsim.cli.common import (
     seed_arg,
     sim_config,
 )
+from nemsim.cli.data import add_geometry_options, geometry_options
 
 
 def register(sub: Subparsers) -> None:
@@ -27,7 +28,10 @@ def register(sub: Subparsers) -> None:
             "Example: nemsim generate --scene small --n 20 --workers 2 --out data/small.h5. The paper "
             "scene (~20 s per case on one core, hours for 500 cases): nemsim generate --scene paper "
             "--workers 2 --state-dtype float16 --out data/paper.h5 (rerun to resume), then nemsim data "
-            "check data/paper.h5"
+            "check data/paper.h5. Geometry: the feature columns of a --controls CSV (`nemsim design "
+            "--feature ...`), or --feature/--cd-nm/--mask-nm sampled here as two more Latin-hypercube "
+            "columns: nemsim generate --scene small --n 20 --feature hole --cd-nm 24:64 --mask-nm "
+            "40:120 --out data/holes.h5"
         ),
     )
     add_scene_option(p)
@@ -47,10 +51,13 @@ def register(sub: Subparsers) -> None:
     p.add_argument("--state-dtype", default="float32", choices=("float32", "float16"),
                    help="storage of the states: float16 takes ~0.4x the space and adds at most 2.4e-4 "
                         "of rounding to the normalized SDF (read back as float32; default float32)")
-    p.add_argument("--sim-domain", default=None, choices=("full", "quarter"),
+    p.add_argument("--sim-domain", default=None, choices=("full", "quarter", "section"),
                    help="simulate the full periodic box (default) or its quarter between mirror walls (4x "
                         "fewer particles, same noise per voxel, states mirrored to full size; even grids "
-                        "only: not tiny); recorded in the file's simulator constants")
+                        "only: not tiny), or a trench's cross-section (a slab of a few rows of y, states "
+                        "repeated along y; --feature trench only); recorded in the file's simulator "
+                        "constants")
+    add_geometry_options(p)
     p.add_argument("--sim-rng", default=None, choices=("stream", "counter"),
                    help="random numbers: one stream per kernel call (default, the data sets) or counter-"
                         "based streams per particle keyed by (seed, macro step, source, particle), so that "
@@ -77,7 +84,15 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from nemsim.controls import DESIGN_N, check_admissible, lhs_design, read_controls_csv, read_seed_ids
+    from nemsim.controls import (
+        DESIGN_N,
+        DESIGN_SEED,
+        check_admissible,
+        lhs_design,
+        read_controls_csv,
+        read_geometry_csv,
+        read_seed_ids,
+    )
     from nemsim.rules import compile_rules, load_rules
     from nemsim.scenes import get_scene
     from nemsim.sim.generate import generate_dataset
@@ -96,8 +111,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
             raise UserError(f"no such file: {args.controls}")
         try:
             controls, seed_ids = read_controls_csv(args.controls), read_seed_ids(args.controls)
+            geometry = read_geometry_csv(args.controls)
         except ValueError as exc:
             raise UserError(str(exc)) from exc
+        sampled = geometry_options(args, len(controls), DESIGN_SEED)
+        if geometry is not None and sampled is not None:
+            raise UserError(f"{args.controls} has geometry columns; drop --feature/--cd-nm/--mask-nm")
+        geometry = geometry or sampled
         if args.n is not None:
             controls = controls[: args.n]
     else:
@@ -105,11 +125,16 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         if not 1 <= n <= DESIGN_N:
             raise UserError(f"--n must be in [1, {DESIGN_N}], got {n}")
         controls, seed_ids = lhs_design()[:n], None
+        geometry = geometry_options(args, DESIGN_N, DESIGN_SEED)  # the whole design's: --n grows a prefix
+    if geometry is not None:
+        geometry = (geometry[0], geometry[1][: len(controls)])
     case_ids = np.arange(len(controls))
     seeds_from = case_ids if seed_ids is None else seed_ids[: len(controls)]
     if args.cases:
         lo, hi = _parse_range(args.cases, len(controls))
         controls, case_ids, seeds_from = controls[lo : hi + 1], case_ids[lo : hi + 1], seeds_from[lo : hi + 1]
+        if geometry is not None:
+            geometry = (geometry[0], geometry[1][lo : hi + 1])
     for cid, row in zip(case_ids, controls, strict=True):
         bad = check_admissible(row)
         if bad:
@@ -119,7 +144,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         report = generate_dataset(
             args.out, scene, rules, controls, case_ids, seed=args.seed, config=config,  # type: ignore[arg-type]
             workers=args.workers, executor=args.executor, progress=not args.no_progress,
-            state_dtype=args.state_dtype, seed_ids=[int(s) for s in seeds_from],
+            state_dtype=args.state_dtype, seed_ids=[int(s) for s in seeds_from], geometry=geometry,
         )  # fmt: skip
     except RuntimeError as exc:  # e.g. Ray missing
         raise UserError(str(exc)) from exc

@@ -11,9 +11,13 @@ Layout (one file per dataset, N cases, T = scene.n_states states, state (2, D, H
     complete               (N,) uint8, set only after the case's states are flushed
     case_meta              (N,) JSON strings, per-case metadata given to ``write``
     controls_raw_schedule  (N, T-1, 14) float64, optional: recipe controls, one vector per transition
+    geometry               (N, 2) float64, optional: each case's feature [cd_nm, mask_nm] as built on the
+                           scene's grid (``nemsim.geometry.feature``), with the root attribute feature_kind
+                           ("hole" | "trench"); a file without them holds the scene's default feature
   root attributes
-    format_version, scene (JSON), control_names, channel_names ["mask", "si"], d_max (nm), d_max_vox,
-    rules_sha256, generator (JSON: simulator version, constants, seeds)
+    format_version, scene (JSON: the named scene, the default feature), control_names, channel_names
+    ["mask", "si"], d_max (nm), d_max_vox, rules_sha256, generator (JSON: simulator version, constants,
+    seeds), feature_kind (with geometry)
 
 ``check_dataset`` runs the "Trajectory Integrity Checks" of [supp_dataset_statistics]: complete cases with
 T frames of both channels on one evenly spaced time axis, finite values, |SDF| <= 1 + 1e-5 (states are
@@ -43,6 +47,7 @@ import h5py
 import numpy as np
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, HIGH, LOW, N_CONTROLS, to_normalized, transform
+from nemsim.geometry.feature import GEOMETRY_COLUMNS, Feature
 from nemsim.scenes import Scene
 
 log = logging.getLogger(__name__)
@@ -56,7 +61,7 @@ STATE_DTYPES = ("float32", "float16")  # storage of the states; both read back a
 # datasets with one row per case (resizable along axis 0); case_ids last: a grow interrupted before it
 # leaves the file's case list unchanged, and the next run redoes the grow
 _PER_CASE = ("complete", "seeds", "controls_raw", "controls_transformed", "case_meta",
-             "controls_raw_schedule", "states", "case_ids")
+             "controls_raw_schedule", "geometry", "states", "case_ids")
 
 _REQUIRED_DATASETS = ("states", "controls_raw", "controls_transformed", "times", "case_ids", "seeds",
                       "complete")
@@ -161,6 +166,7 @@ class TrajectoryWriter:
         controls_schedule: optional (N, T-1, 14) per-transition raw controls (recipes).
         compression: (filter, level, shuffle), default ``DEFAULT_COMPRESSION``.
         state_dtype: "float32" (default) or "float16" storage of the states (module docstring).
+        geometry: optional (kind, (N, 2) [cd_nm, mask_nm]): each case's feature on ``scene``'s grid.
 
     An existing file is reopened to resume if scene, rules, generator and state dtype match and its case
     ids and controls (and schedule) equal the requested ones; if the requested list extends the file's
@@ -182,6 +188,7 @@ class TrajectoryWriter:
         controls_schedule=None,
         compression: tuple[str, int | None, bool] = DEFAULT_COMPRESSION,
         state_dtype: str = "float32",
+        geometry: tuple[str, np.ndarray] | None = None,
     ) -> None:
         if state_dtype not in STATE_DTYPES:
             raise ValueError(f"state_dtype {state_dtype!r} is not one of {STATE_DTYPES}")
@@ -203,6 +210,12 @@ class TrajectoryWriter:
             if schedule.shape != expect:
                 raise ValueError(f"controls_schedule shape {schedule.shape} != expected {expect}")
         self.n_cases = n
+        self.geometry = None
+        if geometry is not None:
+            kind, rows = geometry[0], np.asarray(geometry[1], dtype=np.float64)
+            if rows.shape != (n, 2):
+                raise ValueError(f"geometry shape {rows.shape} != ({n}, 2) [cd_nm, mask_nm]")
+            self.geometry = (str(kind), rows)
         gen_json = _dumps(generator)
         if self.path.exists():
             self._f = open_h5(self.path, "r+")
@@ -257,6 +270,10 @@ class TrajectoryWriter:
                          dtype=h5py.string_dtype())  # fmt: skip
         if schedule is not None:
             per_case("controls_raw_schedule", schedule)
+        if self.geometry is not None:
+            per_case("geometry", self.geometry[1])
+            f.attrs["feature_kind"] = self.geometry[0]
+            f.attrs["geometry_columns"] = list(GEOMETRY_COLUMNS)
         f.flush()
 
     def _check_compatible(self, case_ids, controls_raw, schedule, gen_json, rules_sha256) -> None:
@@ -295,6 +312,13 @@ class TrajectoryWriter:
         if has and not np.array_equal(f["controls_raw_schedule"][:m], schedule[:m]):
             raise ValueError(f"{where}: controls_schedule mismatch: the file's cases have other recipes; "
                              "choose another --out")  # fmt: skip
+        stored_geo = ((str(f.attrs.get("feature_kind", "")), f["geometry"][:m]) if "geometry" in f else None)
+        want = None if self.geometry is None else (self.geometry[0], self.geometry[1][:m])
+        if (stored_geo is None) != (want is None) or (
+                stored_geo is not None and want is not None
+                and (stored_geo[0] != want[0] or not np.array_equal(stored_geo[1], want[1]))):
+            raise ValueError(f"{where}: geometry mismatch: the file's cases have other features (kind, CD, "
+                             "mask); choose another --out")
         if str(f.attrs["rules_sha256"]) != str(rules_sha256):
             raise ValueError(f"{where}: rules_sha256 mismatch (file {str(f.attrs['rules_sha256'])[:12]}..., "
                              f"requested {str(rules_sha256)[:12]}...)")
@@ -328,6 +352,7 @@ class TrajectoryWriter:
             "controls_raw": controls_raw[m:],
             "controls_transformed": transform(controls_raw[m:]),
             "controls_raw_schedule": None if schedule is None else schedule[m:],
+            "geometry": None if self.geometry is None else self.geometry[1][m:],
             "case_ids": case_ids[m:],
         }
         for k in _PER_CASE:
@@ -415,11 +440,26 @@ class TrajectoryFile:
         n_cases = len(self.case_ids)
         self.complete = (f["complete"][()] > 0) if "complete" in f else np.ones(n_cases, dtype=bool)
         self.controls_raw_schedule = f["controls_raw_schedule"][()] if "controls_raw_schedule" in f else None
+        # each case's feature (module docstring); a file without geometry holds the scene's default feature
+        self.feature_kind = str(f.attrs.get("feature_kind", self.scene.kind))
+        default = Feature.default(self.scene)
+        self.has_geometry = "geometry" in f
+        self.geometry = (f["geometry"][()] if self.has_geometry
+                         else np.tile([default.cd_nm, default.mask_nm], (n_cases, 1)))  # (N, 2)
         self._row_of = {int(c): r for r, c in enumerate(self.case_ids)}
 
     @property
     def n_cases(self) -> int:
         return int(self.case_ids.shape[0])
+
+    def case_feature(self, row: int) -> Feature:
+        """The feature of one row (the scene's default for a file without geometry)."""
+        cd, mask = self.geometry[row]
+        return Feature(self.feature_kind, float(cd), float(mask))  # type: ignore[arg-type]
+
+    def case_scene(self, row: int) -> Scene:
+        """The per-case scene of one row (``Feature.apply``): what its states and profile metrics read."""
+        return self.case_feature(row).apply(self.scene)
 
     def seed_pairs(self) -> np.ndarray:
         """(P, 2) rows of the complete cases that share a simulator seed, two by two, in the order of their
@@ -654,10 +694,13 @@ def check_dataset(path: str | Path, *, read_states: bool = True,
 
         ids = f["case_ids"][()]
         raw = f["controls_raw"][()]
+        geo = _check_geometry(f, scene, n, rep)  # (N, 2) or None
         ok_ids = len(np.unique(ids)) == n
-        uniq_rows = len(np.unique(raw, axis=0)) if n else 0
+        keys = raw if geo is None else np.concatenate([raw, geo], axis=1)  # a case = its controls and feature
+        uniq_rows = len(np.unique(keys, axis=0)) if n else 0
+        what = "control vectors" if geo is None else "(controls, geometry) rows"
         rep.add("unique ids/controls", ok_ids and uniq_rows == n,
-                f"{len(np.unique(ids))} unique ids, {uniq_rows} unique control vectors of {n}")
+                f"{len(np.unique(ids))} unique ids, {uniq_rows} unique {what} of {n}")
         ok, detail, note = _check_ranges(raw, "controls_raw")
         rep.add("control ranges", ok, detail)
         if note:
@@ -687,6 +730,32 @@ def check_dataset(path: str | Path, *, read_states: bool = True,
                       if not bad_cases else f"{len(bad_cases)} bad cases: " + " | ".join(bad_cases[:5]))
             rep.add("state values", not bad_cases, detail)
     return rep
+
+
+def _check_geometry(f: h5py.File, scene: Scene, n: int, rep: CheckReport) -> np.ndarray | None:
+    """Add the "geometry" check: each case's feature fits the scene's grid and is on it (whole-voxel
+    mask); a file without geometry holds the default feature. Returns the (N, 2) rows or None."""
+    if "geometry" not in f:
+        d = Feature.default(scene)
+        rep.add("geometry", True, f"default feature ({d.kind}, CD {d.cd_nm:g} nm, mask {d.mask_nm:g} nm)")
+        return None
+    geo, kind = f["geometry"][()], str(f.attrs.get("feature_kind", ""))
+    if geo.shape != (n, 2) or not np.all(np.isfinite(geo)):
+        rep.add("geometry", False, f"shape {geo.shape} (expected ({n}, 2) [cd_nm, mask_nm]), finite values")
+        return None
+    problems = []
+    for r, (cd, mask) in enumerate(geo):
+        try:
+            feature = Feature(kind, float(cd), float(mask))  # type: ignore[arg-type]
+            feature.check(scene)
+            if feature.on_grid(scene) != feature:
+                raise ValueError(f"mask_nm={mask:g} is not whole {scene.voxel_nm:g} nm voxels")
+        except ValueError as exc:
+            problems.append(f"case {int(f['case_ids'][r])}: {exc}")
+    detail = (f"{kind}, CD {geo[:, 0].min():g}..{geo[:, 0].max():g} nm, mask {geo[:, 1].min():g}.."
+              f"{geo[:, 1].max():g} nm" if n else f"{kind}, no cases")
+    rep.add("geometry", not problems, detail if not problems else f"{len(problems)} bad: {problems[0]}")
+    return geo
 
 
 def _check_ranges(raw: np.ndarray, what: str) -> tuple[bool, str, str]:

@@ -32,6 +32,8 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
+import numpy as np
+
 from nemsim.scenes import KINDS, TRENCH_SYMMETRY, Scene
 
 FeatureKind = Literal["hole", "trench"]
@@ -143,3 +145,50 @@ class Feature:
             kind=self.kind,
             symmetry=symmetry,
         )
+
+
+# --- data sets: geometry ranges sampled with the controls ---------------------------------------------
+
+GEOMETRY_COLUMNS = ("cd_nm", "mask_nm")  # the HDF5 ``geometry`` dataset's columns and the CSV's
+
+
+def parse_range(text: str, name: str) -> tuple[float, float]:
+    """"24:64" -> (24.0, 64.0); "40" -> (40.0, 40.0). ValueError naming ``name`` otherwise."""
+    lo, sep, hi = str(text).partition(":")
+    try:
+        a = float(lo)
+        b = float(hi) if sep else a
+    except ValueError:
+        raise ValueError(f"{name} {text!r}: expected a value or a range LO:HI in nm, e.g. 24:64") from None
+    if not (math.isfinite(a) and math.isfinite(b) and 0 < a <= b):
+        raise ValueError(f"{name} {text!r}: need 0 < LO <= HI (nm)")
+    return a, b
+
+
+def geometry_design(n: int, seed: int, cd_nm: tuple[float, float],
+                    mask_nm: tuple[float, float]) -> np.ndarray:
+    """(n, 2) [cd_nm, mask_nm]: two Latin-hypercube columns over the ranges (uniform in nm), drawn from
+    ``default_rng([seed, 1])``. A Latin hypercube's columns are independent stratified permutations, so
+    appended to the control design's 14 columns (``nemsim.controls.lhs_unit(n, seed)``) they make a joint
+    16-column Latin hypercube and leave the control design as it was."""
+    rng = np.random.default_rng([int(seed), 1])
+    jitter = rng.uniform(size=(n, 2))  # (n, 2)
+    perms = np.stack([rng.permutation(n) for _ in range(2)], axis=1)  # (n, 2) strata 0..n-1
+    unit = (perms + jitter) / n  # (n, 2) in [0, 1)
+    lo = np.array([cd_nm[0], mask_nm[0]])
+    hi = np.array([cd_nm[1], mask_nm[1]])
+    return lo + unit * (hi - lo)
+
+
+def case_features(kind: str, geometry: np.ndarray, scene: Scene) -> list[Feature]:
+    """The features of rows (N, 2) [cd_nm, mask_nm] as built on ``scene`` (``on_grid``); ValueError naming
+    the first row that does not fit."""
+    out = []
+    for r, (cd, mask) in enumerate(np.asarray(geometry, dtype=np.float64).reshape(-1, 2)):
+        feature = Feature(kind, float(cd), float(mask))  # type: ignore[arg-type]
+        try:
+            feature.check(scene)
+        except ValueError as exc:
+            raise ValueError(f"geometry row {r}: {exc}") from None
+        out.append(feature.on_grid(scene))
+    return out
