@@ -26,10 +26,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from nemsim.geometry.feature import Feature
+from typing import Protocol
 
 SYMMETRIES = ("d4", "mirror_x_translate_y", "none")  # what a scene may declare (nemsim.symmetry)
 KINDS = ("hole", "trench")  # feature shapes (module docstring)
@@ -46,6 +43,13 @@ def quadrant_size(n: int) -> int:
     """Size c = ceil(n / 2) of the fundamental domain (``nemsim.symmetry.fold``) along a lateral axis of
     padded size n."""
     return (int(n) + 1) // 2
+
+
+class FeatureLike(Protocol):
+    """What ``Scene.with_feature`` takes: a ``nemsim.geometry.feature.Feature`` (not imported here: geometry
+    imports scenes)."""
+
+    def apply(self, scene: Scene) -> Scene: ...
 
 
 @dataclass(frozen=True)
@@ -148,7 +152,7 @@ class Scene:
         c = quadrant_size(self.field_shape[-1])
         return (2, self.field_shape[0], c, c)
 
-    def with_feature(self, feature: Feature) -> Scene:
+    def with_feature(self, feature: FeatureLike) -> Scene:
         """The per-case scene of ``feature`` on this scene's grid (``Feature.apply``)."""
         return feature.apply(self)
 
