@@ -18,7 +18,12 @@ Variants:
     only): each call computes the depth slab that can change; the report adds the fraction of voxels
     computed;
   * ``openvino-f32`` / ``openvino-bf16``: the step graph under OpenVINO (``nemsim.inference.runtime``, one
-    inference thread; PyTorch if openvino is missing, see the log).
+    inference thread; PyTorch if openvino is missing, see the log);
+  * ``openvino-int8``: the f32 step graph after NNCF post-training quantization (``nncf.quantize``, preset
+    MIXED: symmetric weights, asymmetric activations; fast bias correction), calibrated on the graph's
+    inputs over ``INT8_CALIBRATION_ROLLOUTS`` rollouts of controls drawn like the timed ones but from
+    another seed (the lever of "int8 where it pays"; needs ``pip install nncf``, not a dependency of the
+    product).
 """
 
 from __future__ import annotations
@@ -37,7 +42,9 @@ from torch import nn
 from nemsim.controls import N_CONTROLS
 from nemsim.evaluation.rollout import rollout
 
-VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last", "fp32-window", "openvino-f32", "openvino-bf16")
+VARIANTS = ("fp32", "fp32-percall", "bf16", "channels_last", "fp32-window", "openvino-f32", "openvino-bf16",
+            "openvino-int8")
+INT8_CALIBRATION_ROLLOUTS = 30  # x 10 calls: 300 calibration samples, NNCF's default subset size
 
 
 class _PerCall(nn.Module):
@@ -71,7 +78,39 @@ def _variant(model: nn.Module, x0: torch.Tensor, name: str) -> tuple[Any, torch.
 
         precision: Precision = "bf16" if name.endswith("bf16") else "f32"
         return compile_model(model, "openvino", precision), x0, contextlib.nullcontext, False
+    if name == "openvino-int8":
+        return _int8_runtime(model, x0), x0, contextlib.nullcontext, False
     raise ValueError(f"unknown variant {name!r}; expected one of {VARIANTS}")
+
+
+def _int8_runtime(model: nn.Module, x0: torch.Tensor, seed: int = 1) -> Any:
+    """An OpenVINO runtime whose step graph is quantized to int8 by NNCF, calibrated on the inputs of the
+    f32 graph's calls over ``INT8_CALIBRATION_ROLLOUTS`` rollouts from x0 (module docstring)."""
+    try:
+        import nncf
+    except ImportError as exc:
+        raise ValueError("variant openvino-int8 needs NNCF: pip install nncf") from exc
+    from nemsim.inference.runtime import OpenVINORuntime
+
+    samples: list[list[np.ndarray]] = []
+
+    class Recording(OpenVINORuntime):
+        def _infer_packed(self, req: Any, x: torch.Tensor, cache: Any, out: torch.Tensor, finish: Any) -> Any:
+            samples.append([x.detach().float().numpy().copy(), *(a.copy() for a in cache.inputs)])
+            return super()._infer_packed(req, x, cache, out, finish)
+
+    class Int8(OpenVINORuntime):
+        def transform(self, ov_model: Any) -> Any:
+            return nncf.quantize(ov_model, nncf.Dataset(samples), subset_size=len(samples),
+                                 preset=nncf.QuantizationPreset.MIXED)
+
+    if not callable(getattr(model, "predict_packed", None)):
+        raise ValueError("variant openvino-int8 needs a model with a packed-residual graph (NEMSim)")
+    rec = Recording(model, "f32")
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(INT8_CALIBRATION_ROLLOUTS):
+        rollout(rec, x0[:1], torch.rand(1, N_CONTROLS, generator=g) * 2 - 1, 10 * rec.k, keep=False)
+    return Int8(model, "f32")
 
 
 def bench_rollout(

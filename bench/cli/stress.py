@@ -77,8 +77,8 @@ def register_rollout(bench_sub: Subparsers) -> None:
     p.add_argument("--repeats", type=int, default=5, help="timed rollouts per variant (default 5)")
     p.add_argument("--variants", default="fp32,fp32-percall,bf16,channels_last",
                    help="comma-separated subset of fp32, fp32-percall, bf16, channels_last, fp32-window (the "
-                   "depth-windowed rollout; NEMSim only), openvino-f32, openvino-bf16 (default: the first "
-                   "four)")
+                   "depth-windowed rollout; NEMSim only), openvino-f32, openvino-bf16, openvino-int8 (NNCF "
+                   "post-training quantization; needs pip install nncf) (default: the first four)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_rollout)

@@ -225,6 +225,7 @@ class OpenVINORuntime(Runtime):
             ov_model.reshape({i: ov.PartialShape([int(n) for n in t.shape]) for i, t in enumerate(example)})
             if self.fuse_depth_to_space and not self._unpack:
                 _fuse_depth_to_space(ov_model)
+            ov_model = self.transform(ov_model)
         props = {
             "INFERENCE_NUM_THREADS": self.threads,
             "NUM_STREAMS": 1,
@@ -238,6 +239,11 @@ class OpenVINORuntime(Runtime):
         log.info("openvino: compiled the step graph for x %s (%s, %d thread(s))", tuple(x.shape),
                  self.precision, self.threads)  # fmt: skip
         return compiled
+
+    def transform(self, ov_model: Any) -> Any:
+        """The converted step graph (static shapes) as it goes to the CPU plugin: unchanged here; a
+        subclass rewrites it (e.g. the int8 lever measured by ``nemsim bench rollout``)."""
+        return ov_model
 
     def _acquire(self, x: torch.Tensor, cache: _OVCache) -> tuple[tuple, Any]:
         """(key, an idle infer request for this shape): from the pool, else a new one (compiling first)."""

@@ -92,7 +92,7 @@ def test_the_search_rolls_out_through_openvino_bf16_and_torch_on_request(ctx):
     u = torch.rand(3, 14, generator=g) * 2 - 1
     with torch.no_grad():
         ref = rollout_to(ctx.model, ctx.x0, u, 6)
-    fast = dataclasses.replace(ctx, search_runtime="openvino-bf16")
+    fast = dataclasses.replace(ctx, search_runtime="openvino")
     got = fast.final_states(u, 6)
     assert fast._search_runtime().backend == "openvino"
     assert got.shape == ref.shape and float((got - ref).abs().max()) < 0.05

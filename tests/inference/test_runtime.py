@@ -239,3 +239,29 @@ def test_bench_rollout_has_openvino_variants(trained):
     rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-f32"])
     assert rep["variants"]["openvino-f32"]["max_abs_diff_vs_fp32"] <= 1e-4
     assert all(0 < v["cpu_median_s"] and len(v["cpu_times_s"]) == 1 for v in rep["variants"].values())
+
+
+@pytest.mark.slow
+@needs_openvino
+def test_bench_rollout_int8_variant_quantizes_the_graph(trained, monkeypatch):
+    """The int8 lever (NNCF post-training quantization) runs and is measured against fp32: its graph holds
+    FakeQuantize/quantized nodes, and its trajectory differs from fp32 (quantization is not exact)."""
+    pytest.importorskip("nncf")
+    import bench.rollout_speed as rs
+    from bench.rollout_speed import bench_rollout
+
+    monkeypatch.setattr(rs, "INT8_CALIBRATION_ROLLOUTS", 3)
+    model, x0, _ = trained
+    rep = bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-int8"])
+    assert 0 < rep["variants"]["openvino-int8"]["max_abs_diff_vs_fp32"] < 2.0
+
+
+def test_bench_rollout_int8_needs_nncf(trained, monkeypatch):
+    import sys
+
+    from bench.rollout_speed import bench_rollout
+
+    monkeypatch.setitem(sys.modules, "nncf", None)  # as if not installed
+    model, x0, _ = trained
+    with pytest.raises(ValueError, match="pip install nncf"):
+        bench_rollout(model, x0[0], steps=3, repeats=1, variants=["fp32", "openvino-int8"])

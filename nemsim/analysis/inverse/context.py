@@ -2,8 +2,9 @@
 rollouts to the target state, and the search's no-gradient rollouts.
 
 The search's no-gradient rollouts (screening, CMA-ES generations: most of a design's model time) run through
-the OpenVINO runtime in bf16 (``search_runtime``, the service's own rollout path), about 2x faster than
-PyTorch f32 at the search's batch on one CPU core; the recipes the search reports are rolled out again in
+the OpenVINO runtime in the CPU's own precision (``search_runtime``, the service's own rollout path and
+precision rule: bf16 where the core computes in it, else f32), about 2x faster than PyTorch f32 at the
+search's batch on one CPU core; the recipes the search reports are rolled out again in
 PyTorch f32 (``surrogate_search._final_recipes``), so every reported prediction and interval is the f32
 model's. Where OpenVINO is missing or cannot export the model, the no-gradient rollouts are ``rollout_to``'s.
 """
@@ -38,7 +39,9 @@ class InverseContext:
     support: Support
     model_id: str
     loaded: Any = None  # LoadedModel (rules and simulator configuration for verification)
-    search_runtime: str = "openvino-bf16"  # the search's no-gradient rollouts: "openvino-bf16" or "torch-f32"
+    # the search's no-gradient rollouts: "openvino" (in the CPU's own precision, ``resolve_precision("auto")``:
+    # bf16 where the core computes in it, else f32) or "torch-f32"
+    search_runtime: str = "openvino"
     _runtime: Any = field(default=None, init=False, repr=False, compare=False)  # compiled on first use
     _lock: Any = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
@@ -57,16 +60,17 @@ class InverseContext:
 
     def _search_runtime(self) -> Any:
         """The OpenVINO runtime of the search (compiled once), or None: PyTorch's ``rollout_to``."""
-        if self.search_runtime not in ("openvino-bf16", "torch-f32"):
-            raise ValueError(
-                f"search_runtime must be 'openvino-bf16' or 'torch-f32', got {self.search_runtime!r}")
+        if self.search_runtime not in ("openvino", "torch-f32"):
+            raise ValueError(f"search_runtime must be 'openvino' or 'torch-f32', got {self.search_runtime!r}")
         if self._runtime is None:
             self._runtime = False
-            if self.search_runtime == "openvino-bf16" and callable(getattr(self.model, "precompute", None)):
+            if self.search_runtime == "openvino" and callable(getattr(self.model, "precompute", None)):
+                from nemsim.inference.precision import resolve_precision
                 from nemsim.inference.runtime import compile_model, openvino_available
 
                 if openvino_available():
-                    runtime = compile_model(self.model, "openvino", "bf16", threads=torch.get_num_threads())
+                    runtime = compile_model(self.model, "openvino", resolve_precision("auto"),
+                                            threads=torch.get_num_threads())
                     if runtime.backend == "openvino":
                         self._runtime = runtime
                     else:
