@@ -39,8 +39,8 @@ class InverseContext:
     support: Support
     model_id: str
     loaded: Any = None  # LoadedModel (rules and simulator configuration for verification)
-    # the search's no-gradient rollouts: "openvino" (in the CPU's own precision, ``resolve_precision("auto")``:
-    # bf16 where the core computes in it, else f32) or "torch-f32"
+    # the search's no-gradient rollouts: "openvino" (in the CPU's own precision,
+    # ``resolve_precision("auto")``: bf16 where the core computes in it, else f32) or "torch-f32"
     search_runtime: str = "openvino"
     _runtime: Any = field(default=None, init=False, repr=False, compare=False)  # compiled on first use
     _lock: Any = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
