@@ -109,7 +109,7 @@ def _int8_runtime(model: nn.Module, x0: torch.Tensor, seed: int = 1) -> Any:
     rec = Recording(model, "f32")
     g = torch.Generator().manual_seed(seed)
     for _ in range(INT8_CALIBRATION_ROLLOUTS):
-        rollout(rec, x0[:1], torch.rand(1, N_CONTROLS, generator=g) * 2 - 1, 10 * rec.k, keep=False)
+        rollout(rec, x0[:1], torch.rand(1, N_CONTROLS, generator=g) * 2 - 1, 10 * rec.k, keep=False)  # type: ignore[arg-type]
     return Int8(model, "f32")
 
 
