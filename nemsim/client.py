@@ -227,12 +227,16 @@ class Client:
         fields: Fields = "none",
         meshes: Sequence[Mapping[str, Any]] = (),
         intervals: bool = False,
+        geometry: Mapping[str, Any] | None = None,
     ) -> Rollout:
         """Predict the etch (`POST /rollout`). Give `controls` (any subset by name, physical units; the rest
         take the defaults and are named in the answer's `defaulted`), a `recipe` (one set per transition)
         or `controls_normalized` (14 numbers); with none of them, every control is at its default.
-        `steps`: transitions of 0.1 s (server default 100, or the recipe's length)."""
+        `steps`: transitions of 0.1 s (server default 100, or the recipe's length). `geometry`: the feature,
+        {"kind": "hole" | "trench", "cd_nm", "mask_nm"} (None: the model's own)."""
         body: dict[str, Any] = {"fields": fields, "meshes": [dict(m) for m in meshes], "intervals": intervals}
+        if geometry is not None:
+            body["geometry"] = dict(geometry)
         if recipe is not None:
             body["recipe"] = [dict(row) for row in recipe]
         elif controls_normalized is not None:
@@ -263,10 +267,20 @@ class Client:
         return out
 
     def mechanisms(
-        self, controls: Mapping[str, float] | None = None, *, factors: Sequence[float] | None = None
+        self,
+        controls: Mapping[str, float] | None = None,
+        *,
+        factors: Sequence[float] | None = None,
+        geometry: Mapping[str, Any] | None = None,
     ) -> dict[str, Any]:
-        """Cl+ / neutral-Cl interventions around one control set (`GET /mechanisms`; missing controls take
-        the defaults); `factors`: flux multiplier levels (server default 0.5 and 1.5)."""
+        """Cl+ / neutral-Cl interventions around one control set (`GET /mechanisms`, with `geometry`
+        `POST /mechanisms`; missing controls take the defaults); `factors`: flux multiplier levels (server
+        default 0.5 and 1.5); `geometry`: the feature (None: the model's own)."""
+        if geometry is not None:
+            body: dict[str, Any] = {"controls": dict(controls or {}), "geometry": dict(geometry)}
+            if factors:
+                body["factors"] = [float(f) for f in factors]
+            return self._json("POST", "/mechanisms", body=body)
         query: list[tuple[str, Any]] = [(k, repr(float(v))) for k, v in (controls or {}).items()]
         query += [("factors", repr(float(f))) for f in factors or ()]
         return self._json("GET", "/mechanisms", query=query)
@@ -334,10 +348,14 @@ class Client:
         seed: int = 1,
         timeout_s: float = 600.0,
         poll_s: float = 0.5,
+        geometry: Mapping[str, Any] | None = None,
     ) -> dict[str, Any]:
         """Run the simulator on these controls and compare the surrogate with it (`POST /simulations`,
-        then `wait`): the comparison, with the simulator's and the model's metrics."""
+        then `wait`): the comparison, with the simulator's and the model's metrics. `geometry`: the
+        feature (None: the model's own; `design` takes it among its options too)."""
         body: dict[str, Any] = {"seed": seed}
+        if geometry is not None:
+            body["geometry"] = dict(geometry)
         if recipe is not None:
             body["recipe"] = [dict(row) for row in recipe]
         else:

@@ -8,6 +8,7 @@ from typing import Annotated, Any, NoReturn, TypeVar
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
+from starlette.concurrency import run_in_threadpool
 
 from service.config import Settings, get_settings
 from service.scheduler import ClientGone, FairGate, Gates, ServiceBusy, run_gated
@@ -81,6 +82,20 @@ async def single_valued_query(request: Request) -> None:
 def reject(loc: tuple[str | int, ...], msg: str) -> NoReturn:
     """422 in the same shape as request validation errors (one handler formats both)."""
     raise RequestValidationError([{"loc": loc, "msg": msg, "type": "value_error"}])
+
+
+async def feature_case(
+    served: ServedModel, geometry: Any, loc: tuple[str | int, ...] = ("body", "geometry")
+) -> Any:
+    """The predictor's `FeatureCase` of a request's `geometry` block (None: the model's own feature); 422 at
+    `loc` for a kind the model was not trained on or a feature that does not fit the grid. A new feature's
+    initial state is built off the event loop."""
+    if geometry is None:
+        return served.predictor.case(None)
+    try:
+        return await run_in_threadpool(served.predictor.case, geometry.feature())
+    except ValueError as exc:  # UnknownGeometry included: one line naming the kinds or the accepted range
+        reject(loc, str(exc))
 
 
 def busy(exc: Exception) -> NoReturn:

@@ -26,7 +26,10 @@ benchmarks, has none: both fields are then absent.
 Every rollout also says how far its recipe lies from the training data and what error the committed
 extrapolation benchmark of the served checkpoint (`benchmarks/<scene>/extrapolation/extrapolation.json`,
 stamped with its checkpoint id) measured there, with a verdict ok / warn / reject (`rollout_trust`,
-`nemsim.analysis.trust`); without that benchmark the verdict follows the region alone and says so.
+`nemsim.analysis.trust`); without that benchmark the verdict follows the region alone and says so. The
+feature etched is judged beside the controls: outside the geometry the checkpoint was trained on
+(`nemsim.inference.range_check.geometry_outside`) the verdict is `reject` whatever the controls' region, the
+reason names the feature and the trained range, and `controls_level` keeps the controls' own verdict.
 """
 
 from __future__ import annotations
@@ -81,9 +84,34 @@ def expected_calls_to_target(served: Any, benchmarks: Path = BENCHMARKS) -> tupl
     return float(value), basis
 
 
-def rollout_trust(served: Any, raw: np.ndarray, normalized: np.ndarray,
+def rollout_trust(served: Any, raw: np.ndarray, normalized: np.ndarray, feature: Any = None,
                   benchmarks: Path = BENCHMARKS) -> dict[str, Any]:
-    """Where the recipe (T, 14) physical / normalized lies and the error measured there (module docstring)."""
+    """Where the recipe (T, 14) physical / normalized lies and the error measured there, and whether
+    `feature` (as built; None: the model's own) lies in the trained geometry (module docstring)."""
+    out = _controls_trust(served, raw, normalized, benchmarks)
+    return with_geometry_trust(out, served.predictor, feature)
+
+
+def with_geometry_trust(trust: dict[str, Any], predictor: Any, feature: Any = None) -> dict[str, Any]:
+    """`trust` with its `geometry` entry (the feature, inside the trained ranges?, those ranges); outside
+    them the level is `reject` (module docstring)."""
+    feature = predictor.case(None).feature if feature is None else feature
+    outside = predictor.geometry_outside(feature)
+    out = dict(trust)
+    out["geometry"] = {
+        "feature": feature.to_dict(),
+        "inside": outside is None,
+        "trained": predictor.geometry.as_dict()["kinds"],
+    }
+    if outside is not None:
+        out["controls_level"] = out.get("level")
+        out["level"] = "reject"
+        out["reason"] = f"{outside}; controls: {out.get('reason')}"
+    return out
+
+
+def _controls_trust(served: Any, raw: np.ndarray, normalized: np.ndarray, benchmarks: Path) -> dict[str, Any]:
+    """The controls' part of `rollout_trust` (`nemsim.analysis.trust`)."""
     cal = calibration(served)
     with _lock:
         if served.model_id not in _supports:
@@ -163,12 +191,15 @@ def design_work(
     sim_seed: int,
     sim_max_work: float,
     refine: RefineConfig | None = None,
+    case: Any = None,
 ) -> dict[str, Any]:
     """The work of a design job: search, then (with verify) simulate the top recipes; with ``refine`` the
     simulator-corrected design (``nemsim.analysis.inverse.refine``) instead. All of it in a child process
     (`service.sim_child.design_in_child`), which gets the served weights and what the server derived from
-    them."""
+    them. ``case``: the predictor's FeatureCase the recipe is searched for (None: the model's own feature);
+    outside the trained geometry every recipe is marked ``ood``."""
     predictor = served.predictor
+    case = case or predictor.case(None)
     inputs = {
         "spec": spec,
         "seed": int(seed),
@@ -177,8 +208,9 @@ def design_work(
         "sim_seed": int(sim_seed),
         "sim_max_work": float(sim_max_work),
         "refine": refine,
-        "x0": np.asarray(predictor.x0, dtype=np.float32),  # (2, D, H, W)
-        "sim_config": predictor.sim_config,
+        "x0": np.asarray(case.x0, dtype=np.float32),  # (2, D, H, W)
+        "scene": case.scene,  # the per-case scene: metrics, targets' ranges, simulator runs
+        "sim_config": predictor.simulator_config(case.scene),
         "calibration": calibration(served),
         "model_id": served.model_id,
         "threads": torch.get_num_threads(),  # the server's: the search computes as it would in the server
@@ -194,7 +226,23 @@ def design_work(
         )
     except ChildFailed as exc:  # the job's message: the search's own, as if it ran here
         raise RuntimeError(exc.detail or exc.kind or str(exc)) from None
-    return with_call_counts(result, served)
+    return with_geometry(with_call_counts(result, served), predictor, case.feature)
+
+
+def with_geometry(result: dict[str, Any], predictor: Any, feature: Any) -> dict[str, Any]:
+    """A design result with its `geometry` (feature, inside the trained ranges?, the ranges, why not);
+    outside them every recipe is `ood`."""
+    outside = predictor.geometry_outside(feature)
+    out = dict(result)
+    out["geometry"] = {
+        "feature": feature.to_dict(),
+        "inside": outside is None,
+        "trained": predictor.geometry.as_dict()["kinds"],
+        **({} if outside is None else {"reason": outside}),
+    }
+    if outside is not None:
+        out["recipes"] = [{**rec, "ood": True} for rec in out.get("recipes") or []]
+    return out
 
 
 def write_weights(loaded: Any, path: Path) -> None:

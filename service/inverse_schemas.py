@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from nemsim.analysis.inverse import MIN_TOL_NM, check_bounds, check_fixed, check_target, check_tolerance
-from service.schemas import _json_integer
+from service.schemas import GEOMETRY_FIELD_DESCRIPTION, Geometry, _json_integer
 
 MetricName = Literal["etch_depth", "top_width", "bottom_width", "mask_loss", "bowing"]
 
@@ -112,6 +112,9 @@ class DesignRequest(BaseModel):
     )
     sim_seed: Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(_json_integer)] = Field(
         1, description="simulator seed of the verification runs (a refined design's confirmations: + 1)"
+    )
+    geometry: Geometry | None = Field(
+        None, description=GEOMETRY_FIELD_DESCRIPTION + "; the recipe is searched for this feature"
     )
 
     @field_validator("targets")

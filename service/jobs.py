@@ -393,9 +393,10 @@ def run_simulator(
     )
 
 
-def compare(sim: CompactStates, pred: CompactStates, predictor: Any) -> dict[str, Any]:
+def compare(sim: CompactStates, pred: CompactStates, predictor: Any, scene: Any = None) -> dict[str, Any]:
     """Surrogate trajectory `pred` against the simulator's `sim` (both (T+1, 2, D, H, W) float16, compact),
-    profile metrics by the predictor's `metrics`; JSON-ready. Works through COMPARE_BLOCK states at a time
+    profile metrics by the predictor's `metrics` in `scene` (the per-case scene; None: the model's);
+    JSON-ready. Works through COMPARE_BLOCK states at a time
     (every figure is per state): float32 copies of both whole trajectories and the float64 difference
     would take about 160 MB of the server's memory on `small`."""
     from nemsim.evaluation.truth import step_rmse
@@ -407,8 +408,8 @@ def compare(sim: CompactStates, pred: CompactStates, predictor: Any) -> dict[str
     for sim_block, pred_block in blocks:
         sim32, pred32 = sim_block.astype(np.float32), pred_block.astype(np.float32)
         rmse_parts.append(step_rmse(pred32, sim32))
-        sim_parts.append(predictor.metrics(sim32))
-        pred_parts.append(predictor.metrics(pred32))
+        sim_parts.append(predictor.metrics(sim32, scene))
+        pred_parts.append(predictor.metrics(pred32, scene))
     rmse = np.concatenate(rmse_parts)  # (T+1,)
     m_sim = {k: np.concatenate([m[k] for m in sim_parts]) for k in sim_parts[0]}
     m_pred = {k: np.concatenate([m[k] for m in pred_parts]) for k in pred_parts[0]}
@@ -455,19 +456,23 @@ def error_mesh(sim_field: np.ndarray, pred_field: np.ndarray, scene: Any, fmt: s
     return export_mesh(mesh, fmt)
 
 
-def simulate_and_compare(job: Job, served: Any, schedule: Any, seed: int) -> dict[str, Any]:
-    """The work of a simulator job: simulate `schedule` (a `ControlSchedule`), roll the served model out
-    on it, compare. The job keeps both trajectories compact (`CompactStates`) for its meshes."""
+def simulate_and_compare(job: Job, served: Any, schedule: Any, seed: int, case: Any = None) -> dict[str, Any]:
+    """The work of a simulator job: simulate `schedule` (a `ControlSchedule`) on `case` (the predictor's
+    FeatureCase; None: the model's own feature; a trench on its cross-section, `Predictor.simulator_config`),
+    roll the served model out on it, compare. The job keeps both trajectories compact (`CompactStates`) and
+    the per-case scene for its meshes."""
     predictor = served.predictor
+    case = case or predictor.case(None)
     t0 = time.perf_counter()
-    sim = CompactStates.encode(run_simulator(job, predictor.scene, predictor.sim_config, schedule.raw, seed))
+    config = predictor.simulator_config(case.scene)
+    sim = CompactStates.encode(run_simulator(job, case.scene, config, schedule.raw, seed))
     sim_s = time.perf_counter() - t0
-    result, _ = served.rollout(schedule)
+    result, _ = served.rollout(schedule, case)
     if job.cancelled:
         raise JobCancelled
     job.progress = 0.95
-    out = compare(sim, result.states, predictor)
-    job.artifacts.update(sim=sim, pred=result.states)
+    out = compare(sim, result.states, predictor, case.scene)
+    job.artifacts.update(sim=sim, pred=result.states, scene=case.scene)
     steps = schedule.steps
     out.update(
         model_id=served.model_id,
@@ -476,6 +481,8 @@ def simulate_and_compare(job: Job, served: Any, schedule: Any, seed: int) -> dic
         steps=steps,
         times_s=result.times_s,
         simulator_s=round(sim_s, 3),
+        geometry=case.feature.to_dict(),
+        simulator_domain=getattr(config, "domain", "full") if config is not None else "full",
         mesh=f"/jobs/{job.id}/mesh?step={steps}&channel=si&format=glb",
     )
     return out

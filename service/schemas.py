@@ -46,6 +46,8 @@ DEFAULT_STEPS = 100  # the paper horizon: 100 transitions of 0.1 s
 MAX_STEPS_HARD = 10_000  # no configuration may allow more (Settings.max_steps has the same bound)
 CHANNELS = ("mask", "si")  # state channel 0, 1
 Channel = Literal["mask", "si"]
+FeatureKind = Literal["hole", "trench"]
+GEOMETRY_MAX_NM = 10_000.0  # a schema bound far past any grid (the fit to the scene is the route's check)
 MeshFormat = Literal["glb", "ply", "obj", "stl", "vtp"]
 FieldsMode = Literal["none", "final", "all"]
 
@@ -211,6 +213,35 @@ def array_to_controls(raw: np.ndarray) -> dict[str, float]:
 # --- requests --------------------------------------------------------------------------------------
 
 
+class Geometry(BaseModel):
+    """The feature etched (nemsim.geometry.feature.Feature): left out, the model's own (GET /model,
+    `geometry.default`). It must fit the scene's grid (else 422 saying the accepted range); a kind the model
+    was not trained on is refused (422), cd or mask outside the trained ranges is answered with a `reject`
+    trust verdict."""
+
+    model_config = _STRICT
+    kind: FeatureKind = Field(description="hole (a cylinder) or trench (a line along y)")
+    cd_nm: float = Field(
+        gt=0, le=GEOMETRY_MAX_NM, strict=True,
+        description="opening, nm: the hole's diameter or the trench's width",
+    )
+    mask_nm: float = Field(
+        gt=0, le=GEOMETRY_MAX_NM, strict=True,
+        description="mask (resist) thickness, nm; built in whole voxels (the answer echoes what was built)",
+    )
+
+    def feature(self) -> Any:
+        """The library's Feature (nemsim.geometry.feature)."""
+        from nemsim.geometry.feature import Feature
+
+        return Feature(self.kind, float(self.cd_nm), float(self.mask_nm))
+
+
+GEOMETRY_FIELD_DESCRIPTION = (
+    "the feature etched (kind, cd_nm, mask_nm); default: the model's own (GET /model)"
+)
+
+
 class MeshSpec(BaseModel):
     """One surface mesh to return inline with a rollout."""
 
@@ -292,6 +323,7 @@ class ControlSource(BaseModel):
         description=f"transitions of 0.1 s to predict; 1..{DEFAULT_STEPS} by default (server ceiling "
         f"NEMSIM_MAX_STEPS); default {DEFAULT_STEPS}, or the recipe length",
     )
+    geometry: Geometry | None = Field(None, description=GEOMETRY_FIELD_DESCRIPTION)
 
     @model_validator(mode="after")
     def _one_source(self) -> ControlSource:
@@ -402,6 +434,9 @@ class JobCreated(BaseModel):
     defaulted: list[str] = Field(
         default_factory=list, description="controls the request left out, taken from the defaults"
     )
+    geometry: dict[str, Any] | None = Field(
+        None, description="the feature the job runs on, as built on the grid ({kind, cd_nm, mask_nm})"
+    )
 
 
 class JobStatus(BaseModel):
@@ -495,6 +530,10 @@ class RolloutResponse(BaseModel):
         [], description="controls the request left out, filled from the documented defaults (GET /model)"
     )
     recipe: list[dict[str, float]] | None = Field(None, description="per-transition controls, when varying")
+    geometry: dict[str, Any] = Field(
+        description="the feature rolled out, as built on the grid ({kind, cd_nm, mask_nm}; the mask in whole "
+        "voxels)"
+    )
     warnings: list[str]
     extrapolation: list[ExtrapolationInfo] = Field(
         [], description="controls outside the training box, as given (see the server's extrapolation policy)"
@@ -507,7 +546,8 @@ class RolloutResponse(BaseModel):
         None,
         description="where the recipe lies (group of the extrapolation benchmark: in-box, corner, zero-flux, "
         "axis 1.5, axis 2, angle, beyond; its distance past the box and to the nearest training case), the "
-        "error the benchmark measured there and a verdict level ok / warn / reject",
+        "error the benchmark measured there and a verdict level ok / warn / reject; `geometry`: whether the "
+        "feature lies in the trained ranges (outside: level reject, whatever the controls)",
     )
     timings: Timings
 
@@ -554,6 +594,11 @@ class ModelInfo(BaseModel):
     extrapolation: str = Field(
         description="policy for controls outside the training box: allow, clip or refuse"
     )
+    geometry: dict[str, Any] = Field(
+        description="the features: `default` (the model's own, used when a request gives none), `kinds` "
+        "(per kind the model was trained on, the trained cd_nm and mask_nm ranges [low, high]; another kind "
+        "is refused) and `source` (where the ranges come from)"
+    )
     runtime: dict[str, Any] = Field(
         description="what rolls out: backend, precision (and, for openvino, the precision its CPU plugin "
         "runs), threads, fallback_reason, precision_requested (auto: the CPU's default), the CPU's name, "
@@ -561,9 +606,30 @@ class ModelInfo(BaseModel):
     )
 
 
+class MechanismsRequest(BaseModel):
+    """A base control vector (any subset by name; the rest take the defaults), flux levels and a feature."""
+
+    model_config = _STRICT
+    controls: Controls = Field(  # type: ignore[valid-type]
+        default_factory=lambda: Controls(),
+        description="the base controls by name, physical units (any subset; the rest take the defaults)",
+    )
+    factors: list[Annotated[float, Field(gt=0, le=100, strict=True)]] | None = Field(
+        None, min_length=1, max_length=4,
+        description="flux multiplier levels for Cl+ and neutral Cl (as GET /mechanisms' `factors`)",
+    )
+    geometry: Geometry | None = Field(None, description=GEOMETRY_FIELD_DESCRIPTION)
+
+    @model_validator(mode="after")
+    def _meaningful(self) -> MechanismsRequest:
+        check_scale(controls_to_array(self.controls)[None], "")
+        return self
+
+
 class MechanismsResponse(BaseModel):
     model_id: str
     controls: dict[str, float] = Field(description="the base control vector used, physical units")
+    geometry: dict[str, Any] | None = Field(None, description="the feature analysed, as built on the grid")
     result: dict[str, Any] = Field(
         description="nemsim.analysis.counterfactual.mechanism_response: the Cl+/Cl interventions with "
         "Delta M per family (physical, chemical, coupled) and Delta R, base intensities lambda and "

@@ -4,7 +4,8 @@ No physics here: rollouts, profile metrics and meshes are the predictor's, mecha
 `nemsim.analysis.counterfactual.mechanism_response`. This module adds:
 
 * a model id (checkpoint stem + the first 12 hex digits of the file's SHA-256);
-* an LRU cache of finished rollouts keyed by (model id, normalized controls per transition, steps); the
+* an LRU cache of finished rollouts keyed by (model id, feature as built, normalized controls per
+  transition, steps); the
   key's hash is the rollout id, so a repeat, a follow-up mesh request or a request giving the same
   controls normalized recomputes nothing. States are kept as float16 (what the API returns anyway),
   stored compactly and losslessly (`service.compact_states`), so the entry count, not the memory budget,
@@ -24,6 +25,7 @@ No physics here: rollouts, profile metrics and meshes are the predictor's, mecha
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import math
 import threading
@@ -61,6 +63,17 @@ class RolloutResult:
     metrics_ms: float
     warnings: tuple[str, ...] = ()  # stability guard findings (non-finite or out-of-range states)
     non_finite_from: int | None = None  # the first step whose state is not finite, None: all finite
+    case: Any = None  # the predictor's FeatureCase rolled out (feature, per-case scene, x0)
+
+    @property
+    def scene(self) -> Any:
+        """The per-case scene of this rollout (its frame, the metrics' rows)."""
+        return self.case.scene
+
+    @property
+    def geometry(self) -> dict[str, Any]:
+        """The feature rolled out, as built on the grid ({kind, cd_nm, mask_nm})."""
+        return dict(self.case.feature.to_dict())
 
     @property
     def states(self) -> CompactStates:
@@ -187,8 +200,12 @@ class ServedModel:
         return self.predictor.scene
 
     # --- rollouts ---------------------------------------------------------------------------------
-    def rollout_id(self, schedule: ControlSchedule) -> str:
+    def rollout_id(self, schedule: ControlSchedule, case: Any = None) -> str:
+        """The cache key's hash: model id, feature as built (`case`, None: the model's own), steps and
+        controls."""
+        feature = (case or self.predictor.case(None)).feature
         h = hashlib.sha256(self.model_id.encode())
+        h.update(json.dumps(feature.to_dict(), sort_keys=True).encode())
         h.update(str(schedule.steps).encode())
         h.update(np.ascontiguousarray(schedule.normalized, dtype="<f4").tobytes())
         return h.hexdigest()[:24]
@@ -202,9 +219,12 @@ class ServedModel:
             raise UnknownRollout(rollout_id)
         return result
 
-    def lookup_rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[str, RolloutResult | None]:
-        """(rollout id, the cached result or None) of a schedule or (T, 14) physical controls."""
-        rid = self.rollout_id(self.predictor.schedule(controls))
+    def lookup_rollout(
+        self, controls: ControlSchedule | np.ndarray, case: Any = None
+    ) -> tuple[str, RolloutResult | None]:
+        """(rollout id, the cached result or None) of a schedule or (T, 14) physical controls on `case`
+        (the predictor's FeatureCase; None: the model's own feature)."""
+        rid = self.rollout_id(self.predictor.schedule(controls), case)
         return rid, self._find(rid)
 
     def _find(self, rid: str, *, touch: bool = True) -> RolloutResult | None:
@@ -212,17 +232,18 @@ class ServedModel:
         return self._rollouts.get(rid, touch=touch) or self._pending.get(rid)
 
     def compute_rollout(
-        self, controls: ControlSchedule | np.ndarray, rollout_id: str | None = None
+        self, controls: ControlSchedule | np.ndarray, rollout_id: str | None = None, case: Any = None
     ) -> tuple[RolloutResult, bool]:
-        """Roll out and cache a schedule (blocking); `rollout_id`: its id when `lookup_rollout` gave it
-        already. Returns (result, served_from_cache): an identical request may have finished while this
-        one waited for a slot."""
+        """Roll out and cache a schedule (blocking) on `case` (None: the model's own feature); `rollout_id`:
+        its id when `lookup_rollout` gave it already. Returns (result, served_from_cache): an identical
+        request may have finished while this one waited for a slot."""
         schedule = self.predictor.schedule(controls)
-        rid = rollout_id or self.rollout_id(schedule)
+        case = case or self.predictor.case(None)
+        rid = rollout_id or self.rollout_id(schedule, case)
         cached = self._find(rid)
         if cached is not None:
             return cached, True
-        return self._compute(rid, schedule), False
+        return self._compute(rid, schedule, case), False
 
     def _store(self, result: RolloutResult, buf: torch.Tensor, full_size: int | None) -> None:
         """On the encoder thread: encode a pending rollout's states (its first steps + 1 of the trajectory
@@ -243,16 +264,17 @@ class ServedModel:
         self._pending.pop(result.id, None)
         result.encoded.set_result(compact)
 
-    def rollout(self, controls: ControlSchedule | np.ndarray) -> tuple[RolloutResult, bool]:
-        """Cached or computed rollout (blocking; no admission control)."""
+    def rollout(self, controls: ControlSchedule | np.ndarray, case: Any = None) -> tuple[RolloutResult, bool]:
+        """Cached or computed rollout on `case` (None: the model's own feature; blocking; no admission
+        control)."""
         schedule = self.predictor.schedule(controls)
-        rid, cached = self.lookup_rollout(schedule)
-        return (cached, True) if cached is not None else self.compute_rollout(schedule, rid)
+        rid, cached = self.lookup_rollout(schedule, case)
+        return (cached, True) if cached is not None else self.compute_rollout(schedule, rid, case)
 
-    def _compute(self, rid: str, schedule: ControlSchedule) -> RolloutResult:
+    def _compute(self, rid: str, schedule: ControlSchedule, case: Any) -> RolloutResult:
         buf = self._take_buffer(schedule.steps)  # (>= T+1, 2, D, H, W) float32, or the quadrant's shape
         try:  # a symmetric model's rollout stays on the quadrant (what the cache keeps; a quarter the work)
-            pred = self.predictor.rollout(schedule, out=buf, quadrant=True)
+            pred = self.predictor.rollout(schedule, out=buf, quadrant=True, feature=case.feature)
             metrics = {
                 k: [v if math.isfinite(v) else None for v in vals.tolist()]  # undefined (NaN): null
                 for k, vals in pred.metrics.items()
@@ -274,6 +296,7 @@ class ServedModel:
             metrics_ms=1e3 * pred.metrics_s,
             warnings=pred.warnings,
             non_finite_from=pred.non_finite_from,
+            case=case,
         )
         self._pending[rid] = result  # answered now, cached once its states are stored (`_store`)
         self._encoder.submit(self._store, result, buf, pred.full_size)  # the buffer is its until encoded
@@ -327,36 +350,43 @@ class ServedModel:
             "time_s": result.times_s[step],
             "channel": channel,
             "scene": self.scene.name,
+            "geometry": result.geometry,
             "controls": array_to_controls(result.controls_raw[max(step - 1, 0)]),
         }
         field = result.states.state(step)[ch].astype(np.float32)  # (D, H, W)
-        data = self.predictor.mesh(field, fmt, metadata)
+        data = self.predictor.mesh(field, fmt, metadata, scene=result.scene)
         self._meshes.put(key, data)
         return data
 
     # --- mechanisms ---------------------------------------------------------------------------------
-    @staticmethod
-    def _mechanisms_key(controls_raw: np.ndarray, factors: list[float] | None) -> tuple[bytes, Any]:
+    def _mechanisms_key(
+        self, controls_raw: np.ndarray, factors: list[float] | None, case: Any = None
+    ) -> tuple[bytes, Any, Any]:
+        feature = (case or self.predictor.case(None)).feature
         if not factors:
-            return np.asarray(controls_raw, dtype="<f8").tobytes(), None
+            return np.asarray(controls_raw, dtype="<f8").tobytes(), None, feature
         levels = sorted({1.0, *map(float, factors)})
         pairs = tuple((a, b) for a in levels for b in levels if (a, b) != (1.0, 1.0))
-        return np.asarray(controls_raw, dtype="<f8").tobytes(), pairs
+        return np.asarray(controls_raw, dtype="<f8").tobytes(), pairs, feature
 
     def cached_mechanisms(
-        self, controls_raw: np.ndarray, factors: list[float] | None
+        self, controls_raw: np.ndarray, factors: list[float] | None, case: Any = None
     ) -> dict[str, Any] | None:
-        return self._mechanisms.get(self._mechanisms_key(controls_raw, factors))
+        return self._mechanisms.get(self._mechanisms_key(controls_raw, factors, case))
 
-    def mechanisms(self, controls_raw: np.ndarray, factors: list[float] | None) -> dict[str, Any]:
+    def mechanisms(
+        self, controls_raw: np.ndarray, factors: list[float] | None, case: Any = None
+    ) -> dict[str, Any]:
         """`nemsim.analysis.counterfactual.mechanism_response` for one base control vector (14,) physical
         units from the predictor's initial state (cached), JSON-ready (`schemas.jsonable`: plain lists and
         floats, non-finite as None), so a cache hit costs no conversion.
 
         `factors` are flux multiplier levels; the interventions are every (s_Cl+, s_Cl) pair of the levels
         and 1, except (1, 1) -- {0.5, 1.5} gives the paper's eight. None: the library default (the paper's).
+        `case`: the predictor's FeatureCase whose initial state is analysed (None: the model's own feature).
         """
-        key = self._mechanisms_key(controls_raw, factors)
+        case = case or self.predictor.case(None)
+        key = self._mechanisms_key(controls_raw, factors, case)
         cached = self._mechanisms.get(key)
         if cached is not None:
             return cached
@@ -366,6 +396,6 @@ class ServedModel:
         raw = np.asarray(controls_raw, dtype=np.float64)
         # no inference_mode: the library owns its autograd settings
         predictor = self.predictor
-        result = jsonable(mechanism_response(predictor.loaded, raw, x0=predictor.x0, **kwargs))
+        result = jsonable(mechanism_response(predictor.loaded, raw, x0=case.x0, **kwargs))
         self._mechanisms.put(key, result)
         return result

@@ -172,7 +172,7 @@ def design_in_child(job_dir: Path, inputs: dict[str, Any], report: Report) -> No
     cal = inputs["calibration"]
     ctx = InverseContext(
         model=loaded.model,
-        scene=loaded.scene,
+        scene=inputs.get("scene") or loaded.scene,  # the feature's per-case scene (service.inverse)
         x0=torch.from_numpy(inputs["x0"]),
         calibration=cal,
         support=Support.from_record(cal.support if cal else None),

@@ -17,6 +17,10 @@ A checkpoint is one ``torch.save`` dict:
     sim_config       the simulator configuration the training data was made with (the data file's
                      ``generator`` attribute, parsed JSON), or None (unknown; checkpoints written before
                      this field); read it with ``checkpoint_sim_config``
+    geometry         (optional) the features the training data drew, per kind: {kind: {"cd_nm": [lo, hi],
+                     "mask_nm": [lo, hi]}} (also read from ``summary["geometry"]``; a record may be a list of
+                     {"kind", "cd_nm", "mask_nm"} and a number stands for a single value); without it the
+                     model was trained on its scene's own feature alone; read it with ``checkpoint_geometry``
     train_state      (last.pt only) optimizer state, lr-schedule step, epoch, RNG states, history
 
 ``read_checkpoint`` unpickles weights-only (``torch.load(weights_only=True)``: tensors, plain containers and
@@ -41,7 +45,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from nemsim.scenes import Scene
+from nemsim.geometry.feature import Feature
+from nemsim.scenes import KINDS, Scene
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +89,117 @@ class LoadedModel:
     metrics: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
     raw: dict[str, Any] = field(default_factory=dict, repr=False)  # the checkpoint dict minus weights
+
+
+@dataclass(frozen=True)
+class GeometryRange:
+    """The features of one kind a model was trained on: opening ``cd_nm`` and mask ``mask_nm``, each a
+    closed interval (low, high) in nm (a single value: low == high)."""
+
+    kind: str
+    cd_nm: tuple[float, float]
+    mask_nm: tuple[float, float]
+
+    def contains(self, feature: Feature, rel_tol: float = 1e-6) -> bool:
+        """Is ``feature`` (its kind, cd and mask) inside these intervals (``rel_tol``: float round-off)?"""
+        return feature.kind == self.kind and all(
+            lo * (1 - rel_tol) <= value <= hi * (1 + rel_tol)
+            for value, (lo, hi) in ((feature.cd_nm, self.cd_nm), (feature.mask_nm, self.mask_nm))
+        )
+
+    def describe(self) -> str:
+        """'hole, cd 40 nm, mask 80 nm' or with ranges 'cd 30..50 nm'."""
+        def span(lo: float, hi: float) -> str:
+            return f"{lo:g} nm" if lo == hi else f"{lo:g}..{hi:g} nm"
+
+        return f"{self.kind}, cd {span(*self.cd_nm)}, mask {span(*self.mask_nm)}"
+
+    def as_dict(self) -> dict[str, list[float]]:
+        return {"cd_nm": [float(v) for v in self.cd_nm], "mask_nm": [float(v) for v in self.mask_nm]}
+
+
+@dataclass(frozen=True)
+class TrainedGeometry:
+    """The features a checkpoint was trained on, per kind (``checkpoint_geometry``), and where that comes
+    from (``source``: the checkpoint's record, or its scene's own feature as a single point)."""
+
+    ranges: tuple[GeometryRange, ...]
+    source: str
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(r.kind for r in self.ranges)
+
+    def range_of(self, kind: str) -> GeometryRange | None:
+        return next((r for r in self.ranges if r.kind == kind), None)
+
+    def contains(self, feature: Feature) -> bool:
+        found = self.range_of(feature.kind)
+        return found is not None and found.contains(feature)
+
+    def as_dict(self) -> dict[str, Any]:
+        """{"kinds": {kind: {"cd_nm": [lo, hi], "mask_nm": [lo, hi]}}, "source": ...} (``GET /model``)."""
+        return {"kinds": {r.kind: r.as_dict() for r in self.ranges}, "source": self.source}
+
+
+def _interval(value: Any, what: str) -> tuple[float, float]:
+    """(lo, hi) from a number or a [lo, hi] pair of finite numbers > 0; ValueError naming ``what``."""
+    pair = [value, value] if isinstance(value, int | float) and not isinstance(value, bool) else value
+    if not (isinstance(pair, list | tuple) and len(pair) == 2):
+        raise ValueError(f"{what} is a number or [low, high], got {value!r}")
+    lo, hi = (float(v) for v in pair)
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
+        raise ValueError(f"{what} needs finite 0 < low <= high, got {value!r}")
+    return lo, hi
+
+
+def _geometry_ranges(record: Any) -> tuple[GeometryRange, ...]:
+    """GeometryRanges from a checkpoint's geometry record (module docstring: three accepted shapes)."""
+    if isinstance(record, dict) and "kind" in record:
+        record = [record]
+    if isinstance(record, dict):
+        record = [{"kind": kind, **(value if isinstance(value, dict) else {})}
+                  for kind, value in record.items()]
+    if not isinstance(record, list) or not record:
+        raise ValueError(f"a geometry record is a dict per kind or a list of ranges, got "
+                         f"{type(record).__name__}")
+    out: list[GeometryRange] = []
+    for item in record:
+        kind = item.get("kind") if isinstance(item, dict) else None
+        if kind not in KINDS:
+            raise ValueError(f"geometry record: unknown kind {kind!r}; expected one of {KINDS}")
+        if any(r.kind == kind for r in out):
+            raise ValueError(f"geometry record: kind {kind!r} given twice")
+        out.append(GeometryRange(kind, _interval(item.get("cd_nm"), f"{kind} cd_nm"),
+                                 _interval(item.get("mask_nm"), f"{kind} mask_nm")))
+    return tuple(out)
+
+
+def checkpoint_geometry(source: LoadedModel | dict[str, Any]) -> TrainedGeometry:
+    """The features a checkpoint was trained on (module docstring, ``geometry``): its record, else the
+    scene's own feature as a single point (an unreadable record is logged and read the same way: the
+    narrowest claim, so nothing beyond the scene's feature is called trained).
+
+    Args:
+        source: a ``LoadedModel`` or a raw checkpoint dict (with ``scene``).
+    """
+    raw = source.raw if isinstance(source, LoadedModel) else source
+    scene = source.scene if isinstance(source, LoadedModel) else Scene.from_json(raw["scene"])
+    record = raw.get("geometry")
+    where = "the checkpoint's geometry record"
+    if record is None:
+        record = (raw.get("summary") or {}).get("geometry")
+        where = "the checkpoint's training summary (geometry)"
+    if record is not None:
+        try:
+            return TrainedGeometry(_geometry_ranges(record), where)
+        except (TypeError, ValueError) as exc:
+            log.warning("checkpoint geometry record unreadable (%s): the scene's feature alone is trained",
+                        exc)
+    own = Feature.of(scene)
+    point = GeometryRange(own.kind, (own.cd_nm, own.cd_nm), (own.mask_nm, own.mask_nm))
+    return TrainedGeometry((point,), f"the scene's own feature ({scene.name!r}; the checkpoint records no "
+                                     "geometry range)")
 
 
 def control_ranges() -> dict[str, dict[str, Any]]:
@@ -139,7 +255,12 @@ def checkpoint_dict(
     metrics: dict[str, Any] | None = None,
     train_state: dict[str, Any] | None = None,
     sim_config: dict[str, Any] | None = None,
+    geometry: dict[str, Any] | list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
+    """The checkpoint dict (module docstring); ``geometry``: the trained features per kind, written only
+    when given (``checkpoint_geometry`` checks it)."""
+    if geometry is not None:
+        _geometry_ranges(geometry)  # refuse to write a record the loader could not read
     state = {k: v.detach().to("cpu", copy=True).contiguous() for k, v in unwrap(model).state_dict().items()}
     return {
         "format_version": CHECKPOINT_FORMAT,
@@ -156,6 +277,7 @@ def checkpoint_dict(
         "metrics": dict(metrics or {}),
         "train_state": train_state,
         "sim_config": None if sim_config is None else dict(sim_config),
+        **({} if geometry is None else {"geometry": geometry}),
     }
 
 

@@ -12,6 +12,15 @@ the scene's symmetries (the simulator's initial state is symmetric up to the sub
 distance transform), so each of its trajectories is exactly symmetric (``symmetric_size``), and
 ``rollout(..., quadrant=True)`` keeps it on the quadrant: no full field is built, the metrics and the
 stability guard read a quarter of the voxels, and ``nemsim.symmetry.unfold`` rebuilds any state on demand.
+
+Geometry (``nemsim.geometry.feature``): a rollout may be of another feature than the scene's own
+(``rollout(..., feature=...)``). ``case(feature)`` gives its ``FeatureCase``: the feature as built on the
+grid, the per-case scene (``Feature.apply``) and x0 built from it exactly as the default one (the
+checkpoint's simulator configuration, the symmetric mean for a quarter-domain model); the metrics and meshes
+read the per-case scene. A kind the checkpoint was not trained on is refused
+(``range_check.UnknownGeometry``), one that does not fit the grid too (ValueError, ``Feature.check``); a
+known kind outside its trained ranges is rolled out, and ``geometry_outside`` says why it is not trusted.
+The last ``CASES_KEPT`` cases are kept (an x0 costs the simulator's initial-state build).
 """
 
 from __future__ import annotations
@@ -19,9 +28,11 @@ from __future__ import annotations
 import functools
 import inspect
 import logging
+import threading
 import time
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +40,15 @@ import numpy as np
 import torch
 
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized, to_normalized
+from nemsim.geometry.feature import Feature
 from nemsim.inference import range_check
-from nemsim.inference.checkpoint import LoadedModel, checkpoint_id, load_checkpoint
+from nemsim.inference.checkpoint import (
+    LoadedModel,
+    TrainedGeometry,
+    checkpoint_geometry,
+    checkpoint_id,
+    load_checkpoint,
+)
 from nemsim.inference.precision import machine, resolve_precision
 from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
 from nemsim.symmetry import fold, quarter_model_size, symmetrize
@@ -39,6 +57,7 @@ log = logging.getLogger(__name__)
 
 BACKEND_CHOICES: tuple[str, ...] = ("auto", *BACKENDS)  # "auto": openvino when installed, else torch
 STATE_BOUND = 1.5  # |normalized SDF| above this is outside anything the model learned (data are in [-1, 1])
+CASES_KEPT = 8  # feature cases (per-case scene and x0) a predictor keeps (module docstring)
 
 Controls = Mapping[str, float] | Sequence[Mapping[str, float]] | np.ndarray
 
@@ -175,6 +194,17 @@ class Prediction:
         return self.schedule.steps
 
 
+@dataclass(frozen=True, eq=False)
+class FeatureCase:
+    """One feature on the checkpoint's grid: ``feature`` as built (mask in whole voxels), the per-case
+    ``scene`` and its initial state ``x0`` (2, D, H, W) float32; ``default``: the scene's own feature."""
+
+    feature: Feature
+    scene: Any  # nemsim.scenes.Scene
+    x0: np.ndarray
+    default: bool
+
+
 def _recorded_sim_config(raw: dict[str, Any]) -> tuple[Any, str]:
     """(SimConfig or None, how the initial state is built) from a checkpoint's ``sim_config`` record, read
     defensively: older checkpoints have none, and an unreadable one falls back to the simulator defaults."""
@@ -229,12 +259,10 @@ class Predictor:
         self.runtime: Runtime = compile_model(loaded.model, backend, chosen, threads)  # type: ignore[arg-type]
         self.sim_config, source = _recorded_sim_config(loaded.raw or {})
         n = quarter_model_size(loaded.model)
+        self._quarter = n is not None
         if x0 is None:
-            from nemsim.sim import initial_state
-
-            x0 = initial_state(self.scene, self.sim_config)
-            if n is not None:  # the quarter-domain model's own initial state: the symmetric mean (docstring)
-                x0 = symmetrize(torch.as_tensor(x0)).numpy()
+            x0 = self._initial_state(self.scene)
+            if n is not None:
                 source += ", averaged over the scene's symmetries"
         else:
             source = "given by the caller"
@@ -249,6 +277,11 @@ class Predictor:
             raise ValueError(
                 f"initial state has shape {self.x0.shape}, scene {self.scene.name!r} needs {expected}"
             )
+        self.geometry: TrainedGeometry = checkpoint_geometry(loaded)
+        self.default_feature = Feature.of(self.scene)
+        self._default_case = FeatureCase(self.default_feature, self.scene, self.x0, True)
+        self._cases: OrderedDict[Feature, FeatureCase] = OrderedDict()
+        self._cases_lock = threading.Lock()
         ranges = (loaded.raw or {}).get("control_ranges") or {}
         # the training box: what the checkpoint recorded at training time, else the current design range
         self.train_range = {
@@ -306,6 +339,60 @@ class Predictor:
         """Only NEMSim models expose event intensities and attributions (forward(..., return_aux=True))."""
         return "return_aux" in inspect.signature(self.model.forward).parameters
 
+    # --- geometry -------------------------------------------------------------------------------------
+    def _initial_state(self, scene: Any) -> np.ndarray:
+        """x0 (2, D, H, W) of a (per-case) scene, built as the checkpoint's data were; a quarter-domain
+        model's the symmetric mean (module docstring)."""
+        from nemsim.sim import initial_state
+
+        config = self.sim_config
+        if config is not None and scene.kind == "trench" and config.domain == "quarter":
+            config = replace(config, domain="full")  # a trench has no quadrant; x0 is the same field
+        x0 = initial_state(scene, config)
+        if self._quarter:
+            x0 = symmetrize(torch.as_tensor(x0)).numpy()
+        return np.asarray(x0, dtype=np.float32)
+
+    def case(self, feature: Feature | None = None) -> FeatureCase:
+        """The ``FeatureCase`` of ``feature`` (None: the scene's own).
+
+        Raises:
+            range_check.UnknownGeometry: a kind the checkpoint was not trained on (names the kinds it knows).
+            ValueError: the feature does not fit the scene's grid (one line, ``Feature.check``).
+        """
+        if feature is None:
+            return self._default_case
+        range_check.check_kind(feature, self.geometry)
+        feature.check(self.scene)
+        built = feature.on_grid(self.scene)
+        if built == self.default_feature:
+            return self._default_case
+        with self._cases_lock:
+            found = self._cases.get(built)
+            if found is not None:
+                self._cases.move_to_end(built)
+                return found
+        scene = built.apply(self.scene)
+        made = FeatureCase(built, scene, self._initial_state(scene), False)
+        with self._cases_lock:
+            self._cases[built] = made
+            while len(self._cases) > CASES_KEPT:
+                self._cases.popitem(last=False)
+        return made
+
+    def simulator_config(self, scene: Any) -> Any:
+        """The simulator configuration for a (per-case) scene: the checkpoint's (None: the defaults), a
+        trench on its cross-section (``SimConfig.domain`` = "section": its mean evolution is 2-D)."""
+        if scene.kind != "trench":
+            return self.sim_config
+        from nemsim.sim.config import SimConfig
+
+        return replace(self.sim_config or SimConfig(), domain="section")
+
+    def geometry_outside(self, feature: Feature) -> str | None:
+        """Why ``feature`` (as built, ``case(feature).feature``) is outside the trained geometry, or None."""
+        return range_check.geometry_outside(feature, self.geometry)
+
     # --- controls -------------------------------------------------------------------------------------
     def schedule(self, controls: Controls | ControlSchedule, steps: int | None = None) -> ControlSchedule:
         """``control_schedule(controls, steps)``."""
@@ -329,6 +416,7 @@ class Predictor:
         *,
         out: torch.Tensor | None = None,
         quadrant: bool = False,
+        feature: Feature | None = None,
     ) -> Prediction:
         """Roll the model out from the initial state under ``controls`` (physical units, see
         ``control_schedule``) and compute the profile metrics of every state.
@@ -338,13 +426,15 @@ class Predictor:
                 (the returned ``states`` is then a view of it, valid while the caller does not reuse it).
             quadrant: return the states' quadrant (``Prediction.full_size`` set), when the rollouts are
                 exactly symmetric (``symmetric_size``); otherwise the full fields, as without it.
+            feature: the feature etched (None: the scene's own); ``case`` says what is refused.
         """
         from nemsim.evaluation.rollout import rollout
 
+        case = self.case(feature)
         sched = self.schedule(controls, steps)
         T = sched.steps
         on_quadrant = quadrant and self.symmetric_size is not None
-        x0 = torch.from_numpy(self.x0)[None]  # (1, 2, D, H, W)
+        x0 = torch.from_numpy(case.x0)[None]  # (1, 2, D, H, W)
         if on_quadrant:
             x0 = fold(x0).contiguous()  # the model's own domain: the rollout stays there
         u = torch.from_numpy(sched.normalized)[None]  # (1, T, 14)
@@ -358,7 +448,7 @@ class Predictor:
                 traj = rollout(self.runtime, x0, u, T, out=None if out is None else out[None])[0]  # type: ignore[arg-type]
         t1 = time.perf_counter()
         states = traj.numpy()  # (T+1, 2, D, H, W)
-        metrics = self.metrics(states)
+        metrics = self.metrics(states, case.scene)
         t2 = time.perf_counter()
         dt = float(self.scene.snapshot_dt_s)
         warnings, non_finite_from = stability_report(states)
@@ -381,12 +471,12 @@ class Predictor:
             return tuple(self.scene.quarter_state_shape)
         return tuple(self.x0.shape)
 
-    def metrics(self, states: np.ndarray) -> dict[str, np.ndarray]:
+    def metrics(self, states: np.ndarray, scene: Any = None) -> dict[str, np.ndarray]:
         """Profile metrics (nm) of states (T+1, 2, D, H, W): name -> (T+1,), NaN where undefined
-        (``measured_profile_metrics``)."""
+        (``measured_profile_metrics``); ``scene``: the per-case scene (None: the checkpoint's)."""
         from nemsim.geometry.profile import measured_profile_metrics
 
-        return measured_profile_metrics(states, self.scene)
+        return measured_profile_metrics(states, self.scene if scene is None else scene)
 
     def warm_up(self, steps: int) -> None:
         """One short rollout so the first request does not pay for allocation / graph compilation; on CUDA
@@ -405,9 +495,12 @@ class Predictor:
                 whole(x0, u[:, 0], int(self.scene.n_transitions), copy=False)
 
     # --- meshes ---------------------------------------------------------------------------------------
-    def mesh(self, field: np.ndarray, fmt: str, metadata: dict[str, Any] | None = None) -> bytes:
+    def mesh(self, field: np.ndarray, fmt: str, metadata: dict[str, Any] | None = None,
+             scene: Any = None) -> bytes:
         """File bytes (glb, ply, obj, stl or vtp) of the zero-level surface of one channel's field (D, H,
-        W), in nm, with ``metadata`` as provenance (``nemsim.geometry.mesh``)."""
+        W), in nm, with ``metadata`` as provenance (``nemsim.geometry.mesh``); ``scene``: the per-case
+        scene whose frame the mesh is placed in (None: the checkpoint's)."""
         from nemsim.geometry.mesh import export_mesh, surface_mesh
 
-        return export_mesh(surface_mesh(np.asarray(field, dtype=np.float32), self.scene, metadata), fmt)
+        scene = self.scene if scene is None else scene
+        return export_mesh(surface_mesh(np.asarray(field, dtype=np.float32), scene, metadata), fmt)

@@ -12,6 +12,12 @@ Policies (the service's `NEMSIM_EXTRAPOLATION`):
   refuse  `Refused`, naming the controls outside the box and the box.
 
 The box is the one recorded in the checkpoint (`control_ranges`), else the current design range.
+
+Geometry (the feature drawn, `nemsim.geometry.feature.Feature`) is checked against the features the
+checkpoint was trained on (`nemsim.inference.checkpoint.checkpoint_geometry`): a kind it never saw is
+`UnknownGeometry` (never rolled out: the model has no notion of it), a known kind outside its trained cd or
+mask range is answered, but `geometry_outside` says so and the trust verdict is `reject`, whatever the
+policy (clipping a geometry would answer for another feature than the one asked).
 A NEMSim model with `control_saturation` (knee, limit) has its network read every control saturated
 beyond `knee` half-widths past the edge, towards at most `limit` (`nemsim.model.saturation`; the
 ion-flux gate reads the value given); each excursion then also says where the network reads it.
@@ -26,6 +32,8 @@ from typing import Literal
 import numpy as np
 
 from nemsim.controls import CONTROL_SPECS, EPS_U
+from nemsim.geometry.feature import Feature
+from nemsim.inference.checkpoint import TrainedGeometry
 from nemsim.model.saturation import saturation_point
 
 Policy = Literal["allow", "clip", "refuse"]
@@ -148,3 +156,30 @@ def apply(
     if policy == "clip":
         return clip(raw, box), clip_notes(found), found, True
     return raw, [e.describe() for e in found], found, False
+
+
+class UnknownGeometry(ValueError):
+    """The feature's kind is not one the checkpoint was trained on (the message names the kinds it knows)."""
+
+
+def check_kind(feature: Feature, trained: TrainedGeometry) -> None:
+    """`UnknownGeometry` unless the checkpoint was trained on `feature`'s kind."""
+    if trained.range_of(feature.kind) is None:
+        known = " and ".join(trained.kinds)
+        raise UnknownGeometry(
+            f"this model was trained on {known} features only; a {feature.kind} is not answered "
+            f"(kinds it knows: {list(trained.kinds)})"
+        )
+
+
+def geometry_outside(feature: Feature, trained: TrainedGeometry) -> str | None:
+    """A one-line reason when `feature` (a kind the checkpoint knows, as built on the grid) lies outside
+    the trained range of its kind, naming both; None inside."""
+    found = trained.range_of(feature.kind)
+    if found is None or found.contains(feature):
+        return None
+    return (
+        f"geometry {feature.kind} cd {feature.cd_nm:g} nm, mask {feature.mask_nm:g} nm is outside the "
+        f"features this model was trained on ({found.describe()}): the prediction is an extrapolation "
+        "in geometry"
+    )

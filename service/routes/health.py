@@ -61,7 +61,8 @@ def public_record(value: Any) -> Any:
 
 @router.get("/model", response_model=ModelInfo)
 async def get_model(served: ServedModelDep, settings: SettingsDep) -> ModelInfo:
-    """Checkpoint id, scene, rules SHA-256, training summary, test metrics and the controls' ranges."""
+    """Checkpoint id, scene, rules SHA-256, training summary, test metrics, the controls' and the geometry's
+    trained ranges."""
     predictor = served.predictor
     loaded = predictor.loaded
     controls = [
@@ -95,5 +96,6 @@ async def get_model(served: ServedModelDep, settings: SettingsDep) -> ModelInfo:
         controls=controls,
         initial_state=predictor.initial_state_source,
         extrapolation=settings.extrapolation,
+        geometry={"default": predictor.case(None).feature.to_dict(), **predictor.geometry.as_dict()},
         runtime=predictor.runtime_info(),
     )

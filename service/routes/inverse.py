@@ -6,7 +6,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from nemsim.analysis.inverse import REFINE_WITH_VERIFY, check_targets, refine_config_from_dict, spec_from_dict
-from service.deps import ServedModelDep, SettingsDep, reject
+from service.deps import ServedModelDep, SettingsDep, feature_case, reject
 from service.inverse import design_work
 from service.inverse_schemas import DesignRequest
 from service.routes.jobs import JOB_LIMIT_RESPONSES, JobsDep, submit_job
@@ -41,14 +41,17 @@ async def post_design(
     result reports `simulator_calls` (the simulator runs the design made) and, when the benchmark
     `nemsim bench design-cost` has a committed result for the served checkpoint,
     `expected_calls_to_target` (its simulator calls per target reached: one average for every design, as
-    `expected_calls_basis` says). While it runs, `GET /jobs/{id}` reports its `phase`.
+    `expected_calls_basis` says). While it runs, `GET /jobs/{id}` reports its `phase`. With `geometry`,
+    the recipe is searched for that feature (the model's own when left out); the result's `geometry` says
+    whether it lies in the trained ranges (outside: every recipe is `ood`).
     """
     try:
         spec = spec_from_dict(body.spec_dict())
     except ValueError as exc:
         reject(("body",), str(exc))
-    try:  # the physical ranges of the targets in the served model's scene
-        check_targets(spec.targets, served.predictor.scene)
+    case = await feature_case(served, body.geometry)
+    try:  # the physical ranges of the targets in the scene of the feature (its Si and mask thickness)
+        check_targets(spec.targets, case.scene)
     except ValueError as exc:
         reject(("body", "targets"), str(exc))
     refine = None
@@ -72,8 +75,10 @@ async def post_design(
             sim_seed=body.sim_seed,
             sim_max_work=settings.sim_max_work,
             refine=refine,
+            case=case,
         ),
     )
     location = f"/jobs/{job.id}"
-    created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location)
+    created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location,
+                         geometry=case.feature.to_dict())  # fmt: skip
     return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})

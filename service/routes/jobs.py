@@ -13,7 +13,15 @@ from fastapi.responses import JSONResponse, Response
 
 from nemsim.evaluation.truth import particle_work
 from nemsim.inference import MEDIA_TYPES, Refused
-from service.deps import ServedModelDep, SettingsDep, busy, client_key, reject, single_valued_query
+from service.deps import (
+    ServedModelDep,
+    SettingsDep,
+    busy,
+    client_key,
+    feature_case,
+    reject,
+    single_valued_query,
+)
 from service.jobs import Job, JobQueue, TooManyJobs, UnknownJob, error_mesh, simulate_and_compare
 from service.openapi import ErrorBody
 from service.scheduler import ServiceBusy
@@ -75,8 +83,10 @@ async def post_simulation(
     settings: SettingsDep,
     jobs: JobsDep,
 ) -> JSONResponse:
-    """Run the simulator on the checkpoint's scene for these controls and compare the surrogate with it."""
+    """Run the simulator on the feature (default: the model's own) for these controls and compare the
+    surrogate with it; a trench runs on its cross-section."""
     assert body.steps is not None  # resolved by the validator
+    case = await feature_case(served, body.geometry)
     horizon = served.predictor.horizon_steps
     if body.steps > horizon:
         reject(("body", "steps"), f"steps = {body.steps} exceeds the simulator's horizon of {horizon}")
@@ -97,10 +107,13 @@ async def post_simulation(
             f"{settings.sim_max_work:g}x (lower the fluxes or the steps)",
         )
     seed = body.seed
-    job = submit_job(request, jobs, "simulation", lambda j: simulate_and_compare(j, served, schedule, seed))
+    job = submit_job(
+        request, jobs, "simulation", lambda j: simulate_and_compare(j, served, schedule, seed, case)
+    )
     location = f"/jobs/{job.id}"
     created = JobCreated(id=job.id, kind=job.kind, status=job.status, location=location,
-                         controls=array_to_controls(schedule.raw[0]), defaulted=body.defaulted)  # fmt: skip
+                         controls=array_to_controls(schedule.raw[0]), defaulted=body.defaulted,
+                         geometry=case.feature.to_dict())  # fmt: skip
     return JSONResponse(status_code=202, content=created.model_dump(), headers={"Location": location})
 
 
@@ -155,8 +168,9 @@ async def get_job_mesh(
         reject(("query", "step"), f"step = {step} is beyond this job's last state ({last})")
     ch = 0 if channel == "mask" else 1
     meta = {"job_id": job_id, "step": step, "channel": channel, "colour": "surrogate signed distance, nm"}
+    scene = job.artifacts.get("scene") or served.scene  # the per-case scene of the job's feature
     data = await anyio.to_thread.run_sync(
-        error_mesh, sim.state(step)[ch], pred.state(step)[ch], served.scene, format, meta
+        error_mesh, sim.state(step)[ch], pred.state(step)[ch], scene, format, meta
     )
     return Response(
         content=data,

@@ -36,7 +36,15 @@ from starlette.types import Receive, Scope, Send
 from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, transform
 from nemsim.geometry.frame import FRAME, grid_axes_nm
 from nemsim.inference import MEDIA_TYPES, Refused
-from service.deps import GatesDep, ServedModelDep, SettingsDep, gated, reject, single_valued_query
+from service.deps import (
+    GatesDep,
+    ServedModelDep,
+    SettingsDep,
+    feature_case,
+    gated,
+    reject,
+    single_valued_query,
+)
 from service.inverse import rollout_intervals, rollout_trust
 from service.memory import ResponseBudget
 from service.openapi import ErrorBody
@@ -187,22 +195,26 @@ async def post_rollout(
             f"{len(body.meshes)} meshes requested; at most {settings.max_meshes} per rollout",
         )
     predictor = served.predictor
+    case = await feature_case(served, body.geometry)
     try:
         schedule, warnings, found, clipped = predictor.check_range(body.schedule(), settings.extrapolation)
     except Refused as exc:
         reject(("body", body.source), str(exc))
+    outside = predictor.geometry_outside(case.feature)
+    if outside is not None:
+        warnings.append(outside)
     if body.steps > predictor.horizon_steps:
         warnings.append(
             f"steps = {body.steps} goes beyond the {predictor.horizon_steps}-step horizon the model was "
             "trained on"
         )
-    rid, hit = served.lookup_rollout(schedule)
+    rid, hit = served.lookup_rollout(schedule, case)
     metrics = request.app.state.metrics
     metrics.cache_lookup("rollout", hit is not None)
     if hit is not None:
         result, cached = hit, True
     else:
-        result, cached = await gated(request, gates.rollout, served.compute_rollout, schedule, rid)
+        result, cached = await gated(request, gates.rollout, served.compute_rollout, schedule, rid, case)
         if not cached:
             metrics.rollout_computed(result.rollout_ms / 1e3)
     if result.non_finite_from is not None:  # NaN/Inf states are no answer (and no 5xx: nothing crashed)
@@ -250,13 +262,14 @@ async def post_rollout(
         controls=array_to_controls(result.controls_raw[0]),
         defaulted=body.defaulted,
         recipe=[array_to_controls(row) for row in result.controls_raw] if varying else None,
+        geometry=result.geometry,
         warnings=warnings,
         extrapolation=[e.as_dict() for e in found],  # type: ignore[misc]
         clipped=clipped,
         fields=fields,
         meshes=meshes,
         intervals=rollout_intervals(served, result.metrics) if body.intervals else None,
-        trust=rollout_trust(served, schedule.raw, schedule.normalized),
+        trust=rollout_trust(served, schedule.raw, schedule.normalized, case.feature),
         timings=Timings(
             total_ms=1e3 * (time.perf_counter() - t_start),
             rollout_ms=0.0 if cached else result.rollout_ms,
@@ -320,6 +333,7 @@ def metrics_csv(served: ServedModel, result: RolloutResult) -> str:
         f"# NEMSim rollout {result.id}: model {result.model_id}, scene {scene.name} (voxel "
         f"{scene.voxel_nm:g} nm), {result.steps} transitions of {scene.snapshot_dt_s:g} s\n"
     )
+    out.write(f"# geometry: {json.dumps(result.geometry)}\n")
     if varying:
         out.write(
             f"# controls: a recipe of {len(raw)} control sets; the row of step k >= 1 holds the controls of "
@@ -364,7 +378,7 @@ def _write_trajectory(served: ServedModel, result: RolloutResult) -> bytes:
 
     from nemsim.data.hdf5 import CHANNEL_NAMES, DEFAULT_COMPRESSION, FORMAT_VERSION
 
-    scene, loaded = served.scene, served.predictor.loaded
+    scene, loaded = result.scene, served.predictor.loaded  # the per-case scene: its feature and frame
     raw = np.asarray(result.controls_raw, dtype=np.float64)  # (T, 14)
     states_shape = (1, result.steps + 1, *scene.state_shape)
     provenance = {

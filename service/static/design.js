@@ -51,6 +51,8 @@ function requestBody(page) {
   }
   if (!Object.keys(targets).length) throw new Error('inverse design: give at least one target value (nm)');
   const body = { targets, k: Math.round(Number($('design-k').value) || 3) };
+  const g = page.geometry ? page.geometry() : null; // the feature set on the Controls tab (null: the model's own)
+  if (g) body.geometry = g;
   const t = $('design-time').value.trim();
   if (t !== '') body.step = Math.max(1, Math.round(Number(t) / (page.model.scene.snapshot_dt_s || 0.1)));
   return body;

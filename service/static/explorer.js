@@ -5,6 +5,7 @@ import { api, busy, download, fetchPatiently, retryDelayS, saveBlob, sleep } fro
 import { FONT, drawProfile, drawSection, niceTicks, ticksWithin, timeColour } from '/static/plot.js';
 import { createView, parseGLB } from '/static/view3d.js';
 import { initDesign } from '/static/design.js';
+import { caseScene, initGeometry } from '/static/geometry.js';
 
 const $ = (id) => document.getElementById(id);
 const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;' })[c]);
@@ -114,6 +115,12 @@ function renderRecipe() {
 }
 function horizon() { return Math.min(state.model.horizon_steps, state.model.max_steps); }
 function requestBody() {
+  const g = state.geometry ? state.geometry.read() : null; // null: the model's own feature
+  return g ? { ...controlsBody(), geometry: g } : controlsBody();
+}
+// the scene of a run's feature (its Si top and opening), for the drawings in nm
+const runScene = (r) => caseScene(state.model.scene, r && r.geometry);
+function controlsBody() {
   if (!$('recipe-mode').checked) return { controls: readControls(), steps: horizon() };
   if (!state.recipe.length) throw new Error('recipe mode: add at least one phase (set the controls, then "Add phase")');
   const rows = [];
@@ -259,7 +266,7 @@ function drawPlanes(step) {
   if (!state.slices) return;
   const panels = [[state.slices, state.a && state.a.slices ? 'current' : '']];
   if (state.a && state.a.slices) panels.push([state.a.slices, 'A']);
-  drawSection(sec.ctx, sec, panels, step, state.model.scene, sec.dpr);
+  drawSection(sec.ctx, sec, panels, step, runScene(state.run), sec.dpr);
   const run = state.run, tmax = run.times_s[run.steps], dt = tmax / run.steps;
   const times = ticksWithin(0, tmax, 5);
   const lines = times.ticks.map((t, q) => ({
@@ -267,7 +274,7 @@ function drawPlanes(step) {
   }));
   lines.push({ sl: state.slices, step, label: `now (${run.times_s[step].toFixed(1)} s)`, colour: '#000', width: 2.2 });
   if (state.a && state.a.slices) lines.push({ sl: state.a.slices, step: Math.min(step, state.a.steps), label: 'A, now', colour: '#d62728', width: 1.8, dash: [5, 3] });
-  state.fit.profile = drawProfile(prof.ctx, prof, lines, state.model.scene);
+  state.fit.profile = drawProfile(prof.ctx, prof, lines, runScene(state.run));
 }
 
 // --- chart ------------------------------------------------------------------------------------------
@@ -433,7 +440,7 @@ async function run() {
     for (const e of data.extrapolation || []) if (state.inputs[e.control]) state.inputs[e.control].div.classList.add('out', 'api-out');
     // the final state first: its surfaces are asked for while the cross-sections load
     const slider = $('time'); slider.disabled = true; slider.max = data.steps; slider.value = data.steps;
-    forgetMeshes(data.id); state.step = data.steps; view.showError(null); pumpMeshes();
+    forgetMeshes(data.id); state.step = data.steps; view.showError(null); view.placeFrame(runScene(data).si_top); pumpMeshes();
     const [sl] = await Promise.all([
       api('GET', `/rollouts/${data.id}/slices`).then((x) => x.data), meshesSettled(data.id, data.steps),
     ]);
@@ -458,10 +465,11 @@ async function run() {
 
 // --- mechanisms -------------------------------------------------------------------------------------
 async function mechanisms(note = 'for the controls set on the left') {
-  const q = new URLSearchParams(Object.entries(readControls()).map(([k, v]) => [k, String(v)]));
+  const body = { controls: readControls() };
   $('mech-note').textContent = 'computing…';
   try {
-    state.mechanisms = (await api('GET', `/mechanisms?${q}`)).data.result;
+    const g = state.geometry.read();
+    state.mechanisms = (await api('POST', '/mechanisms', g ? { ...body, geometry: g } : body)).data.result;
   } catch (e) { state.mechanisms = null; fitCanvas($('mech'), 20); $('mech-note').textContent = e.message; return; }
   $('mech-note').textContent = note;
   drawMechanisms(state.mechanisms);
@@ -639,8 +647,9 @@ async function start() {
   $('model').textContent = `${info.model_id} · scene ${info.scene.name} · ${info.n_params} parameters · extrapolation: ${info.extrapolation}`;
   buildControls();
   view = createView($('canvas3d'), info.scene, { cutaway: $('cutaway'), legend: $('legend-text'), colourbar: $('colourbar') });
+  state.geometry = initGeometry({ model: info, api, fmt, requestBody: controlsBody, onChange: () => {} });
   state.design = initDesign({
-    model: info, specs: state.specs, defaults: defaults(), fmt, api, followJob, jobs,
+    model: info, specs: state.specs, defaults: defaults(), fmt, api, followJob, jobs, geometry: () => state.geometry.read(),
     load: (controls) => { $('recipe-mode').checked = false; $('recipe').hidden = true; setControls(controls); showTab('controls'); run(); },
   });
   wire();

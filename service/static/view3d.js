@@ -45,9 +45,16 @@ export function createView(canvas, scene, els) {
   const surfaces = new THREE.Group();
   surfaces.position.set(size.x / 2, size.y / 2, scene.si_top * vx);
   surfaces.add(mask, si, err);
-  const rulers = buildRulers(size, scene.si_top * vx);
+  let rulers = buildRulers(size, scene.si_top * vx);
   world.add(surfaces, rulers);
   const view = { renderer, camera, controls, mask, si, err, size };
+  // a feature with another mask moves the Si top (the meshes' frame origin): the surfaces and rulers follow
+  let placedAt = scene.si_top;
+  view.placeFrame = (siTop) => {
+    if (siTop === placedAt) return;
+    placedAt = siTop; surfaces.position.z = siTop * vx;
+    world.remove(rulers); rulers = buildRulers(size, siTop * vx); world.add(rulers);
+  };
 
   view.render = () => {
     rulers.position.y = els.cutaway.checked ? size.y / 2 - 0.5 : -0.5; // in the cut face, else the front face

@@ -28,7 +28,7 @@ def test_simulation_job_compares_surrogate_with_simulator(make_client, default_c
     r = client.post("/simulations", json={"controls": partial, "steps": 3, "seed": 2})
     assert r.status_code == 202, r.text
     body = r.json()
-    assert set(body) == {"id", "kind", "status", "location", "controls", "defaulted"}
+    assert set(body) == {"id", "kind", "status", "location", "controls", "defaulted", "geometry"}
     assert body["kind"] == "simulation" and body["defaulted"] == ["flux_cl"]
     assert body["controls"]["flux_cl"] == pytest.approx(default_controls["flux_cl"])
     assert r.headers["location"] == body["location"] == f"/jobs/{body['id']}"

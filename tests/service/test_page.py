@@ -154,6 +154,29 @@ def test_page_runs_and_draws_without_console_errors(page):
     assert page.console_errors == []
 
 
+def test_the_feature_is_set_drawn_sent_and_compared_a_b(page):
+    """The geometry panel: the model's own feature prefilled (kinds it was not trained on disabled), a
+    cross-section sketch, the note on the trained range; Run sends the feature (a 60 nm hole on the 40 nm
+    model: the verdict is not trusted) and A/B rolls the same controls out on two features side by side."""
+    assert [page.input_value(f"#geo-{k}") for k in ("kind", "cd", "mask")] == ["hole", "40", "80"]
+    assert page.locator("#geo-kind option[value=trench]").is_disabled()
+    assert canvas_stats(page, "#geo-sketch")[0] > 200, "the feature sketch is empty"
+    assert "trained on holes of CD 40 nm, mask 80 nm" in page.inner_text("#geo-note")
+    page.fill("#geo-cd", "60")
+    assert "outside" in page.inner_text("#geo-note")
+    run_and_wait(page)
+    got = page.evaluate("() => [window.explorer.run.geometry, window.explorer.run.trust.level]")
+    assert got == [{"kind": "hole", "cd_nm": 60.0, "mask_nm": 80.0}, "reject"]
+    assert "level-reject" in page.get_attribute("#trust", "class")
+    page.fill("#geo-b-cd", "48")
+    page.click("#geo-ab-run")
+    page.wait_for_selector("#geo-ab table", timeout=20_000)
+    text = page.inner_text("#geo-ab")
+    assert "A: hole 60/80 nm" in text and "B: hole 48/80 nm" in text and "etch_depth" in text
+    page.wait_for_load_state("networkidle")
+    assert page.console_errors == [] and page.failed == []
+
+
 def test_time_slider_changes_the_view(page):
     run_and_wait(page)
     _, before3d = canvas_stats(page, "#canvas3d")
