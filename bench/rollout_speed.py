@@ -32,7 +32,7 @@ import contextlib
 import copy
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -122,12 +122,15 @@ def bench_rollout(
     repeats: int = 5,
     variants: Sequence[str] = VARIANTS,
     seed: int = 0,
+    arms: Mapping[str, nn.Module] | None = None,
 ) -> dict[str, Any]:
     """Time ``steps``-step rollouts of ``model`` from x0 (2, D, H, W) for each variant (CPU).
 
     Returns {"steps", "batch", "repeats", "threads", "variants": {name: {"median_s", "min_s", "times_s",
     "cpu_median_s", "cpu_times_s", "max_abs_diff_vs_fp32"}}}; ``max_abs_diff_vs_fp32`` is max
-    |x̂ - x̂_fp32| over the whole trajectory.
+    |x̂ - x̂_fp32| over the whole trajectory. ``arms``: other architectures (name -> untrained model, e.g.
+    the checkpoint's configuration with more states per call), each timed as variant ``arm:<name>`` through
+    OpenVINO f32 beside the others: the speed of a candidate before it is trained; its error is None.
     """
     if steps < 1 or batch < 1 or repeats < 1:
         raise ValueError(f"steps, batch and repeats must be >= 1, got {steps}, {batch}, {repeats}")
@@ -139,6 +142,12 @@ def bench_rollout(
     g = torch.Generator().manual_seed(seed)
     u = torch.rand(batch, N_CONTROLS, generator=g) * 2 - 1  # (B, 14) normalized
     setups = {name: _variant(model, x, name) for name in variants}
+    for arm, arm_model in (arms or {}).items():
+        from nemsim.inference.runtime import compile_model
+
+        variants.append(f"arm:{arm}")
+        setups[f"arm:{arm}"] = (compile_model(arm_model.eval(), "openvino", "f32"), x, contextlib.nullcontext,
+                                False)
     times: dict[str, list[float]] = {name: [] for name in variants}
     cpu_times: dict[str, list[float]] = {name: [] for name in variants}
     trajs: dict[str, torch.Tensor] = {}
@@ -170,7 +179,8 @@ def bench_rollout(
                 "times_s": times[name],
                 "cpu_median_s": statistics.median(cpu_times[name]),
                 "cpu_times_s": cpu_times[name],
-                "max_abs_diff_vs_fp32": float((trajs[name] - ref).abs().max()),
+                "max_abs_diff_vs_fp32": (None if name.startswith("arm:")
+                                         else float((trajs[name] - ref).abs().max())),
                 **({"fraction_computed": window_stats[name]["fraction_computed"]} if name in window_stats
                    else {}),
             }
@@ -187,8 +197,8 @@ def format_bench(report: dict[str, Any]) -> str:
     ]
     for name, v in report["variants"].items():
         frac = f"  ({v['fraction_computed']:.2f} of the voxels computed)" if "fraction_computed" in v else ""
+        err = "untrained" if v["max_abs_diff_vs_fp32"] is None else f"{v['max_abs_diff_vs_fp32']:.2e}"
         lines.append(
-            f"  {name:14s} {v['median_s']:9.3f} {v['min_s']:8.3f} {v['cpu_median_s']:8.3f} "
-            f"{v['max_abs_diff_vs_fp32']:15.2e}{frac}"
+            f"  {name:14s} {v['median_s']:9.3f} {v['min_s']:8.3f} {v['cpu_median_s']:8.3f} {err:>15s}{frac}"
         )
     return "\n".join(lines)

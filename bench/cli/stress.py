@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import re
+from typing import Any
 
 from bench.cli.common import add_truth_options, print_plan, sim_cost, sim_truth
 from nemsim.cli.common import Subparsers, UserError, load_checkpoint_arg, parse_seeds, write_json
@@ -80,6 +82,10 @@ def register_rollout(bench_sub: Subparsers) -> None:
                    "depth-windowed rollout; NEMSim only), openvino-f32, openvino-bf16, openvino-int8 (NNCF "
                    "post-training quantization; needs pip install nncf) (default: the first four)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--arm", dest="arms", action="append", default=[], metavar="NAME:KEY=VALUE[,KEY=VALUE]",
+                   help="also time an untrained model of the same configuration with these overrides through "
+                   "OpenVINO f32 (speed only, before training it), e.g. --arm k20:steps_per_call=20 "
+                   "--arm lean:decoder_refine=0,decoder_widths=[24,8]; repeatable; NEMSim only")
     p.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
     p.set_defaults(handler=_cmd_bench_rollout)
 
@@ -160,10 +166,45 @@ def _cmd_bench_rollout(args: argparse.Namespace) -> int:
             raise UserError(str(exc)) from exc
         torch.manual_seed(0)
         model = build_model("nemsim", scene, compile_rules(load_rules()))
+    arms = {name: _arm_model(model, overrides) for name, overrides in map(_parse_arm, args.arms)}
     report = bench_rollout(model, initial_state(scene), steps=args.steps, batch=args.batch,
-                           repeats=args.repeats, variants=variants)
+                           repeats=args.repeats, variants=variants, arms=arms)
     report["source"] = args.checkpoint or f"untrained nemsim on {scene.name}"
     print(format_bench(report))  # noqa: T201
     if args.json_out:
         write_json(args.json_out, report)
     return 0
+
+
+def _parse_arm(text: str) -> tuple[str, dict[str, Any]]:
+    """"NAME:KEY=VALUE,KEY=VALUE" -> (NAME, {KEY: VALUE}); values read as YAML (numbers, [lists])."""
+    import yaml
+
+    name, sep, body = text.partition(":")
+    pairs = [p for p in re.split(r",(?![^\[]*\])", body) if p.strip()] if sep else []
+    if not name or not pairs or any("=" not in p for p in pairs):
+        raise UserError(f"--arm {text!r}: expected NAME:KEY=VALUE[,KEY=VALUE], e.g. k20:steps_per_call=20")
+    out: dict[str, Any] = {}
+    for p in pairs:
+        key, _, value = p.partition("=")
+        v = yaml.safe_load(value)
+        out[key.strip()] = tuple(v) if isinstance(v, list) else v
+    return name.strip(), out
+
+
+def _arm_model(model: Any, overrides: dict[str, Any]) -> Any:
+    """An untrained NEMSim of ``model``'s configuration with ``overrides`` (seed 0)."""
+    import dataclasses
+
+    import torch
+
+    from nemsim.model.surrogate import NEMSim
+
+    if not isinstance(model, NEMSim):
+        raise UserError("--arm needs a NEMSim checkpoint or scene")
+    try:
+        cfg = dataclasses.replace(model.config, **overrides)
+    except TypeError as exc:
+        raise UserError(f"--arm: {exc}") from exc
+    torch.manual_seed(0)
+    return NEMSim(model.rules, cfg)

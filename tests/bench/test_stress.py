@@ -174,3 +174,23 @@ def test_cli_bench_rollout_window(tiny_checkpoint, tmp_path, monkeypatch, x0):
     win = json.loads(out.read_text())["variants"]["fp32-window"]
     assert 0.0 < win["fraction_computed"] <= 1.0
     assert win["max_abs_diff_vs_fp32"] < 0.25  # the stated tolerance is per-step RMS; a bound on max
+
+
+def test_cli_bench_rollout_arms(tmp_path, capsys):
+    """--arm times an untrained model of the configuration with overrides beside the variants (speed only);
+    a malformed arm or an unknown key is a one-line error."""
+    from bench.cli.stress import _parse_arm
+    from nemsim.cli import main
+
+    assert _parse_arm("lean:decoder_refine=0,decoder_widths=[24,8]") == (
+        "lean", {"decoder_refine": 0, "decoder_widths": (24, 8)})
+    out = tmp_path / "bench.json"
+    rc = main(["bench", "rollout", "--scene", "tiny", "--variants", "fp32", "--steps", "4", "--repeats", "1",
+               "--arm", "k2:steps_per_call=2", "--json", str(out)])
+    assert rc == 0
+    arm = json.loads(out.read_text())["variants"]["arm:k2"]
+    assert arm["max_abs_diff_vs_fp32"] is None and arm["cpu_median_s"] > 0
+    assert "untrained" in capsys.readouterr().out
+    assert main(["bench", "rollout", "--scene", "tiny", "--arm", "k2"]) == 2
+    assert main(["bench", "rollout", "--scene", "tiny", "--arm", "k2:no_such_key=1"]) == 2
+    assert "no_such_key" in capsys.readouterr().err
