@@ -16,6 +16,7 @@ rollouts per second; the server's RSS, peak RSS and CPU seconds.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -39,9 +40,13 @@ def _percentiles(samples_s: list[float]) -> dict[str, float]:
 
 
 def bench_service(
-    checkpoint: str | Path, *, n: int = 20, n_cached: int = 200, steps: int = 100, seed: int = 0
+    checkpoint: str | Path, *, n: int = 20, n_cached: int = 200, steps: int = 100, seed: int = 0,
+    sim_cases: int = 0,
 ) -> dict[str, Any]:
-    """Time `n` uncached and `n_cached` cached POST /rollout calls (metrics only) on `checkpoint`."""
+    """Time `n` uncached and `n_cached` cached POST /rollout calls (metrics only) on `checkpoint`; then, with
+    `sim_cases` > 0, the full-domain simulator (the checkpoint's data configuration, one core) on the first
+    `sim_cases` of the same uncached recipes, and the speed-up: its median wall time over the uncached p50
+    (`simulator_speedup`, the service's end-to-end speed against the simulator measured in the same run)."""
     from fastapi.testclient import TestClient
 
     from nemsim.controls import CONTROL_NAMES, CONTROL_SPECS, from_normalized
@@ -72,15 +77,16 @@ def bench_service(
         info = client.get("/model").json()
         first = body(np.asarray(from_normalized(np.zeros(len(CONTROL_NAMES))), dtype=np.float64))
         _post(client, first)  # warm the cache for the repeat figure
+        recipes = [body(np.asarray(from_normalized(rng.uniform(-1, 1, len(CONTROL_NAMES)))))
+                   for _ in range(n)]
         cpu0 = time.process_time()
-        uncached = [
-            _post(client, body(np.asarray(from_normalized(rng.uniform(-1, 1, len(CONTROL_NAMES))))))
-            for _ in range(n)
-        ]
+        uncached = [_post(client, r) for r in recipes]
         cpu1 = time.process_time()
         cached = [_post(client, first) for _ in range(n_cached)]
         cpu2 = time.process_time()
     outside = [1.0 - rollout_s / wall_s for wall_s, rollout_s in uncached]
+    sim = _time_simulator(checkpoint, [r["controls"] for r in recipes[:sim_cases]]) if sim_cases > 0 else None
+    p50_s = float(np.percentile([wall for wall, _ in uncached], 50))
     return {
         "checkpoint": Path(checkpoint).name,  # the file name: reports carry no machine paths
         "model_id": info["model_id"],
@@ -98,7 +104,26 @@ def bench_service(
             **_percentiles([wall for wall, _ in cached]),
             "cpu_ms_per_request": 1e3 * (cpu2 - cpu1) / n_cached,
         },
+        **({"simulator": sim, "simulator_speedup": sim["median"]["wall_s"] / p50_s} if sim else {}),
     }
+
+
+def _time_simulator(checkpoint: str | Path, controls: list[dict[str, float]]) -> dict[str, Any]:
+    """``bench.sim_speed.bench_speed`` of the full-domain simulator (the checkpoint's data configuration) on
+    these recipes (physical controls by name)."""
+    from bench.sim_speed import bench_speed
+    from nemsim.controls import CONTROL_NAMES
+    from nemsim.inference.checkpoint import load_checkpoint
+    from nemsim.inference.predictor import _recorded_sim_config
+
+    loaded = load_checkpoint(checkpoint)
+    config, _ = _recorded_sim_config(loaded.raw or {})
+    if config is not None:  # the full-domain simulator whatever domain made the data
+        config = dataclasses.replace(config, domain="full")
+    design = np.array([[c[name] for name in CONTROL_NAMES] for c in controls], dtype=np.float64)
+    rep = bench_speed(loaded.scene, loaded.rules, design, config)
+    return {"domain": "full", "n_cases": rep["n_cases"], "median": rep["median"],
+            "cases": [{"wall_s": r["wall_s"], "cpu_s": r["cpu_s"]} for r in rep["cases"]]}
 
 
 def _machine(backend: str) -> dict[str, Any]:

@@ -29,6 +29,10 @@ def register(bench_sub: Subparsers) -> None:
     p.add_argument("--cached-requests", type=int, default=200,
                    help="repeats of one cached request (default 200)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random controls (default 0)")
+    p.add_argument("--sim-cases", type=int, default=0,
+                   help="then time the full-domain simulator on the first N of the uncached recipes, one "
+                        "core, and report the service's speed-up over it (its median wall / the uncached "
+                        "p50; default 0: no simulator)")
     p.add_argument("--clients", type=int, default=None,
                    help="load mode: start `nemsim serve` on a loopback port and drive it with this many "
                         "concurrent HTTP clients (mixed routes); reports p50/p95/p99 per route, errors, RSS")
@@ -111,6 +115,9 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would drown the report
     if args.steps < 1 or args.requests < 1 or args.cached_requests < 1:
         raise UserError("--steps, --requests and --cached-requests must be >= 1")
+    if not 0 <= args.sim_cases <= args.requests:
+        raise UserError(f"--sim-cases must be between 0 and --requests ({args.requests}), "
+                        f"got {args.sim_cases}")
     if args.probes:
         return _bench_service_probes(args)
     if args.clients is not None:
@@ -121,6 +128,7 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
         n_cached=args.cached_requests,
         steps=args.steps,
         seed=args.seed,
+        sim_cases=args.sim_cases,
     )
     u, c = report["uncached"], report["cached"]
     print(  # noqa: T201
@@ -133,6 +141,10 @@ def _cmd_bench_service(args: argparse.Namespace) -> int:
         f"  cached:   p50 {c['p50_ms']:.2f} ms  p95 {c['p95_ms']:.2f} ms  (n={c['n']}); "
         f"CPU {c['cpu_ms_per_request']:.2f} ms per request"
     )
+    if "simulator" in report:
+        sim = report["simulator"]["median"]
+        print(f"  full-domain simulator (n={report['simulator']['n_cases']}): median {sim['wall_s']:.2f} s "  # noqa: T201
+              f"wall, {sim['cpu_s']:.2f} s CPU; the service {report['simulator_speedup']:.1f}x faster (p50)")
     if args.json_out:
         write_json(args.json_out, report)
     return 0

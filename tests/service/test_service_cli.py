@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from nemsim.cli import build_parser, main
 
 
@@ -33,6 +35,8 @@ def test_bench_service(tiny_checkpoint, tmp_path, capsys):
             "2",
             "--cached-requests",
             "120",  # more than the default rate-limit burst: the benchmark runs without the limit
+            "--sim-cases",
+            "1",
             "--json",
             str(out),
         ]
@@ -45,6 +49,12 @@ def test_bench_service(tiny_checkpoint, tmp_path, capsys):
     u = report["uncached"]
     assert 0 < u["outside_rollout_p50_ms"] <= u["p50_ms"]  # per request 0 < wall - rollout <= wall
     assert report["cached"]["p50_ms"] < report["uncached"]["p50_ms"] * 10
+    sim = report["simulator"]  # the full-domain simulator on the first uncached recipe, in the same run
+    assert sim["n_cases"] == 1 and sim["median"]["wall_s"] > 0
+    assert report["simulator_speedup"] == pytest.approx(sim["median"]["wall_s"] / (u["p50_ms"] / 1e3))
+    assert "full-domain simulator (n=1)" in text
+    too_many = ["bench", "service", "--checkpoint", str(tiny_checkpoint), "-n", "2", "--sim-cases", "3"]
+    assert main(too_many) == 2
 
 
 def test_bench_service_load(tiny_checkpoint, tmp_path, capsys):
