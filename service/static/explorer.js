@@ -399,6 +399,15 @@ function showTrust(t) {
   box.hidden = !t;
   if (!t) return;
   box.className = `level-${t.level}`;
+  const g = t.geometry;
+  if (g && !g.inside) {  // the feature, not the recipe, decides: say so first (the controls' verdict after)
+    const f = g.feature;
+    box.innerHTML = `<p><b>${TRUST_WORD[t.level] || esc(t.level)}</b>: this model never saw a ${esc(f.kind)} of CD `
+      + `${fmt(f.cd_nm)} nm under ${fmt(f.mask_nm)} nm of mask; the prediction is an extrapolation in geometry, `
+      + `not measured.</p><p class="hint">The recipe alone: ${TRUST_WORD[t.controls_level] || esc(t.controls_level)}, `
+      + `${TRUST_WHERE[t.group] || esc(t.group)}.</p>`;
+    return;
+  }
   let html = `<p><b>${TRUST_WORD[t.level] || esc(t.level)}</b>: this recipe lies ${TRUST_WHERE[t.group] || esc(t.group)}.</p>`;
   const m = t.measured;
   if (m) {

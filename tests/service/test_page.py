@@ -168,6 +168,8 @@ def test_the_feature_is_set_drawn_sent_and_compared_a_b(page):
     got = page.evaluate("() => [window.explorer.run.geometry, window.explorer.run.trust.level]")
     assert got == [{"kind": "hole", "cd_nm": 60.0, "mask_nm": 80.0}, "reject"]
     assert "level-reject" in page.get_attribute("#trust", "class")
+    trust = page.inner_text("#trust")  # the feature decides, said first; never "inside the trained region"
+    assert "never saw a hole of CD 60 nm" in trust and "extrapolation in geometry" in trust
     page.fill("#geo-b-cd", "48")
     page.click("#geo-ab-run")
     page.wait_for_selector("#geo-ab table", timeout=20_000)
