@@ -146,8 +146,35 @@ def _provenance(job: TrainJob, manifest: dict) -> dict[str, Any]:
 
     data = [record(Path(job.data), "splits", len(manifest.get("train", [])))]
     data += [record(Path(p), "extra") for p in job.extra_data]
+    files = [(Path(job.data), [int(c) for c in manifest.get("train", [])])]
+    files += [(Path(p), None) for p in job.extra_data]
     return {"init_from": None if job.init_from is None else str(job.init_from), "recipe": job.recipe,
-            "data": data}
+            "data": data, "geometry": trained_geometry(files)}
+
+
+def trained_geometry(files: Sequence[tuple[Path, Sequence[int] | None]]) -> dict[str, dict[str, list[float]]]:
+    """The features the training cases drew, per kind: ``{kind: {"cd_nm": [lo, hi], "mask_nm": [lo, hi]}}``
+    (the summary's ``geometry``, read by ``nemsim.inference.checkpoint.checkpoint_geometry``).
+
+    Args:
+        files: (trajectory file, the case ids that train, or None for all its complete cases) pairs. A file
+            without a per-case ``geometry`` dataset holds its scene's own feature (``case_feature``).
+    """
+    import numpy as np
+
+    from nemsim.data.hdf5 import open_trajectories
+
+    spans: dict[str, list[list[float]]] = {}  # kind -> [[cd lo, cd hi], [mask lo, mask hi]]
+    for path, ids in files:
+        with open_trajectories(path) as tf:
+            rows = np.flatnonzero(tf.complete) if ids is None else [tf.row_of(c) for c in ids]
+            for row in rows:
+                feature = tf.case_feature(int(row))
+                span = spans.setdefault(feature.kind, [[feature.cd_nm] * 2, [feature.mask_nm] * 2])
+                for pair, value in zip(span, (feature.cd_nm, feature.mask_nm), strict=True):
+                    pair[0], pair[1] = min(pair[0], value), max(pair[1], value)
+    return {kind: {"cd_nm": [float(v) for v in cd], "mask_nm": [float(v) for v in mask]}
+            for kind, (cd, mask) in spans.items()}
 
 
 def _complete_only(manifest: dict, tf: Any) -> dict:
