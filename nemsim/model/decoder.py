@@ -28,7 +28,8 @@ residuals from x_t (x̂_{t+j} = x_t + r_j), r_1 = Δx as above and
 linear extrapolation plus a learned per-voxel correction (zero-initialized): the etch front moves at a
 roughly steady rate within k steps, and a 1x1x1 head costs a small part of a step where a 3x3x3 one would
 cost more than the step. All k residuals come from one 1x1x1 convolution of [g, r_1] (weights [0, I],
-[W_E_2, 2I], ..., [W_E_k, kI]). With k = 1 there is no extra head.
+[W_E_2, 2I], ..., [W_E_k, kI]). With k = 1 there is no extra head. ``extend_steps`` grows a trained head to
+more states per call (fewer calls per rollout), keeping what it predicts for the first k states.
 """
 
 from __future__ import annotations
@@ -145,3 +146,33 @@ def upsample2(h: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor:
         return F.interpolate(h, size=size, mode="nearest")
     h = h[:, :, :, None, :, None, :, None].expand(B, C, d, 2, hh, 2, w, 2)  # (B, C, d, 2, h, 2, w, 2)
     return h.reshape(B, C, *size)
+
+
+def extend_steps(old: dict[str, torch.Tensor], new: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``old`` (a state dict of k_old states per call) fitted to ``new`` (k_new > k_old): the extra-step head
+    keeps its corrections E_2..E_k_old and continues them linearly, E_j = (j - 1) / (k_old - 1) · E_k_old for
+    j > k_old (zero when k_old = 1), so the grown model predicts the same first k_old states and extrapolates
+    the rest along its own trend (warm start of a model with more states per call). Other tensors are
+    returned unchanged; a head that shrinks or has another layout is refused (ValueError)."""
+    out = dict(old)
+    for suffix in ("decoder.extra.weight", "decoder.extra.bias"):
+        name_new = next((n for n in new if n.endswith(suffix)), None)
+        if name_new is None:
+            continue
+        w_new = new[name_new]
+        w_old = old.get(name_new)
+        if w_old is not None and w_old.shape == w_new.shape:
+            continue
+        block = 8 * 2  # rows per step: 8 sub-voxels x 2 channels (``packed``)
+        n_new = w_new.shape[0] // block + 1
+        n_old = 1 if w_old is None else w_old.shape[0] // block + 1
+        if n_new <= n_old or (w_old is not None and w_old.shape[1:] != w_new.shape[1:]):
+            shape = None if w_old is None else tuple(w_old.shape)
+            raise ValueError(f"{name_new}: shape {shape} does not extend to {tuple(w_new.shape)}")
+        if w_old is None:
+            out[name_new] = torch.zeros_like(w_new)
+            continue
+        last = w_old[-block:]  # E_k_old
+        more = [last * ((j - 1) / (n_old - 1)) for j in range(n_old + 1, n_new + 1)]
+        out[name_new] = torch.cat([w_old, *more])
+    return out

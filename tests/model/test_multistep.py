@@ -111,3 +111,31 @@ def test_deepcopy_after_inference(rules):
         y = model(x, u)
         twin = copy.deepcopy(model)
         assert torch.equal(twin(x, u), y)
+
+
+@pytest.mark.parametrize("k_old", [1, 3])
+def test_extend_steps_keeps_the_first_states_and_continues_the_trend(rules, k_old):
+    """A k_old head grown to k_new = 5 (``extend_steps``): the first k_old predicted states are those of the
+    k_old model; the added corrections continue E_k_old linearly (zero from k = 1: r_j = j r_1)."""
+    from nemsim.model.decoder import extend_steps
+
+    old = _model(rules, k_old, seed=1)
+    with torch.no_grad():  # a trained-like head: nonzero corrections
+        if k_old > 1:
+            old.decoder.extra.weight.normal_(0, 0.05)
+            old.decoder.extra.bias.normal_(0, 0.01)
+    new = _model(rules, 5, seed=2)
+    state = extend_steps(old.state_dict(), new.state_dict())
+    new.load_state_dict(state)
+    x, u = _inputs()
+    with torch.no_grad():
+        a = old.predict(x, old.precompute(u))
+        b = new.predict(x, new.precompute(u))
+    torch.testing.assert_close(b[:, :k_old], a)
+    w_old, w_new = old.state_dict().get("decoder.extra.weight"), new.decoder.extra.weight
+    if w_old is None:
+        assert not w_new.any()
+    else:
+        torch.testing.assert_close(w_new[-16:], w_old[-16:] * (4 / (k_old - 1)))
+    with pytest.raises(ValueError, match="does not extend"):
+        extend_steps(new.state_dict(), _model(rules, 3).state_dict())
