@@ -115,6 +115,16 @@ def init_from(model: Any, path: Path, name: str, rules: Any, scene: Any) -> None
         except ValueError as exc:
             raise TrainInputError(f"--init-from {path}: weights do not fit the model: {exc}") from None
         log.info("--init-from %s: the angle-feature columns of the control inputs start at zero", path)
+    k_old = int(ckpt["model_config"].get("steps_per_call", 1) or 1)
+    if cfg is not None and int(getattr(cfg, "steps_per_call", 1)) > k_old:
+        from nemsim.model.decoder import extend_steps
+
+        try:  # the first k_old states as the stored model predicts them, the rest along their trend
+            state = extend_steps(state, model.state_dict())
+        except ValueError as exc:
+            raise TrainInputError(f"--init-from {path}: weights do not fit the model: {exc}") from None
+        log.info("--init-from %s: the extra-step head grown from %d to %d states per call", path, k_old,
+                 cfg.steps_per_call)
     try:
         missing, unexpected = model.load_state_dict(state, strict=False)
     except RuntimeError as exc:  # shape mismatches

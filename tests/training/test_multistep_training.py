@@ -228,6 +228,31 @@ def test_cli_init_from_a_one_step_checkpoint(tmp_path, tiny_data, tiny_scene, ru
     assert "a 'fno' checkpoint, training 'nemsim'" in capsys.readouterr().err
 
 
+def test_cli_init_from_fewer_states_per_call_grows_the_head(tmp_path, tiny_data, tiny_scene, rules):
+    """--init-from a k=2 checkpoint into a k=3 run: the stored corrections kept, the new one continued from
+    them (``extend_steps``), said in the log."""
+    from nemsim.cli import main
+
+    two = tmp_path / "two.pt"
+    net = {**SMALL_NET, "steps_per_call": 2}
+    model = build_model("nemsim", tiny_scene, rules, dict(net))
+    with torch.no_grad():
+        model.decoder.extra.weight.normal_(0, 0.05)
+    save_checkpoint(two, model, model_name="nemsim", model_config=dataclasses.asdict(
+        model_config("nemsim", tiny_scene, dict(net))), scene=tiny_scene, rules=rules)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False, "lr": 1e-12,
+                               "min_lr": 0.0, "model": {**SMALL_NET, "steps_per_call": 3}}))
+    out = tmp_path / "run"
+    assert main(["train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id", "--out",
+                 str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1", "--rollout-steps",
+                 str(STEPS), "--config", str(cfg), "--no-progress", "--no-test", "--init-from", str(two)]) == 0
+    assert "the extra-step head grown from 2 to 3 states per call" in (out / "train.log").read_text()
+    w = read_checkpoint(out / "last.pt")["model_state"]["decoder.extra.weight"]
+    torch.testing.assert_close(w[:16], model.decoder.extra.weight, atol=1e-6, rtol=0)
+    torch.testing.assert_close(w[16:], 2 * model.decoder.extra.weight, atol=1e-6, rtol=0)
+
+
 def test_profile_loss_is_the_soft_metric_error_in_voxels(tiny_scene, make_hole):
     from nemsim.training.loop import profile_loss
 
