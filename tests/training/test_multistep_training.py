@@ -241,12 +241,14 @@ def test_cli_init_from_fewer_states_per_call_grows_the_head(tmp_path, tiny_data,
     save_checkpoint(two, model, model_name="nemsim", model_config=dataclasses.asdict(
         model_config("nemsim", tiny_scene, dict(net))), scene=tiny_scene, rules=rules)
     cfg = tmp_path / "cfg.json"
-    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False, "lr": 1e-12,
-                               "min_lr": 0.0, "model": {**SMALL_NET, "steps_per_call": 3}}))
+    cfg.write_text(json.dumps({"warmup_epochs": 0, "val_every": 1, "batch_size": 3, "bf16": False,
+                               "lr": 1e-12, "min_lr": 0.0, "model": {**SMALL_NET, "steps_per_call": 3}}))
     out = tmp_path / "run"
-    assert main(["train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id", "--out",
-                 str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1", "--rollout-steps",
-                 str(STEPS), "--config", str(cfg), "--no-progress", "--no-test", "--init-from", str(two)]) == 0
+    args = ["train", "--model", "nemsim", "--data", str(tiny_data), "--setting", "control-id",
+            "--out", str(out), "--splits", str(tiny_data.parent / "splits"), "--epochs", "1",
+            "--rollout-steps", str(STEPS), "--config", str(cfg), "--no-progress", "--no-test",
+            "--init-from", str(two)]
+    assert main(args) == 0
     assert "the extra-step head grown from 2 to 3 states per call" in (out / "train.log").read_text()
     w = read_checkpoint(out / "last.pt")["model_state"]["decoder.extra.weight"]
     torch.testing.assert_close(w[:16], model.decoder.extra.weight, atol=1e-6, rtol=0)
