@@ -124,7 +124,7 @@ def test_malformed_recipes_are_one_line_exit_2(tmp_path, tiny_data, capsys):
     assert "required: --data, --setting" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name", ["nemsim-small.yaml", "nemsim-paper.yaml"])
+@pytest.mark.parametrize("name", ["nemsim-small.yaml", "nemsim-paper.yaml", "nemsim-small-k20.yaml"])
 def test_shipped_recipes_parse(name):
     """The committed recipe (the served model, from nothing) is a valid recipe whose data commands and stage
     arguments parse, and whose config files and warm start exist."""
