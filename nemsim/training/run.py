@@ -156,7 +156,8 @@ def _provenance(job: TrainJob, manifest: dict) -> dict[str, Any]:
 
     data = [record(Path(job.data), "splits", len(manifest.get("train", [])))]
     data += [record(Path(p), "extra") for p in job.extra_data]
-    files = [(Path(job.data), [int(c) for c in manifest.get("train", [])])]
+    train_ids = [int(c) for c in manifest.get("train", [])]
+    files: list[tuple[Path, list[int] | None]] = [(Path(job.data), train_ids)]
     files += [(Path(p), None) for p in job.extra_data]
     return {"init_from": None if job.init_from is None else str(job.init_from), "recipe": job.recipe,
             "data": data, "geometry": trained_geometry(files)}
