@@ -10,7 +10,14 @@ reported as the mean of the two seeds' slopes with their spread (half the differ
 uncertain by about that). A hole that reached the bottom of the Si (depth >= the Si thickness less one
 voxel) is flagged: its depth is cut off there.
 
-Run: ``python -m bench.arde --scene small --out benchmarks/small/arde`` (writes arde.json and arde.md).
+With ``--checkpoint CKPT`` the model's depths and slopes are added beside the simulator's (``model_arde``):
+the same holes rolled out from each one's x_0 (``initial_state`` of the per-case scene) at the same
+recipes, and each slope's ratio to the simulator's. The simulator's results are reused from ``--sim-from``
+(with ``--checkpoint``, by default OUT.json when it exists) if they are for the same scene, domain, CDs,
+mask and recipes.
+
+Run: ``python -m bench.arde --scene small --out benchmarks/small/arde`` (writes arde.json and arde.md);
+``python -m bench.arde --checkpoint CKPT --sim-from benchmarks/small/arde.json --out DIR/arde``.
 """
 
 from __future__ import annotations
@@ -103,7 +110,7 @@ def bench_arde(base: Scene, rules: RuleTensors, chosen: dict[str, np.ndarray],
     idx = {t: int(round(t / base.snapshot_dt_s)) for t in TIMES_S}
     out = []
     for i, (name, u) in enumerate(chosen.items()):
-        runs = []
+        runs: list[dict[str, Any]] = []
         for j, cd in enumerate(cds):
             scene = Feature("hole", cd, mask_nm).apply(base)
             si_nm = scene.si_top * scene.voxel_nm
@@ -127,6 +134,78 @@ def bench_arde(base: Scene, rules: RuleTensors, chosen: dict[str, np.ndarray],
             "domain": cfg.domain, "times_s": list(TIMES_S), "recipes": out}
 
 
+def model_arde(loaded: Any, base: Scene, rep: dict[str, Any],
+               config: SimConfig | None = None) -> dict[str, Any]:
+    """The model's depths and ARDE slopes at the report's recipes, CDs and mask (module docstring).
+
+    Args:
+        loaded: a ``LoadedModel`` (``nemsim.inference.checkpoint.load_checkpoint``) of ``base``'s grid.
+        base: the scene whose feature is replaced by each hole.
+        rep: ``bench_arde``'s report (recipes with raw controls, ``cds_nm``, ``mask_nm``, ``times_s``).
+        config: the simulator configuration x_0 is built with (default: the report's domain).
+    Returns:
+        {"recipes": [{"recipe", "depth_nm": {cd: {t: nm}}, "slope": {t: nm/nm},
+        "ratio": {t: model slope / simulator slope}}], "rollout_s"}.
+    """
+    import torch
+
+    from nemsim.controls import to_normalized
+    from nemsim.evaluation.rollout import rollout
+    from nemsim.sim.process import initial_state
+
+    cfg = config or SimConfig(domain=rep["domain"])
+    cds = [float(c) for c in rep["cds_nm"]]
+    scenes = [Feature("hole", cd, float(rep["mask_nm"])).apply(base) for cd in cds]
+    x0 = torch.from_numpy(np.stack([initial_state(sc, cfg) for sc in scenes]))  # (B, 2, D, H, W)
+    idx = {str(t): int(round(float(t) / base.snapshot_dt_s)) for t in rep["times_s"]}
+    steps = max(idx.values())
+    rows, seconds = [], 0.0
+    for row in rep["recipes"]:
+        u = torch.from_numpy(to_normalized(np.asarray(row["controls"], dtype=np.float64))).float()
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            u_b = u[None].expand(len(cds), -1).contiguous()  # (B, 14)
+            pred = rollout(loaded.model, x0, u_b, steps)  # (B, T+1, 2, D, H, W)
+        seconds += time.perf_counter() - t0
+        depth = {str(cd): {t: profile_metrics(pred[b, k], sc)["etch_depth"] for t, k in idx.items()}
+                 for b, (cd, sc) in enumerate(zip(cds, scenes, strict=True))}
+        slope = {t: _slope(np.array(cds), np.array([depth[str(cd)][t] for cd in cds])) for t in idx}
+        ratio = {t: slope[t] / row["slope"][t]["mean"] for t in idx}
+        rows.append({"recipe": row["recipe"], "depth_nm": depth, "slope": slope, "ratio": ratio})
+    return {"recipes": rows, "rollout_s": seconds}
+
+
+def same_holes(rep: dict[str, Any], scene: str, domain: str, chosen: dict[str, np.ndarray]) -> bool:
+    """Whether a cached report simulated this scene, domain, CDs, mask and recipes (names and controls)."""
+    try:
+        return (rep["scene"] == scene and rep["domain"] == domain and list(rep["cds_nm"]) == list(CDS_NM)
+                and float(rep["mask_nm"]) == MASK_NM
+                and [r["recipe"] for r in rep["recipes"]] == list(chosen)
+                and all(np.allclose(r["controls"], chosen[r["recipe"]]) for r in rep["recipes"]))
+    except (KeyError, TypeError):
+        return False
+
+
+def model_markdown(rep: dict[str, Any], model: dict[str, Any], tolerance: float = 0.25) -> list[str]:
+    """The model's depths and slopes beside the simulator's (Markdown lines)."""
+    cds = [str(float(c)) for c in rep["cds_nm"]]
+    name, cid = model.get("checkpoint", "?"), model.get("checkpoint_id", "?")
+    lines = [f"Model `{name}` (id `{cid}`): the same holes rolled out from x_0; ratio = model slope / "
+             f"simulator slope (within +-{100 * tolerance:g} %: ok).", "",
+             "| recipe | t (s) | " + " | ".join(f"CD {float(c):g}" for c in cds)
+             + " | model slope | simulator slope | ratio |", "|---|---:|" + "---:|" * (len(cds) + 3)]
+    sim = {r["recipe"]: r for r in rep["recipes"]}
+    for row in model["recipes"]:
+        for t in row["slope"]:
+            ratio = row["ratio"][t]
+            verdict = "ok" if abs(ratio - 1.0) <= tolerance else "off"
+            lines.append(f"| {row['recipe']} | {float(t):g} | "
+                         + " | ".join(f"{row['depth_nm'][c][t]:.1f}" for c in cds)
+                         + f" | {row['slope'][t]:+.3f} | {sim[row['recipe']]['slope'][t]['mean']:+.3f} | "
+                         f"{ratio:.2f} ({verdict}) |")
+    return lines
+
+
 def to_markdown(rep: dict[str, Any], command: str, cpu: str) -> str:
     t_last = str(rep["times_s"][-1])
     lines = [f"# ARDE: hole depth against CD on `{rep['scene']}`", "", f"Command: `{command}`  ",
@@ -148,6 +227,8 @@ def to_markdown(rep: dict[str, Any], command: str, cpu: str) -> str:
                          + f" | {sl['mean']:+.3f} +- {sl['spread']:.3f} |")
     lines += ["", "Depths in nm: mean (seed 1, seed 2); * = reached the bottom of the Si (cut off).", "",
               LITERATURE, "", verdict(rep), ""]
+    if "model" in rep:
+        lines += model_markdown(rep, rep["model"]) + [""]
     return "\n".join(lines)
 
 
@@ -163,11 +244,33 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--domain", default="quarter", choices=("full", "quarter"))
     ap.add_argument("--recipes", default=",".join(recipes()), help="comma-separated names from recipes()")
     ap.add_argument("--out", type=Path, default=None, help="writes OUT.json and OUT.md")
+    ap.add_argument("--checkpoint", type=Path, default=None,
+                    help="also roll out this model at the same holes and recipes (its slopes beside the "
+                         "simulator's)")
+    ap.add_argument("--sim-from", type=Path, default=None,
+                    help="reuse the simulator's results of this arde.json when they are for the same holes "
+                         "(with --checkpoint, by default OUT.json if it exists)")
     args = ap.parse_args(argv)
     all_recipes = recipes()
+    unknown = sorted(set(args.recipes.split(",")) - set(all_recipes))
+    if unknown:
+        ap.error(f"unknown recipes {unknown}; expected some of {sorted(all_recipes)}")
     chosen = {n: all_recipes[n] for n in args.recipes.split(",")}
-    rep = bench_arde(get_scene(args.scene), compile_rules(load_rules()), chosen,
-                     config=SimConfig(domain=args.domain))
+    base = get_scene(args.scene)
+    cache = args.sim_from or (args.out.with_suffix(".json")
+                              if args.out is not None and args.checkpoint is not None else None)
+    cached = json.loads(cache.read_text()) if cache is not None and cache.is_file() else None
+    if cached is not None and same_holes(cached, base.name, args.domain, chosen):
+        rep = {k: cached[k] for k in ("scene", "mask_nm", "cds_nm", "seeds", "domain", "times_s", "recipes")}
+        sys.stderr.write(f"simulator results reused from {cache}\n")
+    else:
+        rep = bench_arde(base, compile_rules(load_rules()), chosen, config=SimConfig(domain=args.domain))
+    if args.checkpoint is not None:
+        from nemsim.inference.checkpoint import checkpoint_id, load_checkpoint
+
+        loaded = load_checkpoint(args.checkpoint, scene=base.name)
+        rep["model"] = {"checkpoint": str(args.checkpoint), "checkpoint_id": checkpoint_id(args.checkpoint),
+                        **model_arde(loaded, base, rep, SimConfig(domain=args.domain))}
     command, cpu = " ".join(["python -m bench.arde", *argv]), cpu_name()
     text = to_markdown(rep, command, cpu)
     if args.out is not None:

@@ -81,8 +81,8 @@ def bench_section(scene: Scene, rules: RuleTensors, recipes: dict[str, np.ndarra
         for m in METRICS:
             f = [x[m] for x in metrics["3d"]]
             q = [x[m] for x in metrics["section"]]
-            s = float(np.sqrt(((f[0] - f[1]) ** 2 + (q[0] - q[1]) ** 2) / 4.0))
-            per_metric[m] = {"3d": f, "section": q, "d": float(np.mean(q) - np.mean(f)), "s": s}
+            spread_m = float(np.sqrt(((f[0] - f[1]) ** 2 + (q[0] - q[1]) ** 2) / 4.0))
+            per_metric[m] = {"3d": f, "section": q, "d": float(np.mean(q) - np.mean(f)), "s": spread_m}
         rows.append({"recipe": name, "controls": [float(v) for v in u], "field": field,
                      "metrics": per_metric})
     med = {k: statistics.median(v) for k, v in cpu.items()}
