@@ -1,4 +1,4 @@
-"""Why the served model misses the top width's response to the ion angular exponents (issue #55, step 1):
+"""Why the served model misses the top width's response to the ion angular exponents:
 is the response in the training data, how large is it against the seed noise, at which exponents and in
 which coordinate does it happen, can a small regressor from the 14 controls learn it, and where along a
 rollout does the surrogate lose it? ``python -m bench.angle_response``.

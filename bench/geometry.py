@@ -1,4 +1,4 @@
-"""The surrogate across hole geometries (issue #54): field error, ARDE and today's geometry, vs the simulator.
+"""The surrogate across hole geometries: field error, ARDE and today's geometry, vs the simulator.
 
 Three measurements of a model (``--checkpoint``) beside a baseline (``--baseline``, the served model):
 
@@ -6,7 +6,7 @@ Three measurements of a model (``--checkpoint``) beside a baseline (``--baseline
     over the 100 steps) of 100-step rollouts from each case's x_0 against the simulator, a test file
     (``--test``) simulated twice with other seeds (``--test-seed``, the same design). The seed-to-seed floor
     is the same RMSE between the two simulations; each model's error is the mean of its errors against the
-    two; ``ratio`` = that / floor (the issue's target: <= 1.2 in the trained ranges);
+    two; ``ratio`` = that / floor (target: <= 1.2 in the trained ranges);
   * ARDE: depth against CD at the recipes of ``bench.arde`` (``model_arde``), each slope's ratio to the
     simulator's, whose results are read from ``--arde`` (``benchmarks/small/arde.json``, not simulated again);
   * today's geometry: Avg RMSE on a file of held-out cases at the scene's own feature (``--default``).
@@ -39,7 +39,7 @@ from nemsim.evaluation.rollout import rollout
 from nemsim.geometry.profile import profile_metrics
 from nemsim.sim.config import SimConfig
 
-TARGET_RATIO = 1.2  # field error / seed-to-seed floor, the issue's target
+TARGET_RATIO = 1.2  # field error / seed-to-seed floor, the target
 
 
 def _avg_final(mse: np.ndarray) -> dict[str, float]:
@@ -155,12 +155,12 @@ def to_markdown(rep: dict[str, Any]) -> str:
         ids = ", ".join(f"{c['case_id']} (CD {c['cd_nm']:.0f}, mask {c['mask_nm']:.0f})"
                         for c in t["through_cases"])
         lines.append(f"- `{t['file']}`: {t['through']} of {t['cases']}" + (f": {ids}" if ids else ""))
-    lines += ["", "## Against the issue's targets", "", *verdict(rep)]
+    lines += ["", "## Against the targets", "", *verdict(rep)]
     return "\n".join(lines) + "\n"
 
 
 def verdict(rep: dict[str, Any], tolerance: float = 0.25) -> list[str]:
-    """One line per target of issue #54 for the measured model (Markdown list items)."""
+    """One line per geometry target for the measured model (Markdown list items)."""
     f, model = rep["field"], rep["field"]["model"]
     out = []
     if "ratio_to_floor" in model:

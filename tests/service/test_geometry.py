@@ -1,4 +1,4 @@
-"""The `geometry` block of the API (issue #54): validated (kind, positive finite numbers, the fit to the
+"""The `geometry` block of the API: validated (kind, positive finite numbers, the fit to the
 grid: 422 with one line), echoed as built, part of the rollout cache key, listed by GET /model with the
 trained ranges; a kind the model was not trained on is refused naming the kinds it knows; a feature outside
 the trained ranges is answered but never trusted."""

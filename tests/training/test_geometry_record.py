@@ -1,4 +1,4 @@
-"""Training records the geometry it saw (issue #54): the summary's ``geometry``, per kind, read back by the
+"""Training records the geometry it saw: the summary's ``geometry``, per kind, read back by the
 inference side (``checkpoint_geometry``)."""
 
 from __future__ import annotations
