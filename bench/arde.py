@@ -272,12 +272,15 @@ def main(argv: list[str] | None = None) -> None:
         rep["model"] = {"checkpoint": str(args.checkpoint), "checkpoint_id": checkpoint_id(args.checkpoint),
                         **model_arde(loaded, base, rep, SimConfig(domain=args.domain))}
     command, cpu = " ".join(["python -m bench.arde", *argv]), cpu_name()
-    text = to_markdown(rep, command, cpu)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        record = {"command": command, "cpu": cpu, **rep}
-        args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
-        args.out.with_suffix(".md").write_text(text)
+    write_report(args.out, to_markdown(rep, command, cpu), {"command": command, "cpu": cpu, **rep})
+
+
+def write_report(out: Path | None, text: str, record: dict[str, Any]) -> None:
+    """Print a report's Markdown; with ``out`` also write it as OUT.md and its record as OUT.json."""
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.with_suffix(".json").write_text(json.dumps(record, indent=1))
+        out.with_suffix(".md").write_text(text)
     sys.stdout.write(text)
 
 

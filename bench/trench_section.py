@@ -20,7 +20,6 @@ Run: ``python -m bench.trench_section --scene small --out benchmarks/small/trenc
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -123,6 +122,7 @@ def to_markdown(rep: dict[str, Any], command: str, cpu: str) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     from bench.arde import recipes as arde_recipes
+    from bench.arde import write_report
     from bench.machine import cpu_name
     from nemsim.rules.compile import compile_rules
     from nemsim.rules.schema import load_rules
@@ -142,13 +142,7 @@ def main(argv: list[str] | None = None) -> None:
     chosen = {n: all_recipes[n] for n in args.recipes.split(",")}
     rep = bench_section(scene, compile_rules(load_rules()), chosen, args.section_ny)
     command, cpu = " ".join(["python -m bench.trench_section", *argv]), cpu_name()
-    text = to_markdown(rep, command, cpu)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        record = {"command": command, "cpu": cpu, **rep}
-        args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
-        args.out.with_suffix(".md").write_text(text)
-    sys.stdout.write(text)
+    write_report(args.out, to_markdown(rep, command, cpu), {"command": command, "cpu": cpu, **rep})
 
 
 if __name__ == "__main__":

@@ -96,13 +96,8 @@ def with_geometry_trust(trust: dict[str, Any], predictor: Any, feature: Any = No
     """`trust` with its `geometry` entry (the feature, inside the trained ranges?, those ranges); outside
     them the level is `reject` (module docstring)."""
     feature = predictor.case(None).feature if feature is None else feature
-    outside = predictor.geometry_outside(feature)
     out = dict(trust)
-    out["geometry"] = {
-        "feature": feature.to_dict(),
-        "inside": outside is None,
-        "trained": predictor.geometry.as_dict()["kinds"],
-    }
+    out["geometry"], outside = _geometry_entry(predictor, feature)
     if outside is not None:
         out["controls_level"] = out.get("level")
         out["level"] = "reject"
@@ -232,17 +227,21 @@ def design_work(
 def with_geometry(result: dict[str, Any], predictor: Any, feature: Any) -> dict[str, Any]:
     """A design result with its `geometry` (feature, inside the trained ranges?, the ranges, why not);
     outside them every recipe is `ood`."""
-    outside = predictor.geometry_outside(feature)
     out = dict(result)
-    out["geometry"] = {
-        "feature": feature.to_dict(),
-        "inside": outside is None,
-        "trained": predictor.geometry.as_dict()["kinds"],
-        **({} if outside is None else {"reason": outside}),
-    }
+    entry, outside = _geometry_entry(predictor, feature)
+    out["geometry"] = entry if outside is None else {**entry, "reason": outside}
     if outside is not None:
         out["recipes"] = [{**rec, "ood": True} for rec in out.get("recipes") or []]
     return out
+
+
+def _geometry_entry(predictor: Any, feature: Any) -> tuple[dict[str, Any], str | None]:
+    """(the `geometry` entry of an answer: the feature, inside the trained ranges?, those ranges; why it lies
+    outside them, None inside)."""
+    outside = predictor.geometry_outside(feature)
+    entry = {"feature": feature.to_dict(), "inside": outside is None,
+             "trained": predictor.geometry.as_dict()["kinds"]}
+    return entry, outside
 
 
 def write_weights(loaded: Any, path: Path) -> None:
