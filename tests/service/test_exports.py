@@ -39,8 +39,10 @@ def test_metrics_csv_is_the_rollouts_metrics(client, default_controls):
     assert f'filename="nemsim_{body["id"]}_metrics.csv"' in r.headers["content-disposition"]
     comments, header, rows = _csv(r.text)
     assert body["model_id"] in comments[0] and "scene tiny" in comments[0] and "voxel 8 nm" in comments[0]
-    assert json.loads(comments[1].split(": ", 1)[1]) == pytest.approx(body["controls"])
-    assert comments[3].startswith(f"# frame: {FRAME}; depths (etch_depth, neck_depth) are below the initial")
+    said = {line.split(":", 1)[0]: line.split(": ", 1)[1] for line in comments[1:]}  # "# name: value"
+    assert json.loads(said["# geometry"]) == body["geometry"]
+    assert json.loads(said["# controls (physical units)"]) == pytest.approx(body["controls"])
+    assert said["# frame"].startswith(f"{FRAME}; depths (etch_depth, neck_depth) are below the initial")
     names = list(body["metrics"])
     assert header == ["step", "time [s]"] + [f"{n} [nm]" for n in names]
     assert [row[0] for row in rows] == ["0", "1", "2", "3"]
@@ -58,7 +60,7 @@ def test_metrics_csv_of_a_recipe_has_control_columns(client, default_controls):
     second = {**default_controls, "flux_cl": 2 * default_controls["flux_cl"]}
     body = _rollout(client, recipe=[default_controls, second])
     comments, header, rows = _csv(client.get(f"/rollouts/{body['id']}/metrics.csv").text)
-    assert "a recipe of 2 control sets" in comments[1]
+    assert any(line.startswith("# controls: a recipe of 2 control sets") for line in comments)
     control_cols = header[-len(CONTROL_NAMES) :]
     assert control_cols == [f"{s.name} [{s.unit}]" for s in CONTROL_SPECS]
     assert "flux_cl [mol m^-2 s^-1]" in control_cols and "angle_cl [1]" in control_cols
