@@ -214,8 +214,9 @@ def row_share(raw: np.ndarray, field: np.ndarray, noise_var: np.ndarray | None) 
     by_row = {k: v.reshape(d, -1).mean(axis=1) for k, v in parts.items()}  # (D,)
     rows = [{"row": r, **{k: float(v[r]) for k, v in by_row.items()}} for r in range(d)]
     out: dict[str, Any] = {"rows": rows, **{k: float(v.mean()) for k, v in parts.items()}}
+    rows_any: list[dict[str, Any]] = rows
     out.setdefault("noise_var", None)
-    for r in rows:
+    for r in rows_any:
         r.setdefault("noise_var", None)
     return out
 
@@ -376,7 +377,7 @@ def _rollouts(model: Any, x0: np.ndarray, raw: np.ndarray, steps: Sequence[int],
 
 
 def _one_call(model: Any, states: Any, raw: np.ndarray, rows: Sequence[int], t0: int, scene: Any
-              ) -> dict[str, dict[str, np.ndarray]]:
+              ) -> dict[str, Any]:
     """Increments of the metrics over one call from the simulator's state at t0: simulator and surrogate."""
     from nemsim.evaluation.rollout import steps_per_call
     from nemsim.evaluation.truth import predict
@@ -389,7 +390,9 @@ def _one_call(model: Any, states: Any, raw: np.ndarray, rows: Sequence[int], t0:
     for i, traj in predict(model, start, raw, k, batch_size=8):
         pred[i] = traj[-1]
     m0, ms, mm = (profile_metrics_batch(a, scene) for a in (start, end, pred))
-    return {"k": k, "sim": {m: ms[m] - m0[m] for m in METRICS}, "model": {m: mm[m] - m0[m] for m in METRICS}}
+    out: dict[str, Any] = {"k": k, "sim": {m: ms[m] - m0[m] for m in METRICS},
+                           "model": {m: mm[m] - m0[m] for m in METRICS}}
+    return out
 
 
 def _noise(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, float]:

@@ -378,8 +378,11 @@ def test_a_failed_design_reports_what_the_search_raised(served, tmp_path):
 
     x0 = np.zeros((2, 3, 3, 3), dtype=np.float32)  # not the scene's shape: the first rollout fails
     loaded = served.predictor.loaded
+    case = SimpleNamespace(x0=x0, scene=loaded.scene, feature=None)  # the design's FeatureCase, x0 broken
     broken = SimpleNamespace(
-        predictor=SimpleNamespace(x0=x0, sim_config=None, loaded=loaded), model_id="broken-initial-state"
+        predictor=SimpleNamespace(case=lambda feature: case, simulator_config=lambda scene: None,
+                                  loaded=loaded),
+        model_id="broken-initial-state",
     )
     spec = spec_from_dict({"targets": {"etch_depth": 20}, "step": 2, "search": DESIGN_SEARCH})
     ctx = InverseContext(
