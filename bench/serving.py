@@ -112,12 +112,12 @@ def _time_simulator(checkpoint: str | Path, controls: list[dict[str, float]]) ->
     """``bench.sim_speed.bench_speed`` of the full-domain simulator (the checkpoint's data configuration) on
     these recipes (physical controls by name)."""
     from bench.sim_speed import bench_speed
+    from nemsim.analysis.inverse.context import simulator_config
     from nemsim.controls import CONTROL_NAMES
     from nemsim.inference.checkpoint import load_checkpoint
-    from nemsim.inference.predictor import _recorded_sim_config
 
     loaded = load_checkpoint(checkpoint)
-    config, _ = _recorded_sim_config(loaded.raw or {})
+    config = simulator_config(loaded)
     if config is not None:  # the full-domain simulator whatever domain made the data
         config = dataclasses.replace(config, domain="full")
     design = np.array([[c[name] for name in CONTROL_NAMES] for c in controls], dtype=np.float64)
