@@ -68,10 +68,13 @@ def build_model(name: str, scene, rules, config: dict[str, Any] | None = None) -
 
 
 def _build_nemsim(scene, rules, cfg: NEMSimConfig) -> nn.Module:
-    if cfg.domain == "quarter":  # the quadrant's mirror halo needs the full field's lateral size
-        if scene is None or getattr(scene, "symmetry", "none") != "d4":
+    if cfg.domain in ("quarter", "section"):  # the mirror halo needs the full field's lateral size
+        if cfg.domain == "quarter" and (scene is None or getattr(scene, "symmetry", "none") != "d4"):
             raise ValueError(f"a quarter-domain model needs a scene with the square's symmetry, got "
                              f"{getattr(scene, 'name', scene)!r}")
+        if scene is None or scene.field_shape[-1] != scene.field_shape[-2]:
+            raise ValueError(f"a section-domain model needs a square grid (the trench's field is unfolded "
+                             f"to it), got {getattr(scene, 'name', scene)!r}")
         size = int(scene.field_shape[-1])
         if cfg.full_size not in (0, size):
             raise ValueError(f"the model was built for a field of {cfg.full_size} voxels, the scene "

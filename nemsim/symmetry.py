@@ -18,12 +18,23 @@ transpose of H and W.
   * ``mirror_pad(q, p)``: q extended by p voxels across the axis faces with the voxels the full field has
     there (the network's halo on a quarter domain).
 
+A trench (symmetry "mirror_x_translate_y": the mirror x -> -x about its axis, every translation along y)
+has a cross-section as its fundamental domain: ``FieldFold("section", n)`` keeps ``SECTION_ROWS`` equal rows
+of y and the low half of x (the axis on the high W face), ``unfold`` mirrors x and repeats the row along y.
+
 Choice: the quadrant, not the eighth. The eighth (a triangle) is not a box a 3-D convolution can run on;
 the diagonal mirror is kept by averaging the quadrant with its transpose (``symmetrize`` on a quadrant).
+Choice: a cross-section keeps 4 equal rows of y, not one, so it runs through the same 3-D network
+(two 2x poolings) unchanged: on a field constant along y every convolution (edge-padded), pooling and
+normalization gives a field constant along y, so the rows stay equal (``FieldFold.finish_`` averages them,
+exactly). It costs 4/c of a quadrant (4/14 on ``small``) where a 2-D network would cost 1/c.
 A scene with ``symmetry = "none"`` (an off-centre or asymmetric layout) keeps the full domain everywhere.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
 
 import numba
 import numpy as np
@@ -32,6 +43,8 @@ import torch
 from nemsim.scenes import quadrant_size
 
 N_D4 = 8  # order of the square's symmetry group
+SECTION_ROWS = 4  # rows of y a cross-section keeps (a multiple of the encoder's two 2x poolings; docstring)
+FOLDS = ("quarter", "section")  # the model domains a FieldFold maps to
 
 
 def _square(x: torch.Tensor) -> tuple[int, int]:
@@ -118,6 +131,110 @@ def mirror_pad(q: torch.Tensor, pad: int, n: int) -> torch.Tensor:
         raise ValueError(f"a mirror halo of {pad} voxels needs a quadrant of more than {pad + skip}, got {c}")
     q = torch.cat([q, q[..., c - skip - pad: c - skip].flip(-1)], dim=-1)
     return torch.cat([q, q[..., c - skip - pad: c - skip, :].flip(-2)], dim=-2)
+
+
+def section_mean(x: torch.Tensor) -> torch.Tensor:
+    """The mean of x (..., H, W) over a trench's symmetries: the mirror of W about the field's centre and
+    every translation along H (the mean over H, repeated). A new tensor of x's shape and dtype."""
+    xf = x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
+    m = (0.5 * (xf + xf.flip(-1))).mean(dim=-2, keepdim=True)
+    return m.expand_as(xf).to(x.dtype).contiguous()
+
+
+def unfold_section(q: torch.Tensor, n: int, out: torch.Tensor | None = None) -> torch.Tensor:
+    """The full field (..., n, n) of a cross-section q (..., r, c) (rows equal): its first row mirrored across
+    the high W face (x) and repeated along H (y); written into ``out`` when given."""
+    c = quadrant_size(n)
+    if q.shape[-1] != c:
+        raise ValueError(f"a cross-section of a field of size {n} is {c} wide, got {tuple(q.shape[-2:])}")
+    row = q[..., :1, :]  # (..., 1, c)
+    full = torch.cat([row, row.flip(-1)[..., n % 2:]], dim=-1).expand(*q.shape[:-2], n, n)
+    if out is None:
+        return full.contiguous()
+    if tuple(out.shape) != tuple(full.shape):
+        raise ValueError(f"out must be {tuple(full.shape)}, got {tuple(out.shape)}")
+    return out.copy_(full)
+
+
+def mirror_pad_x(q: torch.Tensor, pad: int, n: int) -> torch.Tensor:
+    """A cross-section q (..., r, c) extended by ``pad`` voxels on its high W face (across the trench axis)
+    with the full field's voxels there (``mirror_pad`` on one axis)."""
+    if pad <= 0:
+        return q
+    c = quadrant_size(n)
+    skip = n % 2
+    if pad > c - skip:
+        raise ValueError(f"a mirror halo of {pad} voxels needs a half-width of more than {pad + skip}, "
+                         f"got {c}")
+    return torch.cat([q, q[..., c - skip - pad: c - skip].flip(-1)], dim=-1)
+
+
+def rows_mean_(x: torch.Tensor) -> torch.Tensor:
+    """Every row of x (..., H, W) replaced by the mean of the H rows, in place (a cross-section's rows are
+    equal; this makes them so exactly). Returns x."""
+    return x.copy_(x.mean(dim=-2, keepdim=True).expand_as(x))
+
+
+@dataclass(frozen=True)
+class FieldFold:
+    """The maps between full fields (..., n, n) and a model's fundamental domain (module docstring):
+    ``kind`` "quarter" (a hole's quadrant, (c, c)) or "section" (a trench's cross-section,
+    (``SECTION_ROWS``, c)); n the full field's lateral size."""
+
+    kind: Literal["quarter", "section"]
+    n: int
+
+    def __post_init__(self) -> None:
+        if self.kind not in FOLDS:
+            raise ValueError(f"a fold is one of {FOLDS}, got {self.kind!r}")
+
+    @property
+    def plane(self) -> tuple[int, int]:
+        """(H, W) of a folded field."""
+        c = quadrant_size(self.n)
+        return (c, c) if self.kind == "quarter" else (SECTION_ROWS, c)
+
+    def is_full(self, x: torch.Tensor) -> bool:
+        """True when x (..., H, W) is a full field rather than a folded one."""
+        return tuple(x.shape[-2:]) == (self.n, self.n)
+
+    def symmetrize(self, x: torch.Tensor) -> torch.Tensor:
+        """The mean of a full field over the fold's group (the square's 8 symmetries; a trench's mirror and
+        translations)."""
+        return symmetrize(x, "d4") if self.kind == "quarter" else section_mean(x)
+
+    def fold(self, x: torch.Tensor) -> torch.Tensor:
+        """The folded part (..., H, W) = ``plane`` of a symmetric full field (a view)."""
+        h, w = self.plane
+        return x[..., :h, :w]
+
+    def unfold(self, q: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+        """The full field (..., n, n) of a folded one (into ``out`` when given)."""
+        return unfold(q, self.n, out) if self.kind == "quarter" else unfold_section(q, self.n, out)
+
+    def pad(self, q: torch.Tensor, pad: int) -> torch.Tensor:
+        """The folded field with a mirror halo of ``pad`` voxels across the feature's axis (or axes)."""
+        return mirror_pad(q, pad, self.n) if self.kind == "quarter" else mirror_pad_x(q, pad, self.n)
+
+    def finish(self, x: torch.Tensor) -> torch.Tensor:
+        """``finish_`` out of place (differentiable): a new tensor of x's shape."""
+        if self.kind == "quarter":
+            return symmetrize(x, "diagonal")
+        return x.mean(dim=-2, keepdim=True).expand_as(x).contiguous()
+
+    def finish_(self, x: torch.Tensor) -> torch.Tensor:
+        """A predicted folded field made exactly symmetric, in place: the quadrant's diagonal mean, the
+        section's row mean."""
+        return symmetrize_diagonal_(x) if self.kind == "quarter" else rows_mean_(x)
+
+
+def model_fold(model: object) -> FieldFold | None:
+    """The fold of a model that runs on a fundamental domain (``config.domain`` "quarter" or "section", a
+    NEMSim or a runtime exposing its config); None for a full-domain model."""
+    cfg = getattr(model, "config", None)
+    n = int(getattr(cfg, "full_size", 0) or 0)
+    kind = getattr(cfg, "domain", "full")
+    return FieldFold(kind, n) if kind in FOLDS and n else None  # type: ignore[arg-type]
 
 
 def quarter_model_size(model: object) -> int | None:

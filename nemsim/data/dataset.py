@@ -19,7 +19,8 @@ their completion flag are refused (ValueError naming them) rather than silently 
 Scene symmetry ("model only what a scene needs", ``nemsim.symmetry``): a ``TransitionDataset`` can average
 every state it yields over the scene's symmetries (``symmetrize``: the mean of a Monte Carlo state's 8
 images, a quieter target of the same mean evolution) and yield the fundamental domain's quadrant
-(``quarter``: what a quarter-domain model trains on).
+(``quarter``: what a quarter-domain model trains on), or a trench's cross-section (``section``: the mean
+over y and the x mirror, 4 rows of the low half of x; what a section-domain model trains on).
 
 ``MemoryTransitions`` holds the training items of one or more such datasets in memory instead (the input
 pipeline that keeps up with a GPU): each trajectory is read and inflated once on every core
@@ -40,7 +41,7 @@ import torch
 from torch.utils.data import ConcatDataset, Dataset
 
 from nemsim.data.hdf5 import open_trajectories
-from nemsim.symmetry import fold, symmetrize
+from nemsim.symmetry import FieldFold, section_mean, symmetrize
 
 SPLITS = ("train", "val", "test", "unused")
 
@@ -71,6 +72,7 @@ class _H5Backed(Dataset):
         self.split = split
         with open_trajectories(self.path) as tf:
             self.scene = tf.scene
+            self.feature_kind = tf.feature_kind  # "hole" or "trench" (the file's features)
             self.rows = _select_rows(tf, manifest, split)  # (n,) file rows
             self.case_ids = tf.case_ids[self.rows].astype(np.int64)  # (n,)
             self.n_states = tf.n_states
@@ -143,12 +145,20 @@ class TransitionDataset(_H5Backed):
         unroll: int = 1,
         symmetrize: bool = False,
         quarter: bool = False,
+        section: bool = False,
     ) -> None:
         super().__init__(path, manifest, split)
-        if (symmetrize or quarter) and self.scene.symmetry == "none":
+        if quarter and section:
+            raise ValueError("a training set is folded to a quarter or to a cross-section, not both")
+        if (symmetrize or quarter) and not section and self.scene.symmetry == "none":
             raise ValueError(f"{self.path}: scene {self.scene.name!r} declares no symmetry, so its states "
                              "cannot be symmetrized or folded to a quarter domain")
-        self.symmetrize, self.quarter = bool(symmetrize), bool(quarter)
+        if section and self.feature_kind != "trench":
+            raise ValueError(f"{self.path}: a cross-section is a trench's; the file holds "
+                             f"{self.feature_kind!r} features")
+        self.symmetrize, self.quarter, self.section = bool(symmetrize), bool(quarter), bool(section)
+        n = int(self.scene.field_shape[-1])
+        self._fold = FieldFold("section", n) if section else FieldFold("quarter", n) if quarter else None
         n_trans = self.n_states - 1
         v = n_trans if visible_transitions is None else int(visible_transitions)
         if not 1 <= v <= n_trans:
@@ -181,10 +191,13 @@ class TransitionDataset(_H5Backed):
 
 
     def transform(self, states: torch.Tensor) -> torch.Tensor:
-        """States (..., C, D, H, W) as the items carry them: symmetrized and/or folded (module docstring)."""
-        if self.symmetrize:
+        """States (..., C, D, H, W) as the items carry them: symmetrized and/or folded (module docstring; a
+        cross-section always averaged over the trench's symmetries first)."""
+        if self.section:
+            states = section_mean(states)
+        elif self.symmetrize:
             states = symmetrize(states)
-        return fold(states).contiguous() if self.quarter else states
+        return self._fold.fold(states).contiguous() if self._fold is not None else states
 
 
 class TransitionSets(ConcatDataset):
@@ -234,9 +247,9 @@ class PairDataset(Dataset):
     """
 
     def __init__(self, path: str | Path, unroll: int = 1, visible_transitions: int | None = None,
-                 symmetrize: bool = False, quarter: bool = False) -> None:
+                 symmetrize: bool = False, quarter: bool = False, section: bool = False) -> None:
         self.base = TransitionDataset(path, None, "train", visible_transitions=visible_transitions,
-                                      unroll=unroll, symmetrize=symmetrize, quarter=quarter)
+                                      unroll=unroll, symmetrize=symmetrize, quarter=quarter, section=section)
         self.scene, self.unroll = self.base.scene, self.base.unroll
         with open_trajectories(self.base.path) as tf:
             file_pairs = tf.seed_pairs()  # (P, 2) file rows
@@ -360,7 +373,7 @@ def decoded_states(sets: list, device: torch.device, progress: bool = False,
     def key_of(s) -> tuple:
         st = s.path.stat()
         return (str(s.path.resolve()), st.st_size, st.st_mtime_ns, s.rows.tobytes(),
-                getattr(s, "symmetrize", False), getattr(s, "quarter", False))
+                getattr(s, "symmetrize", False), getattr(s, "quarter", False), getattr(s, "section", False))
 
     key = (tuple(key_of(s) for s in sets), str(device))
     if key in _DECODED:

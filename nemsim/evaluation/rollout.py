@@ -16,7 +16,8 @@ Quarter-domain models (``model.config.domain == "quarter"``, ``nemsim.symmetry``
 lower quadrant of x_0 (every call, the monotone projection and the buffers a quarter of the size) and returns
 the full fields rebuilt by reflection, exactly symmetric (the quadrant starts from the symmetric mean of x_0
 and each call's states are averaged with their transpose, the diagonal mirror); ``on_step`` sees full
-fields.
+fields. A cross-section model (``domain == "section"``, a trench) the same on its cross-section (each call's
+rows averaged), returning the full fields repeated along the line.
 
 Multi-step models (``model.config.steps_per_call`` = k > 1, with ``predict(x, cache) -> (B, k, 2, D, H, W)``):
 one call yields the next k states, and every state is still returned (and passed to ``on_step``). A call
@@ -37,7 +38,7 @@ from torch import nn
 
 from nemsim.model.monotone import projection_of
 from nemsim.model.unpack import Finish
-from nemsim.symmetry import fold, quarter_model_size, symmetrize, unfold
+from nemsim.symmetry import FieldFold, model_fold
 
 StepCallback = Callable[[int, torch.Tensor], None]
 
@@ -89,11 +90,11 @@ def rollout(
     """
     if x0.ndim != 5:
         raise ValueError(f"x0 must be (B, 2, D, H, W), got shape {tuple(x0.shape)}")
-    n = quarter_model_size(model)
-    if n is not None and x0.shape[-1] == n:  # a quarter-domain model: roll the quadrant (docstring)
-        size = n
-        on_q = None if on_step is None else (lambda t, xq: on_step(t, unfold(xq, size)))
-        return on_quadrant(x0, n, lambda xq: rollout(model, xq, u, steps, keep=keep, on_step=on_q,
+    f = model_fold(model)
+    if f is not None and f.is_full(x0):  # a quarter- or section-domain model: roll the folded field
+        fd = f
+        on_q = None if on_step is None else (lambda t, xq: on_step(t, fd.unfold(xq)))
+        return on_quadrant(x0, f, lambda xq: rollout(model, xq, u, steps, keep=keep, on_step=on_q,
                                                      window=window, stats=stats, monotone=monotone),
                            keep, out)
     B = x0.shape[0]
@@ -118,19 +119,21 @@ def rollout(
         if not fast:
             raise ValueError(f"window=True needs a NEMSim model (precompute/predict); "
                              f"got {type(model).__name__}")
-        if quarter_model_size(model) is not None:
-            raise ValueError("window=True is not available for a quarter-domain model (its depth window "
+        if f is not None:
+            raise ValueError(f"window=True is not available for a {f.kind}-domain model (its depth window "
                              "records full-width statistics); roll it out without the window")
         depth_window = DepthWindow(model)
     project = projection_of(model, x0, monotone)
-    quarter = n is not None  # x0 is a quarter-domain model's quadrant
+    quarter = f is not None and f.kind == "quarter"  # x0 is a quarter-domain model's quadrant
+    section = f is not None and f.kind == "section"  # x0 is a section-domain model's cross-section
     traj = _trajectory_buffer(x0, T, keep, out)  # (B, T+1, 2, D, H, W) or None
     # keep=False: two buffers of one call's states, alternating, so the previous call's states stay valid
     # while this call's are predicted (the next input, and on_step's contract)
     spare = None if keep else [x0.new_empty((B, k, *x0.shape[1:])) for _ in range(2)]
     into = getattr(model, "predict_into", None) if fast and depth_window is None else None
     # each call's states: a quadrant's diagonal mean where ``predict`` does not do it, then the projection
-    finish = Finish(diagonal=quarter and (into is not None or not fast), projection=project)
+    finish = Finish(diagonal=quarter and (into is not None or not fast), projection=project,
+                    rows=section and (into is not None or not fast))
     cache = None
     x = x0
     t = calls = 0
@@ -165,17 +168,19 @@ def rollout(
     return x
 
 
-def on_quadrant(x0: torch.Tensor, n: int, roll: Callable[[torch.Tensor], torch.Tensor], keep: bool = True,
-                out: torch.Tensor | None = None) -> torch.Tensor:
-    """A quarter-domain rollout from full fields x0 (B, 2, D, n, n): ``roll`` runs on the quadrant of x0's
-    symmetric mean and returns (B, T+1, 2, D, c, c) (or the last state with ``keep`` False); the result is
-    unfolded to full fields (into ``out`` when given), x0 itself first (module docstring)."""
-    res = roll(fold(symmetrize(x0)).contiguous())
+def on_quadrant(x0: torch.Tensor, f: FieldFold | int, roll: Callable[[torch.Tensor], torch.Tensor],
+                keep: bool = True, out: torch.Tensor | None = None) -> torch.Tensor:
+    """A folded rollout from full fields x0 (B, 2, D, n, n): ``roll`` runs on the folded part of x0's
+    symmetric mean (``f``: a ``FieldFold``, or n for a quarter) and returns (B, T+1, 2, D, h, w) (or the last
+    state with ``keep`` False); the result is unfolded to full fields (into ``out`` when given), x0 itself
+    first (module docstring)."""
+    f = f if isinstance(f, FieldFold) else FieldFold("quarter", int(f))
+    res = roll(f.fold(f.symmetrize(x0)).contiguous())
     if not keep:
-        return unfold(res, n)
+        return f.unfold(res)
     if out is not None and out.shape[1] < res.shape[1]:
         raise ValueError(f"out must hold {res.shape[1]} states, got {tuple(out.shape)}")
-    full = unfold(res, n, None if out is None else out[:, : res.shape[1]])
+    full = f.unfold(res, None if out is None else out[:, : res.shape[1]])
     full[:, 0] = x0  # x̂_0 is the given x_0 (the quadrant holds its symmetric mean)
     return full
 

@@ -51,7 +51,7 @@ from nemsim.inference.checkpoint import (
 )
 from nemsim.inference.precision import machine, resolve_precision
 from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
-from nemsim.symmetry import fold, quarter_model_size, symmetrize
+from nemsim.symmetry import fold, model_fold
 
 log = logging.getLogger(__name__)
 
@@ -258,19 +258,21 @@ class Predictor:
         chosen = resolve_precision(precision, "cuda" if backend == "cuda" else "cpu")
         self.runtime: Runtime = compile_model(loaded.model, backend, chosen, threads)  # type: ignore[arg-type]
         self.sim_config, source = _recorded_sim_config(loaded.raw or {})
-        n = quarter_model_size(loaded.model)
-        self._quarter = n is not None
+        self._fold = model_fold(loaded.model)
+        if self._fold is not None and self._fold.kind == "section":  # a cross-section model knows trenches
+            self.scene = replace(Feature.of(self.scene), kind="trench").apply(self.scene)
         if x0 is None:
             x0 = self._initial_state(self.scene)
-            if n is not None:
+            if self._fold is not None:
                 source += ", averaged over the scene's symmetries"
         else:
             source = "given by the caller"
         self.x0 = np.asarray(x0, dtype=np.float32)  # (2, D, H, W)
         # a quarter-domain model from a symmetric x0: every state of its rollouts is exactly symmetric
         x0_t = torch.as_tensor(self.x0)
-        symmetric = n is not None and bool(torch.equal(x0_t, symmetrize(x0_t)))
-        self.symmetric_size: int | None = n if symmetric else None
+        quarter = self._fold if self._fold is not None and self._fold.kind == "quarter" else None
+        symmetric = quarter is not None and bool(torch.equal(x0_t, quarter.symmetrize(x0_t)))
+        self.symmetric_size: int | None = quarter.n if quarter is not None and symmetric else None
         self.initial_state_source = source
         expected = tuple(self.scene.state_shape)
         if self.x0.shape != expected:
@@ -341,16 +343,18 @@ class Predictor:
 
     # --- geometry -------------------------------------------------------------------------------------
     def _initial_state(self, scene: Any) -> np.ndarray:
-        """x0 (2, D, H, W) of a (per-case) scene, built as the checkpoint's data were; a quarter-domain
-        model's the symmetric mean (module docstring)."""
+        """x0 (2, D, H, W) of a (per-case) scene, built as the checkpoint's data were; a quarter- or
+        section-domain model's the symmetric mean (module docstring)."""
         from nemsim.sim import initial_state
 
         config = self.sim_config
         if config is not None and scene.kind == "trench" and config.domain == "quarter":
             config = replace(config, domain="full")  # a trench has no quadrant; x0 is the same field
+        if config is not None and scene.kind != "trench" and config.domain == "section":
+            config = replace(config, domain="full")  # a hole has no cross-section
         x0 = initial_state(scene, config)
-        if self._quarter:
-            x0 = symmetrize(torch.as_tensor(x0)).numpy()
+        if self._fold is not None:
+            x0 = self._fold.symmetrize(torch.as_tensor(x0)).numpy()
         return np.asarray(x0, dtype=np.float32)
 
     def case(self, feature: Feature | None = None) -> FeatureCase:

@@ -37,7 +37,7 @@ import numba
 import numpy as np
 import torch
 
-from nemsim.symmetry import quarter_model_size
+from nemsim.symmetry import model_fold
 
 # (mask, Si) in normalized SDF units: how they were chosen, module docstring
 MONOTONE_EPS: tuple[float, float] = (0.005, 0.034)
@@ -46,26 +46,28 @@ MONOTONE_AXIS_EPS: float = 0.0
 SI_CHANNEL = 1
 
 
-def axis_columns(h: int, w: int, full_size: int | None = None) -> tuple[list[int], list[int]]:
+def axis_columns(h: int, w: int, full_size: int | None = None,
+                 all_rows: bool = False) -> tuple[list[int], list[int]]:
     """(y indices, x indices) of the padded voxel columns the hole-axis readout interpolates between, for a
     state of padded size (H, W) = (h, w): the axis sits at index (n - 1) / 2 of an axis of padded size n
     (native centre (n_native - 1) / 2, plus the one-voxel pad), so one column when n is odd, two when even.
     ``full_size``: the state is the lower quadrant (``nemsim.symmetry.fold``) of a field of that lateral
-    size; the columns are those of the full field that lie in the quadrant."""
+    size; the columns are those of the full field that lie in the quadrant. ``all_rows``: a trench's axis
+    is a line along y, so every row's axis columns (a cross-section's, or a full trench field's)."""
     def cols(n: int, m: int) -> list[int]:
         a = (n - 1) / 2.0
         return [i for i in sorted({math.floor(a), math.ceil(a)}) if i < m]
 
-    return cols(full_size or h, h), cols(full_size or w, w)
+    return (list(range(h)) if all_rows else cols(full_size or h, h)), cols(full_size or w, w)
 
 
 def eps_field(shape: Sequence[int], eps: Sequence[float], axis_eps: float | None,
               dtype: torch.dtype = torch.float32, device: torch.device | str | None = None,
-              full_size: int | None = None) -> torch.Tensor:
+              full_size: int | None = None, all_rows: bool = False) -> torch.Tensor:
     """The per-voxel slack of the projection, (1, C, 1, H, W) (broadcast over batch and depth): ``eps`` per
     channel, and ``axis_eps`` on the Si channel's hole-axis columns (None: no separate axis slack).
 
-    shape: a state's (..., C, D, H, W) shape; ``full_size``: as in ``axis_columns`` (a quadrant's state)."""
+    shape: a state's (..., C, D, H, W) shape; ``full_size``, ``all_rows``: as in ``axis_columns``."""
     c, h, w = int(shape[-4]), int(shape[-2]), int(shape[-1])
     if len(eps) != c or any(not float(e) >= 0.0 for e in eps):
         raise ValueError(f"eps must be {c} values >= 0 (one per channel), got {tuple(eps)}")
@@ -74,7 +76,7 @@ def eps_field(shape: Sequence[int], eps: Sequence[float], axis_eps: float | None
     if axis_eps is not None:
         if not float(axis_eps) >= 0.0 or c <= SI_CHANNEL:
             raise ValueError(f"axis_eps must be >= 0 on a state with a Si channel, got {axis_eps!r}")
-        ys, xs = axis_columns(h, w, full_size)
+        ys, xs = axis_columns(h, w, full_size, all_rows)
         for y in ys:
             field[0, SI_CHANNEL, 0, y, xs] = float(axis_eps)
     return field
@@ -87,12 +89,14 @@ class MonotoneProjection:
         x0: (B, 2, D, H, W) the initial states (the first running maximum; not modified).
         eps: per-channel slack (C values, C = x0.shape[1]).
         axis_eps: the Si slack on the hole-axis columns (``eps_field``); None: ``eps`` there too.
-        full_size: x0 is the lower quadrant of fields of this lateral size (``axis_columns``).
+        full_size: x0 is the lower quadrant (or a cross-section) of fields of this lateral size.
+        all_rows: the axis columns of every row (a trench's axis line; ``axis_columns``).
     """
 
     def __init__(self, x0: torch.Tensor, eps: Sequence[float], axis_eps: float | None = None,
-                 full_size: int | None = None) -> None:
-        self.eps = eps_field(x0.shape, eps, axis_eps, x0.dtype, x0.device, full_size)  # (1, 2, 1, H, W)
+                 full_size: int | None = None, all_rows: bool = False) -> None:
+        self.eps = eps_field(x0.shape, eps, axis_eps, x0.dtype, x0.device, full_size,
+                             all_rows)  # (1, 2, 1, H, W)
         self.running_max = x0.clone()  # (B, 2, D, H, W)
         self._floor: torch.Tensor | None = None  # (B, 2, D, H, W) scratch of project_
 
@@ -206,9 +210,11 @@ def projection_of(model: object, x0: torch.Tensor, monotone: bool | None) -> Mon
     """The monotone projection of a rollout of ``model`` from x0 (B, 2, D, H, W), or None (``monotone``
     as in ``monotone_eps_of``)."""
     eps = monotone_eps_of(model, monotone)
-    n = quarter_model_size(model)  # x0 may be the quadrant of a quarter-domain model's field
-    return None if eps is None else MonotoneProjection(x0, eps, axis_eps_of(model),
-                                                       n if n and x0.shape[-1] != n else None)
+    f = model_fold(model)  # x0 may be the folded part of a quarter- or section-domain model's field
+    if eps is None:
+        return None
+    return MonotoneProjection(x0, eps, axis_eps_of(model), f.n if f and not f.is_full(x0) else None,
+                              f is not None and f.kind == "section")
 
 
 def running_max_drop(states: np.ndarray) -> np.ndarray:

@@ -34,6 +34,10 @@ its transpose (the diagonal mirror), so a prediction has all 8 symmetries exactl
 quadrant (``nemsim.evaluation.rollout`` folds x_0 and unfolds the trajectory); ``predict`` also accepts a
 full field.
 
+Cross-section (``domain = "section"``, a trench; ``nemsim.symmetry.FieldFold``): the same network on 4 equal
+rows of y and the low half of x, the trench axis on the high W face with its mirror halo; the rows of each
+prediction are averaged, so every state is exactly constant along the line.
+
 Multi-step prediction (``steps_per_call`` = k, not in the paper; k = 1 is the paper's model): one call
 predicts x̂_{t+j} = clamp(x_t + r_j, -1, 1), j = 1..k, with cumulative residuals r_j from the decoder's
 extra-step head, so a rollout makes ~1/k of the network calls. ``predict(x, cache)`` returns the k states
@@ -65,7 +69,7 @@ from nemsim.model.saturation import CONTROL_SATURATION, check_saturation, satura
 from nemsim.model.transport import TransportConfig, species_weights, transport_field
 from nemsim.model.unpack import NO_FINISH, Finish, write_states
 from nemsim.model.window import WindowRun, splice_latent
-from nemsim.symmetry import fold, mirror_pad, symmetrize, unfold
+from nemsim.symmetry import FieldFold, model_fold
 
 
 @dataclass(frozen=True)
@@ -99,9 +103,10 @@ class NEMSimConfig:
     transport: TransportConfig = field(default_factory=TransportConfig)
     # the learned parts read the angular spread of the four angular species too (nemsim.model.angle_features)
     angle_features: bool = False
-    # "quarter": the network runs on the fundamental domain of the scene's square symmetry (module docstring)
-    domain: Literal["full", "quarter"] = "full"
-    full_size: int = 0  # lateral size n of the full padded field (set from the scene for a quarter model)
+    # "quarter" / "section": the network runs on the fundamental domain of the scene's square symmetry, or of
+    # a trench's mirror and translations (module docstring)
+    domain: Literal["full", "quarter", "section"] = "full"
+    full_size: int = 0  # lateral size n of the full padded field (set from the scene for a folded model)
     eic: EICConfig = field(default_factory=EICConfig)  # γ, δ_max, widths (shared dims overridden above)
     mac: MACConfig = field(default_factory=MACConfig)  # κ, ρ_max, ρ_raw init, widths
     mrc: MRCConfig = field(default_factory=MRCConfig)  # A, K init, widths
@@ -152,12 +157,13 @@ class NEMSim(nn.Module):
         if int(cfg.steps_per_call) != cfg.steps_per_call or cfg.steps_per_call < 1:
             raise ValueError(f"steps_per_call must be an integer >= 1, got {cfg.steps_per_call!r}")
         check_saturation(cfg.control_saturation)
-        if cfg.domain not in ("full", "quarter"):
-            raise ValueError(f"domain is 'full' or 'quarter', got {cfg.domain!r}")
-        if cfg.domain == "quarter" and cfg.full_size < 3:
-            raise ValueError(f"a quarter-domain model needs full_size (the scene's lateral size), "
+        if cfg.domain not in ("full", "quarter", "section"):
+            raise ValueError(f"domain is 'full', 'quarter' or 'section', got {cfg.domain!r}")
+        if cfg.domain != "full" and cfg.full_size < 3:
+            raise ValueError(f"a {cfg.domain}-domain model needs full_size (the scene's lateral size), "
                              f"got {cfg.full_size!r}")
         self.config = cfg
+        self.fold: FieldFold | None = model_fold(self)
         self.rules = RuleBuffers(rules)  # fixed buffers, never parameters
         E = self.rules.n_events
         desc_dim = int(self.rules.phi.shape[1])
@@ -211,17 +217,18 @@ class NEMSim(nn.Module):
         full field has (a quadrant already a multiple of 4 gets 4 more)."""
         D, H, W = x.shape[2:]
         m = self.multiple
-        if self.config.domain == "quarter":
-            x = mirror_pad(x, (-H) % m or m, self.config.full_size)
-            H = W = x.shape[-1]
+        if self.fold is not None:  # the halo across the axis (the section's rows need none: all equal)
+            x = self.fold.pad(x, (-W) % m or m)
+            W = x.shape[-1]
+            H = x.shape[-2]
         pd, ph, pw = (-D) % m, (-H) % m, (-W) % m
         if pd == ph == pw == 0:
             return x
         return F.pad(x, (0, pw, 0, ph, 0, pd), mode="replicate")
 
     def _full_input(self, x: torch.Tensor) -> bool:
-        """True when a quarter-domain model is handed a full field (folded in, unfolded out)."""
-        return self.config.domain == "quarter" and x.dim() == 5 and x.shape[-1] == self.config.full_size
+        """True when a quarter- or section-domain model is handed a full field (folded in, unfolded out)."""
+        return self.fold is not None and x.dim() == 5 and self.fold.is_full(x)
 
     def precompute(self, u: torch.Tensor, fused: bool = True) -> dict[str, Any]:
         """Everything of one transition that depends only on the controls u (B, 14) (and the fixed rules):
@@ -263,9 +270,10 @@ class NEMSim(nn.Module):
         this; x is then the window's slab). A quarter-domain model takes and returns its quadrant, or a full
         field (folded on the way in, the k states unfolded on the way out: exactly symmetric)."""
         if self._full_input(x):
-            out = self.predict(fold(x), cache, return_aux, window)
-            n = self.config.full_size
-            return (unfold(out[0], n), out[1]) if return_aux else unfold(out, n)
+            f = self.fold
+            assert f is not None
+            out = self.predict(f.fold(x), cache, return_aux, window)
+            return (f.unfold(out[0]), out[1]) if return_aux else f.unfold(out)
         D, H, W = x.shape[2:]
         z_next, b, xp, parts = self._latent_update(x, cache, window)
         # cumulative residuals from x_t, cropped back; k = 1: the paper's Dec(z̃, b, x)
@@ -275,8 +283,8 @@ class NEMSim(nn.Module):
         x_next = x[:, None] + residual  # eq:supp_mrc_state_update (B, k, 2, D, H, W)
         if self.config.clamp_output:
             x_next = x_next.clamp_(-1.0, 1.0)  # in place: x_next is a fresh tensor (one pass fewer)
-        if self.config.domain == "quarter":  # the quadrant's diagonal mirror, exactly (nemsim.symmetry)
-            x_next = symmetrize(x_next, "diagonal")
+        if self.fold is not None:  # the quadrant's diagonal mirror, the section's rows, exactly
+            x_next = self.fold.finish(x_next)
         if not return_aux:
             return x_next
         lam, eic, alpha, T, amp = parts

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from nemsim.model.monotone import project_plane_
-from nemsim.symmetry import symmetrize_diagonal_, symmetrize_plane_
+from nemsim.symmetry import rows_mean_, symmetrize_diagonal_, symmetrize_plane_
 
 if TYPE_CHECKING:
     from nemsim.model.monotone import MonotoneProjection
@@ -38,16 +38,20 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class Finish:
     """What a rollout does to a call's states once they are written (module docstring): ``diagonal``, the
-    mean of each (c, c) plane with its transpose (a quarter-domain model's diagonal mirror), then
-    ``projection``'s monotone projection, state after state (None: none)."""
+    mean of each (c, c) plane with its transpose (a quarter-domain model's diagonal mirror), or ``rows``,
+    each plane's rows replaced by their mean (a cross-section's), then ``projection``'s monotone
+    projection, state after state (None: none)."""
 
     diagonal: bool = False
     projection: MonotoneProjection | None = None
+    rows: bool = False
 
     def apply_(self, states: torch.Tensor) -> torch.Tensor:
         """The finish of states (B, n, 2, D, H, W) in place, pass after pass (paths that do not fuse it)."""
         if self.diagonal:
             symmetrize_diagonal_(states)
+        if self.rows:
+            rows_mean_(states)
         if self.projection is not None:
             self.projection.project_chunk_(states)
         return states
@@ -57,13 +61,13 @@ NO_FINISH = Finish()
 
 
 @numba.njit(cache=True, nogil=True)
-def _write_states(x: np.ndarray, r: np.ndarray, gate: np.ndarray, clamp: bool, diagonal: bool,
+def _write_states(x: np.ndarray, r: np.ndarray, gate: np.ndarray, clamp: bool, diagonal: bool, rows: bool,
                   m: np.ndarray, eps: np.ndarray, out: np.ndarray) -> None:
     """out[b, j, c, z, y, w] = clamp(x[b, c, z, y, w] + gate[b]·r[b, (2j+c)·8 + 4(z%2) + 2(y%2) + w%2,
     z//2, y//2, w//2]) for j < out.shape[1]: x (B, 2, D, H, W), r (B, 16k, d, h, w) with 2d >= D, ...
     Then, plane by plane (``Finish``): with ``diagonal`` each (y, w), (w, y) pair replaced by its mean (H ==
-    W); with m (B, 2, D, H, W), the running maximum (else size 0), the projection onto >= m - eps[c, y, w],
-    m updated, state after state."""
+    W), with ``rows`` each plane's rows by their mean; with m (B, 2, D, H, W), the running maximum (else
+    size 0), the projection onto >= m - eps[c, y, w], m updated, state after state."""
     B, n = out.shape[0], out.shape[1]
     D, H, W = x.shape[2], x.shape[3], x.shape[4]
     project = m.shape[0] > 0
@@ -85,8 +89,24 @@ def _write_states(x: np.ndarray, r: np.ndarray, gate: np.ndarray, clamp: bool, d
                             plane[y, w] = v
                     if diagonal:
                         symmetrize_plane_(plane)
+                    if rows:
+                        _rows_mean_plane(plane)
                     if project:
                         project_plane_(plane, m[b, c, z], eps[c])
+
+
+@numba.njit(inline="always")
+def _rows_mean_plane(a: np.ndarray) -> None:
+    """Every row of one (H, W) plane replaced by the mean of its H rows, in place (float32 sums)."""
+    h, w = a.shape
+    inv = np.float32(1.0) / np.float32(h)
+    for j in range(w):
+        s = np.float32(0.0)
+        for i in range(h):
+            s += a[i, j]
+        v = s * inv
+        for i in range(h):
+            a[i, j] = v
 
 
 def write_states(x: torch.Tensor, r: torch.Tensor, gate: torch.Tensor | None, clamp: bool,
@@ -104,6 +124,6 @@ def write_states(x: torch.Tensor, r: torch.Tensor, gate: torch.Tensor | None, cl
         m, eps = np.empty((0, 2, 1, 1, 1), np.float32), np.empty((2, 1, 1), np.float32)
     else:  # the running maximum of x's rollout: float32 on the CPU like x
         m, eps = proj.running_max.numpy(), proj.eps[0, :, 0].contiguous().numpy()
-    _write_states(x.detach().numpy(), r.detach().numpy(), g.numpy(), bool(clamp), finish.diagonal, m, eps,
-                  out.detach().numpy())
+    _write_states(x.detach().numpy(), r.detach().numpy(), g.numpy(), bool(clamp), finish.diagonal,
+                  finish.rows, m, eps, out.detach().numpy())
     return out

@@ -146,12 +146,15 @@ PROFILE_LOSS_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss")
 
 
 def full_states(states: torch.Tensor, scene: Scene) -> torch.Tensor:
-    """States (N, 2, D, H, W) of the full scene: a quarter-domain model's quadrants (N, 2, D, c, c) are
-    rebuilt by reflection (``nemsim.symmetry.unfold``, differentiable), full states pass through."""
-    from nemsim.symmetry import unfold
+    """States (N, 2, D, H, W) of the full scene: a quarter-domain model's quadrants (N, 2, D, c, c) (or a
+    section-domain model's cross-sections (N, 2, D, 4, c)) are rebuilt by reflection
+    (``nemsim.symmetry``, differentiable), full states pass through."""
+    from nemsim.symmetry import unfold, unfold_section
 
     n = scene.state_shape[-1]
-    return states if states.shape[-1] == n else unfold(states, n)
+    if states.shape[-1] == n:
+        return states
+    return unfold(states, n) if states.shape[-2] == states.shape[-1] else unfold_section(states, n)
 
 
 def _profile_voxels(states: torch.Tensor, scene: Scene) -> torch.Tensor:

@@ -333,7 +333,8 @@ def _load_data(job: TrainJob, cfg: TrainConfig) -> tuple[Any, dict, Any]:
     visible = manifest.get("visible_transitions")
     unroll = cfg.unroll_steps * _steps_per_call(job.model_overrides)
     shape = {"symmetrize": cfg.symmetrize_targets,  # what every training state becomes (nemsim.symmetry)
-             "quarter": (job.model_overrides or {}).get("domain") == "quarter"}
+             "quarter": (job.model_overrides or {}).get("domain") == "quarter",
+             "section": (job.model_overrides or {}).get("domain") == "section"}
     try:
         train_set: Any = TransitionDataset(job.data, manifest, "train", visible_transitions=visible,
                                            unroll=unroll, **shape)

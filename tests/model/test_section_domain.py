@@ -1,0 +1,142 @@
+"""The cross-section model (``domain = "section"``, a trench): hand-checked maps, predictions exactly constant
+along the trench and mirrored across it, the folded and full paths agreeing, the fused rollout agreeing with
+the pass-by-pass one, and OpenVINO agreeing with PyTorch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from nemsim.evaluation.rollout import rollout
+from nemsim.geometry.feature import Feature
+from nemsim.inference.runtime import compile_model, openvino_available
+from nemsim.scenes import quadrant_size
+from nemsim.symmetry import SECTION_ROWS, FieldFold, mirror_pad_x, model_fold, section_mean
+
+torch.set_num_threads(1)
+
+
+def _trench_field(n: int, lead: tuple[int, ...] = (3,)) -> torch.Tensor:
+    """A field (*lead, n, n) constant along H and mirror-symmetric in W (a trench's), of distinct values."""
+    row = torch.arange(quadrant_size(n), dtype=torch.float32)
+    row = torch.cat([row, row.flip(0)[n % 2:]])  # mirrored across the centre
+    scale = torch.arange(1, 1 + int(torch.tensor(lead).prod()), dtype=torch.float32).reshape(*lead, 1, 1)
+    return (scale * row).expand(*lead, n, n).contiguous()
+
+
+@pytest.mark.parametrize("n", [15, 28, 9])
+def test_section_maps_by_hand(n):
+    f = FieldFold("section", n)
+    c = quadrant_size(n)
+    assert f.plane == (SECTION_ROWS, c)
+    x = torch.randn(2, 3, n, n, generator=torch.Generator().manual_seed(n))
+    s = section_mean(x)
+    # the mean over y and the x mirror: constant along H, mirrored in W, and a projection
+    assert torch.equal(s, s.flip(-1))
+    assert torch.equal(s, s[..., :1, :].expand_as(s))
+    torch.testing.assert_close(s[..., 0, :], 0.5 * (x + x.flip(-1)).mean(dim=-2))
+    torch.testing.assert_close(section_mean(s), s, atol=1e-6, rtol=0)
+    t = _trench_field(n, (2, 3))
+    assert f.fold(t).shape == (2, 3, SECTION_ROWS, c)
+    assert torch.equal(f.unfold(f.fold(t)), t)  # the round trip, exactly
+    out = torch.empty_like(t)
+    assert f.unfold(f.fold(t), out) is out and torch.equal(out, t)
+    for pad in range(1, c - n % 2 + 1):
+        assert torch.equal(mirror_pad_x(f.fold(t), pad, n), t[..., :SECTION_ROWS, : c + pad])
+    q = f.fold(t).clone()
+    q[..., 1, :] += 1.0
+    f.finish_(q)  # the rows' mean, in place
+    torch.testing.assert_close(q, f.fold(t) + 0.25)
+    with pytest.raises(ValueError, match="quarter"):
+        FieldFold("eighth", n)  # type: ignore[arg-type]
+
+
+def _section_model(scene, k: int = 3):
+    from nemsim.registry import build_model
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+
+    torch.manual_seed(0)
+    cfg = {"steps_per_call": k, "flux_gate": True, "decoder_out_scale": 1.0, "domain": "section"}
+    return build_model("nemsim", scene, compile_rules(load_rules()), cfg).eval()
+
+
+def _trench_x0(scene, batch: int = 2) -> torch.Tensor:
+    from nemsim.sim import initial_state
+
+    trench = Feature("trench", 40.0, 80.0).apply(scene)
+    return torch.as_tensor(initial_state(trench))[None].repeat(batch, 1, 1, 1, 1)  # (B, 2, D, H, W)
+
+
+def test_section_rollout_is_exactly_a_trench(tiny_scene):
+    model = _section_model(tiny_scene)
+    n = tiny_scene.field_shape[-1]
+    assert model_fold(model) == FieldFold("section", n)
+    x0 = _trench_x0(tiny_scene)
+    u = torch.rand(2, 5, 14, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    traj = rollout(model, x0, u)
+    assert traj.shape == (2, 6, *tiny_scene.state_shape)
+    assert torch.equal(traj[:, 0], x0)  # x̂_0 is the given state
+    assert (traj[:, -1] - traj[:, 0]).abs().max() > 1e-3  # the model moves the state
+    pred = traj[:, 1:]
+    assert torch.equal(pred, pred[..., :1, :].expand_as(pred))  # constant along the trench
+    assert torch.equal(pred, pred.flip(-1))  # mirrored across its axis
+    torch.testing.assert_close(rollout(model, x0, u, keep=False), traj[:, -1], atol=0, rtol=0)
+
+
+def test_section_and_full_paths_agree(tiny_scene):
+    """``predict`` on the full trench field equals the unfolded prediction on its cross-section; so do the
+    rollouts (up to float rounding)."""
+    model = _section_model(tiny_scene)
+    f = model_fold(model)
+    assert f is not None
+    x0 = section_mean(_trench_x0(tiny_scene))
+    u = torch.rand(2, 14, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    with torch.no_grad():
+        cache = model.precompute(u)
+        full = model.predict(x0, cache)
+        folded = model.predict(f.fold(x0).contiguous(), cache)
+    assert folded.shape[-2:] == f.plane
+    torch.testing.assert_close(full, f.unfold(folded), atol=0, rtol=0)
+    traj = rollout(model, x0, u, steps=4)
+    traj_f = rollout(model, f.fold(x0).contiguous(), u, steps=4)
+    # the full path averages x0 over the trench's symmetries again: the mean of equal rows, float rounding
+    torch.testing.assert_close(traj, f.unfold(traj_f), atol=2e-6, rtol=0)
+
+
+def test_section_fused_finish_matches_the_pass_by_pass_path(tiny_scene, monkeypatch):
+    """The fused writer's row mean and projection give the states of the PyTorch path (float rounding)."""
+    from nemsim.model.surrogate import NEMSim
+
+    model = _section_model(tiny_scene, k=2)
+    x0 = _trench_x0(tiny_scene)
+    u = torch.rand(2, 14, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    fused = rollout(model, x0, u, steps=5)
+    monkeypatch.setattr(NEMSim, "predict_into", None)  # the pass-by-pass path
+    slow = rollout(model, x0, u, steps=5)
+    torch.testing.assert_close(fused, slow, atol=2e-6, rtol=0)
+    assert torch.equal(fused[:, 1:], fused[:, 1:, ..., :1, :].expand_as(fused[:, 1:]))
+
+
+def test_section_model_needs_a_square_grid():
+    from nemsim.registry import build_model
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+    from nemsim.scenes import Scene
+
+    oblong = Scene("oblong", nx=13, ny=9, nz=33, voxel_nm=8.0, si_top=20, resist_top=30,
+                   opening_radius_vox=2.5, symmetry="none")
+    with pytest.raises(ValueError, match="square grid"):
+        build_model("nemsim", oblong, compile_rules(load_rules()), {"domain": "section"})
+
+
+@pytest.mark.skipif(not openvino_available(), reason="openvino not installed (nemsim[fast])")
+def test_openvino_matches_pytorch_on_the_section(tiny_scene):
+    model = _section_model(tiny_scene)
+    x0 = _trench_x0(tiny_scene)
+    u = torch.rand(2, 4, 14, generator=torch.Generator().manual_seed(2)) * 2 - 1
+    ref = rollout(model, x0, u)
+    rt = compile_model(model, "openvino", "f32")
+    out = rollout(rt, x0, u)
+    assert (out - ref).abs().max() <= 1e-4
+    assert torch.equal(out[:, 1:], out[:, 1:, ..., :1, :].expand_as(out[:, 1:]))
