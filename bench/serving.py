@@ -114,15 +114,21 @@ def _time_simulator(checkpoint: str | Path, controls: list[dict[str, float]]) ->
     from bench.sim_speed import bench_speed
     from nemsim.analysis.inverse.context import simulator_config
     from nemsim.controls import CONTROL_NAMES
+    from nemsim.geometry.feature import Feature
     from nemsim.inference.checkpoint import load_checkpoint
+    from nemsim.inference.predictor import served_scene
 
     loaded = load_checkpoint(checkpoint)
     config = simulator_config(loaded)
     if config is not None:  # the full-domain simulator whatever domain made the data
         config = dataclasses.replace(config, domain="full")
+    scene = served_scene(loaded)  # a trench model's trench, simulated in 3-D
     design = np.array([[c[name] for name in CONTROL_NAMES] for c in controls], dtype=np.float64)
-    rep = bench_speed(loaded.scene, loaded.rules, design, config)
-    return {"domain": "full", "n_cases": rep["n_cases"], "median": rep["median"],
+    rep = bench_speed(scene, loaded.rules, design, config)
+    feature = Feature.of(scene)
+    return {"domain": "full", "feature": f"{feature.kind}, cd {feature.cd_nm:g} nm, mask {feature.mask_nm:g} "
+            "nm",
+            "n_cases": rep["n_cases"], "median": rep["median"],
             "cases": [{"wall_s": r["wall_s"], "cpu_s": r["cpu_s"]} for r in rep["cases"]]}
 
 

@@ -194,6 +194,15 @@ class Prediction:
         return self.schedule.steps
 
 
+def served_scene(loaded: LoadedModel) -> Any:
+    """The scene a checkpoint answers by default: its own, or for a cross-section (trench) model the trench of
+    the scene's opening and mask (a section model knows no holes)."""
+    f = model_fold(loaded.model)
+    if f is not None and f.kind == "section":
+        return replace(Feature.of(loaded.scene), kind="trench").apply(loaded.scene)
+    return loaded.scene
+
+
 @dataclass(frozen=True, eq=False)
 class FeatureCase:
     """One feature on the checkpoint's grid: ``feature`` as built (mask in whole voxels), the per-case
@@ -259,8 +268,7 @@ class Predictor:
         self.runtime: Runtime = compile_model(loaded.model, backend, chosen, threads)  # type: ignore[arg-type]
         self.sim_config, source = _recorded_sim_config(loaded.raw or {})
         self._fold = model_fold(loaded.model)
-        if self._fold is not None and self._fold.kind == "section":  # a cross-section model knows trenches
-            self.scene = replace(Feature.of(self.scene), kind="trench").apply(self.scene)
+        self.scene = served_scene(loaded)
         if x0 is None:
             x0 = self._initial_state(self.scene)
             if self._fold is not None:

@@ -1,0 +1,80 @@
+"""bench.trench_model on the tiny scene: a cross-section checkpoint's field and profile errors against two
+cross-section simulator seeds, its served speed beside the 3-D simulator of its trench, and the stamp."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+
+@pytest.fixture(scope="module")
+def trench_files(tmp_path_factory):
+    """Two tiny trench files of one design on the cross-section (simulator seeds 1 and 2)."""
+    from nemsim.cli import main
+
+    root = tmp_path_factory.mktemp("trench")
+    design = root / "design.csv"
+    assert main(["design", "--feature", "trench", "--cd-nm", "32:48", "--mask-nm", "48:80", "--n", "2",
+                 "--seed", "5", "--out", str(design)]) == 0
+    files = {}
+    for name, seed in (("a", "1"), ("b", "2")):
+        files[name] = root / f"trench-{name}.h5"
+        assert main(["generate", "--scene", "tiny", "--controls", str(design), "--seed", seed,
+                     "--sim-domain", "section", "--no-progress", "--out", str(files[name])]) == 0
+    return files
+
+
+@pytest.fixture(scope="module")
+def section_checkpoint(tmp_path_factory, tiny_scene):
+    from nemsim.inference.checkpoint import save_checkpoint
+    from nemsim.registry import build_model, model_config
+    from nemsim.rules.compile import compile_rules
+    from nemsim.rules.schema import load_rules
+
+    rules = compile_rules(load_rules())
+    torch.manual_seed(0)
+    overrides = {"domain": "section", "steps_per_call": 5}
+    model = build_model("nemsim", tiny_scene, rules, overrides)
+    path = tmp_path_factory.mktemp("ckpt") / "trench.pt"
+    save_checkpoint(path, model, model_name="nemsim",
+                    model_config=dataclasses.asdict(model_config("nemsim", tiny_scene, overrides)),
+                    scene=tiny_scene, rules=rules,
+                    summary={"geometry": {"trench": {"cd_nm": [32, 48], "mask_nm": [48, 80]}}}, metrics={})
+    return path
+
+
+def test_trench_report_on_tiny(tmp_path, trench_files, section_checkpoint):
+    from bench import trench_model
+
+    out = tmp_path / "trench_model"
+    assert trench_model.main(["--checkpoint", str(section_checkpoint), "--test", str(trench_files["a"]),
+                              "--test-seed", str(trench_files["b"]), "--speed", "2", "--sim-cases", "1",
+                              "--out", str(out)]) == 0
+    rep = json.loads(out.with_suffix(".json").read_text())
+    field = rep["field"]
+    assert len(field["cases"]) == 2 and field["floor"]["avg_rmse"] > 0
+    model = field["model"]
+    assert model["ratio_to_floor"] == pytest.approx(model["avg_rmse"] / field["floor"]["avg_rmse"])
+    depth = rep["profile"]["etch_depth"]
+    assert depth["cases"] == 2 and depth["floor_nm"] > 0
+    assert depth["model_nm"] == pytest.approx(0.5 * (depth["vs_seed_a_nm"] + depth["vs_seed_b_nm"]))
+    speed = rep["speed"]
+    assert speed["simulator"]["feature"].startswith("trench, cd 40 nm")  # the served trench, in 3-D
+    assert speed["simulator"]["domain"] == "full" and speed["simulator"]["n_cases"] == 1
+    assert speed["simulator_speedup"] == pytest.approx(
+        speed["simulator"]["median"]["wall_s"] / (speed["uncached"]["p50_ms"] / 1e3))
+    assert rep["geometry"] == {"trench": {"cd_nm": [32.0, 48.0], "mask_nm": [48.0, 80.0]}}
+    text = out.with_suffix(".md").read_text()
+    assert "_Made with checkpoint" in text and "seed-to-seed floor" in text and "3-D simulator" in text
+
+
+def test_a_hole_model_is_refused(tmp_path, trench_files, tiny_checkpoint, capsys):
+    from bench import trench_model
+
+    with pytest.raises(SystemExit):
+        trench_model.main(["--checkpoint", str(tiny_checkpoint), "--test", str(trench_files["a"]),
+                           "--test-seed", str(trench_files["b"])])
+    assert "not a cross-section (trench) model" in capsys.readouterr().err
