@@ -135,10 +135,11 @@ def mirror_pad(q: torch.Tensor, pad: int, n: int) -> torch.Tensor:
 
 def section_mean(x: torch.Tensor) -> torch.Tensor:
     """The mean of x (..., H, W) over a trench's symmetries: the mirror of W about the field's centre and
-    every translation along H (the mean over H, repeated). A new tensor of x's shape and dtype."""
-    xf = x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
+    every translation along H (the mean over H, repeated). A new tensor of x's shape and dtype. The mean is
+    taken in float64, so a field that already has the symmetries comes back exactly."""
+    xf = x.double()
     m = (0.5 * (xf + xf.flip(-1))).mean(dim=-2, keepdim=True)
-    return m.expand_as(xf).to(x.dtype).contiguous()
+    return m.to(x.dtype).expand_as(x).contiguous()
 
 
 def unfold_section(q: torch.Tensor, n: int, out: torch.Tensor | None = None) -> torch.Tensor:

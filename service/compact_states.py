@@ -14,7 +14,8 @@ step), and most of those differences are small, so the trajectory is stored as w
 Decoding adds the differences back in the same wrapping arithmetic, so every state is bit-identical to
 the float16 it was made from (what the API returned before). The states of a quarter-domain model are exactly
 symmetric under the square's mirrors (``nemsim.symmetry``): of them only the quadrant is stored and every
-decoded state is unfolded, the same states for a quarter of the work and memory. One state is decoded from
+decoded state is unfolded, the same states for a quarter of the work and memory; a trench's (a cross-section
+model's) likewise as its cross-section. One state is decoded from
 the nearer of the two stored ends (at most half the transitions); the whole trajectory, or blocks of
 consecutive states (`blocks`) for a response streamed without holding it all. Encoding works through
 `CHUNK` transitions at a time, so its temporaries stay a fraction of the trajectory's size. Both directions
@@ -114,28 +115,31 @@ class CompactStates:
     wide: np.ndarray  # (E,) int16: the differences outside [-127, 127], in order
     offsets: np.ndarray  # (T+1,) int64: transition t's differences are small[offsets[t]:offsets[t+1]]
     wide_offsets: np.ndarray  # (T+1,) int64: and its wide ones wide[wide_offsets[t]:wide_offsets[t+1]]
-    # the states are exactly symmetric under the square's mirrors and only their quadrant is stored
-    # (``nemsim.symmetry.fold``): the lateral size they are unfolded to; None: the whole states are stored
+    # the states are exactly symmetric under the square's mirrors (or a trench's) and only their folded part
+    # is stored (``nemsim.symmetry.FieldFold``): the lateral size they are unfolded to; None: the whole
+    # states are stored
     full_size: int | None = None
+    fold_kind: str = "quarter"  # what is stored with full_size: "quarter" (a quadrant) or "section"
 
     @classmethod
-    def encode(cls, states: np.ndarray | torch.Tensor, full_size: int | None = None) -> CompactStates:
+    def encode(cls, states: np.ndarray | torch.Tensor, full_size: int | None = None,
+               fold_kind: str = "quarter") -> CompactStates:
         """From states (T+1, 2, D, H, W): a float16 array, or a float32 tensor rounded to float16 here chunk
         by chunk (torch's conversion is vectorized; no float16 copy of the whole trajectory is made).
         ``full_size``: the states are exactly symmetric under the square's mirrors (a quarter-domain
         model's): only their quadrant is stored, a quarter of the work and of the memory; the states may
-        then be given as that quadrant (T+1, 2, D, c, c) already."""
+        then be given as that quadrant (T+1, 2, D, c, c) already. ``fold_kind`` "section": a trench's
+        states, constant along y and mirrored in x, stored as their cross-section (T+1, 2, D, 4, c)."""
+        from nemsim.symmetry import FieldFold
+
         shape = tuple(int(d) for d in states.shape)
-        if full_size is not None and shape[-1] != full_size:  # given as their quadrant already?
-            from nemsim.scenes import quadrant_size
-
-            if shape[-1] != quadrant_size(full_size) or shape[-2] != shape[-1]:
+        f = FieldFold(fold_kind, full_size) if full_size is not None else None  # type: ignore[arg-type]
+        if f is not None and shape[-1] != full_size:  # given as their folded part already?
+            if tuple(shape[-2:]) != f.plane:
                 raise ValueError(f"full_size {full_size} does not match states of shape {list(shape)}")
-            shape = (*shape[:-2], full_size, full_size)  # the trajectory's shape (what decoding returns)
-        elif full_size is not None:
-            from nemsim.symmetry import fold
-
-            folded = fold(torch.as_tensor(states))
+            shape = (*shape[:-2], f.n, f.n)  # the trajectory's shape (what decoding returns)
+        elif f is not None:
+            folded = f.fold(torch.as_tensor(states))
             states = folded.contiguous() if isinstance(states, torch.Tensor) else folded.numpy().copy()
         if isinstance(states, torch.Tensor):
             if states.dtype != torch.float32 or states.dim() < 2:
@@ -179,25 +183,26 @@ class CompactStates:
             offsets=np.cumsum(counts[0]),
             wide_offsets=np.cumsum(counts[1]),
             full_size=full_size,
+            fold_kind=fold_kind,
         )
 
     @property
     def _stored(self) -> tuple[int, ...]:
-        """The shape of one stored state: (2, D, H, W), or its quadrant's."""
+        """The shape of one stored state: (2, D, H, W), or its folded part's."""
         if self.full_size is None:
             return self.shape[1:]
-        from nemsim.scenes import quadrant_size
+        return (*self.shape[1:-2], *self._fold().plane)
 
-        c = quadrant_size(self.full_size)
-        return (*self.shape[1:-2], c, c)
+    def _fold(self):  # the FieldFold of the stored states (full_size set)
+        from nemsim.symmetry import FieldFold
+
+        return FieldFold(self.fold_kind, int(self.full_size or 0))  # type: ignore[arg-type]
 
     def _out(self, stored: np.ndarray) -> np.ndarray:
-        """Stored states (..., h, w) float16 as the trajectory's (unfolded when only the quadrant is kept)."""
+        """Stored states (..., h, w) float16 as the trajectory's (unfolded when a folded part is kept)."""
         if self.full_size is None:
             return stored
-        from nemsim.symmetry import unfold
-
-        return unfold(torch.from_numpy(stored), self.full_size).numpy()
+        return self._fold().unfold(torch.from_numpy(stored)).numpy()
 
     @property
     def steps(self) -> int:

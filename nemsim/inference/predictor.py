@@ -12,6 +12,8 @@ the scene's symmetries (the simulator's initial state is symmetric up to the sub
 distance transform), so each of its trajectories is exactly symmetric (``symmetric_size``), and
 ``rollout(..., quadrant=True)`` keeps it on the quadrant: no full field is built, the metrics and the
 stability guard read a quarter of the voxels, and ``nemsim.symmetry.unfold`` rebuilds any state on demand.
+A cross-section (trench) model (``domain = "section"``) the same on its cross-section: its default feature
+is the trench of the scene's opening and mask (``served_scene``), and it knows no holes.
 
 Geometry (``nemsim.geometry.feature``): a rollout may be of another feature than the scene's own
 (``rollout(..., feature=...)``). ``case(feature)`` gives its ``FeatureCase``: the feature as built on the
@@ -51,7 +53,7 @@ from nemsim.inference.checkpoint import (
 )
 from nemsim.inference.precision import machine, resolve_precision
 from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
-from nemsim.symmetry import fold, model_fold
+from nemsim.symmetry import FieldFold, model_fold
 
 log = logging.getLogger(__name__)
 
@@ -178,8 +180,9 @@ class Prediction:
     """One rollout: the states, their profile metrics and what the stability guard found."""
 
     schedule: ControlSchedule
-    # (T+1, 2, D, H, W) float32 normalized SDF (a view of ``out`` when one was given), or the quadrant
-    # (T+1, 2, D, c, c) of fields of lateral size ``full_size`` (``Predictor.rollout(..., quadrant=True)``)
+    # (T+1, 2, D, H, W) float32 normalized SDF (a view of ``out`` when one was given), or the folded part
+    # (T+1, 2, D, h, w) of fields of lateral size ``full_size`` (``Predictor.rollout(..., quadrant=True)``;
+    # ``fold`` says which: the quadrant, or a trench's cross-section)
     states: np.ndarray
     metrics: dict[str, np.ndarray]  # name -> (T+1,) values in nm (NaN where undefined)
     times_s: list[float]  # (T+1,)
@@ -187,7 +190,8 @@ class Prediction:
     metrics_s: float
     warnings: tuple[str, ...] = ()
     non_finite_from: int | None = None  # the first step whose state is not finite (NaN/Inf), None: none
-    full_size: int | None = None  # set when ``states`` holds the quadrant of fields of this lateral size
+    full_size: int | None = None  # set when ``states`` holds the folded part of fields of this lateral size
+    fold: FieldFold | None = None  # what ``states`` holds then (``nemsim.symmetry.FieldFold``)
 
     @property
     def steps(self) -> int:
@@ -278,9 +282,9 @@ class Predictor:
         self.x0 = np.asarray(x0, dtype=np.float32)  # (2, D, H, W)
         # a quarter-domain model from a symmetric x0: every state of its rollouts is exactly symmetric
         x0_t = torch.as_tensor(self.x0)
-        quarter = self._fold if self._fold is not None and self._fold.kind == "quarter" else None
-        symmetric = quarter is not None and bool(torch.equal(x0_t, quarter.symmetrize(x0_t)))
-        self.symmetric_size: int | None = quarter.n if quarter is not None and symmetric else None
+        symmetric = self._fold is not None and bool(torch.equal(x0_t, self._fold.symmetrize(x0_t)))
+        self.symmetric_fold: FieldFold | None = self._fold if symmetric else None
+        self.symmetric_size: int | None = self._fold.n if self._fold is not None and symmetric else None
         self.initial_state_source = source
         expected = tuple(self.scene.state_shape)
         if self.x0.shape != expected:
@@ -436,8 +440,9 @@ class Predictor:
         Args:
             out: optional float32 buffer (>= T+1, *``state_shape(quadrant)``) the states are written into
                 (the returned ``states`` is then a view of it, valid while the caller does not reuse it).
-            quadrant: return the states' quadrant (``Prediction.full_size`` set), when the rollouts are
-                exactly symmetric (``symmetric_size``); otherwise the full fields, as without it.
+            quadrant: return the states' folded part (quadrant or cross-section; ``Prediction.full_size``
+                and ``fold`` set), when the rollouts are exactly symmetric (``symmetric_size``); otherwise
+                the full fields, as without it.
             feature: the feature etched (None: the scene's own); ``case`` says what is refused.
         """
         from nemsim.evaluation.rollout import rollout
@@ -445,10 +450,11 @@ class Predictor:
         case = self.case(feature)
         sched = self.schedule(controls, steps)
         T = sched.steps
-        on_quadrant = quadrant and self.symmetric_size is not None
+        fold_ = self.symmetric_fold if quadrant else None
+        on_quadrant = fold_ is not None
         x0 = torch.from_numpy(case.x0)[None]  # (1, 2, D, H, W)
-        if on_quadrant:
-            x0 = fold(x0).contiguous()  # the model's own domain: the rollout stays there
+        if fold_ is not None:
+            x0 = fold_.fold(x0).contiguous()  # the model's own domain: the rollout stays there
         u = torch.from_numpy(sched.normalized)[None]  # (1, T, 14)
         t0 = time.perf_counter()
         whole = getattr(self.runtime, "rollout", None)  # CUDA graphs: a constant-control rollout, one replay
@@ -474,13 +480,14 @@ class Predictor:
             warnings=tuple(warnings),
             non_finite_from=non_finite_from,
             full_size=self.symmetric_size if on_quadrant else None,
+            fold=fold_,
         )
 
     def state_shape(self, quadrant: bool = False) -> tuple[int, ...]:
         """(2, D, H, W) of a rollout's states, or (2, D, c, c) for ``rollout(..., quadrant=True)`` when the
         rollouts are exactly symmetric."""
-        if quadrant and self.symmetric_size is not None:
-            return tuple(self.scene.quarter_state_shape)
+        if quadrant and self.symmetric_fold is not None:
+            return (*self.x0.shape[:2], *self.symmetric_fold.plane)
         return tuple(self.x0.shape)
 
     def metrics(self, states: np.ndarray, scene: Any = None) -> dict[str, np.ndarray]:
