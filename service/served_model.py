@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from nemsim.inference import ControlSchedule, Predictor
+from nemsim.symmetry import FieldFold
 from service.compact_states import CompactStates
 from service.schemas import array_to_controls, jsonable
 
@@ -245,14 +246,15 @@ class ServedModel:
             return cached, True
         return self._compute(rid, schedule, case), False
 
-    def _store(self, result: RolloutResult, buf: torch.Tensor, full_size: int | None) -> None:
+    def _store(self, result: RolloutResult, buf: torch.Tensor, fold: FieldFold | None) -> None:
         """On the encoder thread: encode a pending rollout's states (its first steps + 1 of the trajectory
         buffer `buf`, float32, rounded to float16 on the way), give the buffer back, put the rollout in the
         cache, then resolve `result.encoded` (so whoever waited on it finds the rollout cached). A failed
         encoding is logged and the rollout forgotten; reading its states raises the error."""
         try:
             try:
-                compact = CompactStates.encode(buf[: result.steps + 1], full_size=full_size)
+                compact = CompactStates.encode(buf[: result.steps + 1], full_size=fold.n if fold else None,
+                                               fold_kind=fold.kind if fold else "quarter")
             finally:
                 self._give_back(buf)
         except BaseException as exc:
@@ -299,7 +301,7 @@ class ServedModel:
             case=case,
         )
         self._pending[rid] = result  # answered now, cached once its states are stored (`_store`)
-        self._encoder.submit(self._store, result, buf, pred.full_size)  # the buffer is its until encoded
+        self._encoder.submit(self._store, result, buf, pred.fold)  # the buffer is its until encoded
         return result
 
     def _take_buffer(self, steps: int) -> torch.Tensor:
