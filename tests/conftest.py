@@ -55,6 +55,30 @@ def tiny_checkpoint(tmp_path_factory, tiny_scene, rules):
     return path
 
 
+@pytest.fixture(scope="session")
+def tiny_section_checkpoint(tmp_path_factory, tiny_scene, rules):
+    """An untrained cross-section (trench) checkpoint on `tiny`: ``domain = "section"``, five states per call,
+    its trained geometry recorded as trenches of CD 32-48 nm under 48-80 nm of mask."""
+    import dataclasses
+
+    import torch
+
+    from nemsim.inference.checkpoint import save_checkpoint
+    from nemsim.registry import build_model, model_config
+
+    torch.manual_seed(0)
+    overrides = {"domain": "section", "steps_per_call": 5}
+    model = build_model("nemsim", tiny_scene, rules, overrides)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny_trench.pt"
+    save_checkpoint(path, model, model_name="nemsim",
+                    model_config=dataclasses.asdict(model_config("nemsim", tiny_scene, overrides)),
+                    scene=tiny_scene, rules=rules,
+                    summary={"note": "untrained, for tests",
+                             "geometry": {"trench": {"cd_nm": [32, 48], "mask_nm": [48, 80]}}},
+                    metrics={"avg_rmse": 0.5})
+    return path
+
+
 def _synthetic_states(scene, rate: float):
     """(T, 2, D, H, W) float32 in [-1, 1]: a fixed mask slab and a Si plane that moves down at ``rate``."""
     import numpy as np

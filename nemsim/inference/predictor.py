@@ -491,10 +491,17 @@ class Predictor:
         return tuple(self.x0.shape)
 
     def metrics(self, states: np.ndarray, scene: Any = None) -> dict[str, np.ndarray]:
-        """Profile metrics (nm) of states (T+1, 2, D, H, W): name -> (T+1,), NaN where undefined
-        (``measured_profile_metrics``); ``scene``: the per-case scene (None: the checkpoint's)."""
+        """Profile metrics (nm) of states (T+1, 2, D, H, W), or of their quadrant or cross-section
+        (``rollout(..., quadrant=True)``): name -> (T+1,), NaN where undefined (``measured_profile_metrics``);
+        ``scene``: the per-case scene (None: the checkpoint's)."""
         from nemsim.geometry.profile import measured_profile_metrics
 
+        f = self.symmetric_fold
+        if f is not None and f.kind == "section" and tuple(states.shape[-2:]) == f.plane:
+            # a trench's line profile: the cross-section's row across x, repeated along y (a view)
+            half = states[..., :1, :]  # (T+1, 2, D, 1, c)
+            row = np.concatenate([half, half[..., ::-1][..., f.n % 2:]], axis=-1)  # (T+1, 2, D, 1, n)
+            states = np.broadcast_to(row, (*states.shape[:-2], f.n, f.n))
         return measured_profile_metrics(states, self.scene if scene is None else scene)
 
     def warm_up(self, steps: int) -> None:

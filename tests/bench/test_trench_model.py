@@ -3,11 +3,9 @@ cross-section simulator seeds, its served speed beside the 3-D simulator of its 
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import pytest
-import torch
 
 
 @pytest.fixture(scope="module")
@@ -27,30 +25,11 @@ def trench_files(tmp_path_factory):
     return files
 
 
-@pytest.fixture(scope="module")
-def section_checkpoint(tmp_path_factory, tiny_scene):
-    from nemsim.inference.checkpoint import save_checkpoint
-    from nemsim.registry import build_model, model_config
-    from nemsim.rules.compile import compile_rules
-    from nemsim.rules.schema import load_rules
-
-    rules = compile_rules(load_rules())
-    torch.manual_seed(0)
-    overrides = {"domain": "section", "steps_per_call": 5}
-    model = build_model("nemsim", tiny_scene, rules, overrides)
-    path = tmp_path_factory.mktemp("ckpt") / "trench.pt"
-    save_checkpoint(path, model, model_name="nemsim",
-                    model_config=dataclasses.asdict(model_config("nemsim", tiny_scene, overrides)),
-                    scene=tiny_scene, rules=rules,
-                    summary={"geometry": {"trench": {"cd_nm": [32, 48], "mask_nm": [48, 80]}}}, metrics={})
-    return path
-
-
-def test_trench_report_on_tiny(tmp_path, trench_files, section_checkpoint):
+def test_trench_report_on_tiny(tmp_path, trench_files, tiny_section_checkpoint):
     from bench import trench_model
 
     out = tmp_path / "trench_model"
-    assert trench_model.main(["--checkpoint", str(section_checkpoint), "--test", str(trench_files["a"]),
+    assert trench_model.main(["--checkpoint", str(tiny_section_checkpoint), "--test", str(trench_files["a"]),
                               "--test-seed", str(trench_files["b"]), "--speed", "2", "--sim-cases", "1",
                               "--out", str(out)]) == 0
     rep = json.loads(out.with_suffix(".json").read_text())

@@ -66,6 +66,21 @@ def client(tiny_checkpoint):
         yield c
 
 
+@pytest.fixture(scope="module")
+def trench_client(tiny_section_checkpoint):
+    """The app serving the cross-section (trench) checkpoint."""
+    from fastapi.testclient import TestClient
+
+    from service.config import Settings
+    from service.main import create_app
+
+    app = create_app(Settings(checkpoint=tiny_section_checkpoint, warmup_steps=1, max_steps=100,
+                              cache_size=8, rate_limit_per_minute=0))
+    with TestClient(app) as c:
+        wait_ready(c)
+        yield c
+
+
 @pytest.fixture
 def make_client(served):
     """A client over the shared served model with other settings (no reload):
