@@ -1,7 +1,7 @@
 """Service settings: one `Settings(BaseSettings)` read from `NEMSIM_*` environment variables.
 
-Read through the cached `get_settings()` dependency (never at import); tests replace it with
-`app.dependency_overrides[get_settings]` or pass `create_app(settings=...)`.
+Read through the cached `get_settings()` (never at import); the routes read the app's own settings
+(`service.deps.app_settings`: `create_app(settings=...)`, else `get_settings()`).
 """
 
 from __future__ import annotations

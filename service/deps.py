@@ -35,7 +35,19 @@ async def get_served_model(request: Request) -> ServedModel:
 
 
 ServedModelDep = Annotated[ServedModel, Depends(get_served_model)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+async def app_settings(request: Request) -> Settings:
+    """The settings the app was built with (`service.main.create_app`), else the process-wide ones.
+
+    Read from the app's state rather than set as a dependency override: while any override is set,
+    FastAPI rebuilds every sub-dependency of a route (signature inspection, annotation evaluation) on every
+    request."""
+    settings = getattr(request.app.state, "settings", None)
+    return settings if isinstance(settings, Settings) else get_settings()
+
+
+SettingsDep = Annotated[Settings, Depends(app_settings)]
 
 
 async def get_gates(request: Request) -> Gates:

@@ -181,10 +181,6 @@ def create_app(settings: Settings | None = None, served: ServedModel | None = No
     if served is not None:
         app.state.service.served, app.state.service.status = served, "ready"
 
-    async def given_settings() -> Settings:  # async: no thread-pool hop per request (service.deps)
-        return settings
-
-    app.dependency_overrides[get_settings] = given_settings
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(HandlerTimeoutMiddleware, timeout_s=settings.handler_timeout_s)
     app.state.metrics = Metrics()

@@ -87,6 +87,28 @@ def _first_crossings(values: np.ndarray, pos: np.ndarray, out: np.ndarray) -> No
             out[i] = pos[k - 1] + frac * (pos[k] - pos[k - 1])
 
 
+@numba.njit(cache=True, nogil=True)
+def _first_crossings_columns(values: np.ndarray, pos: np.ndarray, out: np.ndarray) -> None:
+    """out[t, j] = the first vacuum->material crossing of the column values[t, :, j] (T, M, K), any strides,
+    at coordinates pos (M,): `_first_crossings` without a contiguous copy of the columns."""
+    m = values.shape[1]
+    edge = pos[m - 1] + 0.5 * (pos[m - 1] - pos[m - 2])
+    for t in range(values.shape[0]):
+        for j in range(values.shape[2]):
+            k = 0
+            while k < m and not values[t, k, j] <= 0.0:  # NaN is no material, as in the comparison
+                k += 1
+            if k == m:
+                out[t, j] = edge
+            elif k == 0:
+                out[t, j] = pos[0]
+            else:
+                v0 = np.float64(values[t, k - 1, j])
+                v1 = np.float64(values[t, k, j])
+                frac = v0 / (v0 - v1) if v0 - v1 > 0 else 0.0
+                out[t, j] = pos[k - 1] + frac * (pos[k] - pos[k - 1])
+
+
 def _first_crossing(values: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Position of the first vacuum->material crossing scanning along the last axis.
 
@@ -119,6 +141,44 @@ def _interp_at(field: np.ndarray, axis: int, at: float) -> np.ndarray:
     return (1.0 - w) * a + w * plane(lo + 1)
 
 
+@numba.njit(cache=True, nogil=True)
+def _crossing_from_axis(row: np.ndarray, centre: float, a: float, start: int, step: int, count: int) -> float:
+    """`_first_crossings` of one line walking outward from the axis: the samples centre (at a), then
+    row[start], row[start + step], ... (count of them, at their indices), without building the line."""
+    m = count + 1
+    p_last = a if count == 0 else float(start + (count - 1) * step)
+    p_prev = a if count <= 1 else float(start + (count - 2) * step)  # count 0: the edge is at a
+    k = 0
+    while k < m:
+        v = centre if k == 0 else np.float64(row[start + (k - 1) * step])
+        if v <= 0.0:
+            break
+        k += 1
+    if k == m:
+        return p_last + 0.5 * (p_last - p_prev)
+    if k == 0:
+        return a
+    v0 = centre if k == 1 else np.float64(row[start + (k - 2) * step])
+    v1 = np.float64(row[start + (k - 1) * step])
+    p0 = a if k == 1 else float(start + (k - 2) * step)
+    p1 = float(start + (k - 1) * step)
+    frac = v0 / (v0 - v1) if v0 - v1 > 0 else 0.0
+    return p0 + frac * (p1 - p0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _half_widths_lines(
+    lines: np.ndarray, a: float, lo: int, w: float, r0: int, l0: int, n: int, out: np.ndarray
+) -> None:
+    """`_half_widths` of the lines (K, n + 2) float64 into out (K,): one compiled pass, no temporaries."""
+    for i in range(lines.shape[0]):
+        row = lines[i]
+        centre = row[lo] if w < 1e-9 else (1.0 - w) * row[lo] + w * row[lo + 1]
+        right = _crossing_from_axis(row, centre, a, r0, 1, max(n + 1 - r0, 0))
+        left = _crossing_from_axis(row, centre, a, l0, -1, max(l0, 0))
+        out[i] = (right - a) + (a - left)
+
+
 def _half_widths(lines: np.ndarray, a: float, n: int) -> np.ndarray:
     """Sum of the outward distances from the axis to the first crossing on each side, in voxels.
 
@@ -126,16 +186,18 @@ def _half_widths(lines: np.ndarray, a: float, n: int) -> np.ndarray:
         lines: (..., n + 2) padded lines (native samples at indices 1..n).
         a: axis position in index coordinates.
     Returns:
-        (...) width in voxels (0 where the axis sample is material).
+        (...) width in voxels (0 where the axis sample is material). The axis sample is interpolated
+        between its neighbours (`_interp_at`), then each side is scanned outward from it to the domain
+        edge (`_first_crossings`), in one compiled pass (the lines built by concatenation made temporaries
+        of every line).
     """
-    centre = _interp_at(lines, -1, a)[..., None]  # (..., 1)
+    lo = int(math.floor(a))
+    flat = np.ascontiguousarray(lines, dtype=np.float64).reshape(-1, lines.shape[-1])
+    out = np.empty(flat.shape[0], dtype=np.float64)
     r0 = int(math.floor(a)) + 1  # first native index strictly right of a
     l0 = int(math.ceil(a)) - 1  # first native index strictly left of a
-    right = np.concatenate([centre, lines[..., r0 : n + 1]], axis=-1)
-    left = np.concatenate([centre, lines[..., l0:0:-1]], axis=-1)
-    pos_r = np.concatenate([[a], np.arange(r0, n + 1, dtype=np.float64)])
-    pos_l = np.concatenate([[a], np.arange(l0, 0, -1, dtype=np.float64)])
-    return (_first_crossing(right, pos_r) - a) + (a - _first_crossing(left, pos_l))
+    _half_widths_lines(flat, float(a), lo, float(a - lo), r0, l0, n, out)
+    return out.reshape(lines.shape[:-1])
 
 
 def _reflect(half: np.ndarray, n: int) -> np.ndarray:
@@ -237,8 +299,10 @@ def _measure(states: Any, scene: Scene) -> tuple[dict[str, np.ndarray], np.ndarr
     sel = _field_columns_mask(scene)  # (ny, nx)
     m_rows = np.arange(nz, scene.si_top, -1, dtype=np.float64)
     if quadrant:  # the mask top of every quadrant column, reflected to the full map, then the same columns
-        m_cols = np.moveaxis(mask[:, nz : scene.si_top : -1], 1, -1)  # (T, c, c, rows)
-        top_q = _first_crossing(m_cols, m_rows)  # (T, c, c)
+        m_cols = mask[:, nz : scene.si_top : -1]  # (T, rows, c, c), rows top to bottom (a view)
+        top_q = np.empty((t_count, m_cols.shape[2] * m_cols.shape[3]), dtype=np.float64)
+        _first_crossings_columns(m_cols.reshape(t_count, m_cols.shape[1], -1), m_rows, top_q)
+        top_q = top_q.reshape(t_count, *m_cols.shape[2:])  # (T, c, c)
         top_full = _reflect(np.swapaxes(_reflect(top_q, scene.nx + 2), 1, 2), scene.ny + 2)  # (T, W, H)
         m_top = np.swapaxes(top_full, 1, 2)[:, 1:-1, 1:-1][:, sel].mean(axis=1)  # (T,)
     else:

@@ -160,3 +160,50 @@ def test_metrics_of_a_quadrant_equal_those_of_its_unfolded_fields(tiny_scene):
     assert full["etch_depth"][-1] > full["etch_depth"][0]
     for name in METRIC_NAMES:
         np.testing.assert_allclose(quad[name], full[name], rtol=0, atol=1e-9, err_msg=name)
+
+
+def _half_widths_by_concatenation(lines: np.ndarray, a: float, n: int) -> np.ndarray:
+    """The reference of `_half_widths`: each side built as a line (the axis sample first) and scanned."""
+    from nemsim.geometry.profile import _first_crossing, _interp_at
+
+    centre = _interp_at(lines, -1, a)[..., None]
+    r0, l0 = int(np.floor(a)) + 1, int(np.ceil(a)) - 1
+    right = np.concatenate([centre, lines[..., r0 : n + 1]], axis=-1)
+    left = np.concatenate([centre, lines[..., l0:0:-1]], axis=-1)
+    pos_r = np.concatenate([[a], np.arange(r0, n + 1, dtype=np.float64)])
+    pos_l = np.concatenate([[a], np.arange(l0, 0, -1, dtype=np.float64)])
+    return (_first_crossing(right, pos_r) - a) + (a - _first_crossing(left, pos_l))
+
+
+@pytest.mark.parametrize("a", [0.5, 1.0, 1.5, 6.25, 13.0, 13.5, 26.0, 26.5])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_compiled_half_widths_equal_the_scan_of_built_lines(a, dtype):
+    """The one-pass widths are bit-identical to scanning lines built by concatenation, NaN, zeros, lines
+    without material and axes on and between voxels (at the domain edges too) included."""
+    from nemsim.geometry.profile import _half_widths
+
+    rng = np.random.default_rng(7)
+    n = 26
+    lines = rng.normal(0.1, 0.5, (40, 3, n + 2))
+    lines[rng.random(lines.shape) < 0.05] = np.nan
+    lines[rng.random(lines.shape) < 0.05] = 0.0
+    lines[0] = 1.0  # vacuum only: the domain edge on both sides
+    lines[1] = -1.0  # material at the axis
+    lines = lines.astype(dtype)
+    np.testing.assert_array_equal(_half_widths(lines, a, n), _half_widths_by_concatenation(lines, a, n))
+
+
+def test_column_crossings_equal_those_of_contiguous_lines():
+    """`_first_crossings_columns` on a strided view (rows reversed) equals `_first_crossing` of the columns
+    moved last and copied."""
+    from nemsim.geometry.profile import _first_crossing, _first_crossings_columns
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(0.2, 0.6, (5, 12, 4, 4)).astype(np.float32)
+    x[rng.random(x.shape) < 0.05] = np.nan
+    x[:, :, 0, 0] = 1.0  # a column without material
+    view = x[:, 10:2:-1]  # (5, 8, 4, 4), rows top to bottom, negative stride
+    pos = np.arange(10, 2, -1, dtype=np.float64)
+    out = np.empty((5, 16))
+    _first_crossings_columns(view.reshape(5, 8, -1), pos, out)
+    np.testing.assert_array_equal(out.reshape(5, 4, 4), _first_crossing(np.moveaxis(view, 1, -1), pos))

@@ -126,6 +126,20 @@ def test_configured_step_ceiling(make_client, default_controls):
     assert c.post("/rollout", json={"controls": default_controls}).status_code == 422
 
 
+def test_each_app_reads_its_own_settings_without_overrides(make_client, default_controls, served):
+    """The routes read the settings the app was built with; create_app sets no dependency override (with one
+    set, FastAPI rebuilds every sub-dependency of a route on every request)."""
+    from service.config import Settings
+    from service.main import create_app
+
+    assert create_app(Settings(warmup_steps=0), served=served).dependency_overrides == {}
+    low, high = make_client(max_steps=3), make_client(max_steps=5)
+    body = {"controls": default_controls, "steps": 4}
+    r = low.post("/rollout", json=body)
+    assert r.status_code == 422 and "ceiling of 3" in r.json()["message"]
+    assert high.post("/rollout", json=body).status_code == 200
+
+
 def test_longer_than_horizon_warns(make_client, default_controls, served, monkeypatch):
     monkeypatch.setattr(type(served.predictor), "horizon_steps", property(lambda self: 2))
     r = make_client().post("/rollout", json={"controls": default_controls, "steps": 3})
