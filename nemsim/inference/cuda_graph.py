@@ -69,7 +69,7 @@ from nemsim.inference.eager import (
     model_predict,
 )
 from nemsim.model.unpack import NO_FINISH, Finish
-from nemsim.symmetry import quarter_model_size
+from nemsim.symmetry import model_fold
 
 log = logging.getLogger(__name__)
 
@@ -360,11 +360,11 @@ class CUDAGraphRuntime(Runtime):
                              f"{tuple(x0.shape)} and {tuple(u.shape)}")
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
-        n = quarter_model_size(self)
-        if n is not None and x0.shape[-1] == n:  # a quarter-domain model: the graph runs on the quadrant
+        f = model_fold(self)
+        if f is not None and f.is_full(x0):  # a quarter- or section-domain model: the graph runs folded
             from nemsim.evaluation.rollout import on_quadrant
 
-            return on_quadrant(x0.to(self.device, torch.float32), n,
+            return on_quadrant(x0.to(self.device, torch.float32), f,
                                lambda xq: self.rollout(xq, u, steps, monotone=monotone, copy=copy))
         cache = self.precompute(u)
         with self._on_device():

@@ -15,6 +15,7 @@ export function caseScene(scene, g) {
   return { ...scene, kind: g.kind, si_top: scene.resist_top - Math.round(g.mask_nm / v), opening_radius_vox: g.cd_nm / 2 / v };
 }
 
+const plural = (kind) => (kind.endsWith('h') ? `${kind}es` : `${kind}s`); // holes, trenches
 const span = (r) => (r[0] === r[1] ? `${r[0]} nm` : `${r[0]}–${r[1]} nm`);
 
 /** Draw the cross-section sketch of features `gs` ([{g, colour, dash}]) on the scene's pitch. */
@@ -65,8 +66,8 @@ export function initGeometry(page) {
     const r = trained[a.kind];
     const inside = r && a.cd_nm >= r.cd_nm[0] && a.cd_nm <= r.cd_nm[1] && a.mask_nm >= r.mask_nm[0] && a.mask_nm <= r.mask_nm[1];
     $('geo-note').textContent = r
-      ? `trained on ${a.kind}s of CD ${span(r.cd_nm)}, mask ${span(r.mask_nm)}${inside ? '' : ': outside, the answer is not to be trusted'}`
-      : `this model was not trained on ${a.kind}s`;
+      ? `trained on ${plural(a.kind)} of CD ${span(r.cd_nm)}, mask ${span(r.mask_nm)}${inside ? '' : ': outside, the answer is not to be trusted'}`
+      : `this model was not trained on ${plural(a.kind)}`;
     $('geo-note').classList.toggle('warn', !inside);
     sketch($('geo-sketch'), scene, [{ g: a, colour: '#1d2430' }, { g: b, colour: '#d62728', dash: [4, 3] }]);
     page.onChange();
