@@ -92,8 +92,7 @@ def rollout(
         raise ValueError(f"x0 must be (B, 2, D, H, W), got shape {tuple(x0.shape)}")
     f = model_fold(model)
     if f is not None and f.is_full(x0):  # a quarter- or section-domain model: roll the folded field
-        fd = f
-        on_q = None if on_step is None else (lambda t, xq: on_step(t, fd.unfold(xq)))
+        on_q = None if on_step is None else (lambda t, xq, g=f: on_step(t, g.unfold(xq)))
         return on_quadrant(x0, f, lambda xq: rollout(model, xq, u, steps, keep=keep, on_step=on_q,
                                                      window=window, stats=stats, monotone=monotone),
                            keep, out)
@@ -124,16 +123,15 @@ def rollout(
                              "records full-width statistics); roll it out without the window")
         depth_window = DepthWindow(model)
     project = projection_of(model, x0, monotone)
-    quarter = f is not None and f.kind == "quarter"  # x0 is a quarter-domain model's quadrant
-    section = f is not None and f.kind == "section"  # x0 is a section-domain model's cross-section
+    folded = f.kind if f is not None else None  # x0 is a folded model's quadrant or cross-section
     traj = _trajectory_buffer(x0, T, keep, out)  # (B, T+1, 2, D, H, W) or None
     # keep=False: two buffers of one call's states, alternating, so the previous call's states stay valid
     # while this call's are predicted (the next input, and on_step's contract)
     spare = None if keep else [x0.new_empty((B, k, *x0.shape[1:])) for _ in range(2)]
     into = getattr(model, "predict_into", None) if fast and depth_window is None else None
-    # each call's states: a quadrant's diagonal mean where ``predict`` does not do it, then the projection
-    finish = Finish(diagonal=quarter and (into is not None or not fast), projection=project,
-                    rows=section and (into is not None or not fast))
+    # each call's states: the fold's mean (diagonal, rows) where ``predict`` has not taken it, then projected
+    late = into is not None or not fast
+    finish = Finish(folded == "quarter" and late, project, rows=folded == "section" and late)
     cache = None
     x = x0
     t = calls = 0

@@ -259,9 +259,9 @@ def test_the_answer_does_not_wait_for_the_states_to_be_stored(served, default_co
     s = ServedModel(served.predictor, cache_size=4)
     encode, release = CompactStates.encode, threading.Event()
 
-    def held(states, full_size=None):
+    def held(states, full_size=None, fold_kind="quarter"):
         assert release.wait(30)
-        return encode(states, full_size=full_size)
+        return encode(states, full_size=full_size, fold_kind=fold_kind)
 
     monkeypatch.setattr(CompactStates, "encode", held)
     raw = np.tile(np.array(list(default_controls.values())), (4, 1))
