@@ -38,13 +38,22 @@ SHOWCASE = Path(__file__).resolve().parents[2] / "checkpoints" / "nemsim-small.p
 
 @pytest.fixture(scope="module")
 def server(tiny_checkpoint):
+    showcase = os.environ.get("NEMSIM_SCREENSHOTS") == "1" and SHOWCASE.is_file()
+    yield from _serve(SHOWCASE if showcase else tiny_checkpoint)
+
+
+@pytest.fixture(scope="module")
+def trench_server(tiny_section_checkpoint):
+    yield from _serve(tiny_section_checkpoint)
+
+
+def _serve(checkpoint):
+    """A real uvicorn on a loopback port serving ``checkpoint`` with the default limits; yields its URL."""
     import uvicorn
 
     from service.config import Settings
     from service.main import create_app
 
-    showcase = os.environ.get("NEMSIM_SCREENSHOTS") == "1" and SHOWCASE.is_file()
-    checkpoint = SHOWCASE if showcase else tiny_checkpoint
     app = create_app(Settings(checkpoint=checkpoint, warmup_steps=1, runtime_backend="torch"))
     assert app.state.settings.rate_limit_per_minute > 0  # the default limits apply
     port = free_port()
@@ -76,6 +85,11 @@ def browser():
 
 @pytest.fixture
 def page(browser, server):
+    yield from _open(browser, server)
+
+
+def _open(browser, base):
+    """A fresh page of the explorer at ``base``, started, recording failed responses and console errors."""
     ctx = browser.new_context(viewport={"width": 1500, "height": 1000})
     pg = ctx.new_page()
     pg.console_errors, pg.failed, pg.requests = [], [], []
@@ -86,7 +100,7 @@ def page(browser, server):
         "response", lambda r: r.status >= 400 and pg.failed.append(f"{r.status} {r.request.method} {r.url}")
     )
     pg.on("requestfailed", lambda r: pg.failed.append(f"{r.failure} {r.method} {r.url}"))
-    pg.goto(server + "/")
+    pg.goto(base + "/")
     try:
         pg.wait_for_selector("body[data-ready='1']", state="attached", timeout=15_000)
     except sync_api.TimeoutError:
@@ -177,6 +191,23 @@ def test_the_feature_is_set_drawn_sent_and_compared_a_b(page):
     assert "A: hole 60/80 nm" in text and "B: hole 48/80 nm" in text and "etch_depth" in text
     page.wait_for_load_state("networkidle")
     assert page.console_errors == [] and page.failed == []
+
+
+def test_a_trench_model_serves_its_trench(browser, trench_server):
+    """A cross-section (trench) checkpoint: the page starts on its trench (holes disabled), runs it, draws the
+    3-D view and the chart, and says the trained range, with no console errors or failed requests."""
+    for pg in _open(browser, trench_server):
+        assert [pg.input_value(f"#geo-{k}") for k in ("kind", "cd", "mask")] == ["trench", "40", "80"]
+        assert pg.locator("#geo-kind option[value=hole]").is_disabled()
+        assert "trained on trenches of" in pg.inner_text("#geo-note")
+        assert "CD 32–48 nm" in pg.inner_text("#geo-note")
+        run_and_wait(pg)
+        assert pg.evaluate("() => window.explorer.run.geometry") == {"kind": "trench", "cd_nm": 40.0,
+                                                                      "mask_nm": 80.0}
+        assert view3d_pixels(pg) > 1000, "the 3-D view is empty"
+        assert canvas_stats(pg, "#chart")[0] > 500, "the metrics chart is empty"
+        pg.wait_for_load_state("networkidle")
+        assert pg.console_errors == [] and pg.failed == []
 
 
 def test_time_slider_changes_the_view(page):
