@@ -41,7 +41,9 @@ Trenches (``scene.kind == "trench"``, a per-case scene from ``nemsim.geometry.fe
 the state's mean over y (the line's direction, its mean profile: a 3-D simulator's noise along the line
 averages out; a cross-section's state is already y-invariant); widths are across x only (the x line through
 the axis), and mask_loss's planar field is the columns at least opening half-width + d_max from the axis
-(else outside half-width + 1). Every metric reads the case's own scene (its Si top, mask top, opening).
+(else outside half-width + 1). Every metric reads the case's own scene (its Si top, mask top, opening). A
+trench's states may be given as that mean profile already, (T, 2, D, 1, W) (a cross-section model's line,
+``Predictor.metrics``): the same metrics without a full field.
 
 Both are vectorized over a leading step axis (T, 2, D, H, W). They also take the
 states' quadrant (T, 2, D, c, c) (``nemsim.symmetry.fold``) of fields exactly symmetric under the square's
@@ -238,12 +240,16 @@ def _measure(states: Any, scene: Scene) -> tuple[dict[str, np.ndarray], np.ndarr
         states = states.detach().cpu().numpy()
     x = np.asarray(states)
     quadrant = scene.symmetry == "d4" and x.ndim == 5 and x.shape[1:] == scene.quarter_state_shape
-    if not quadrant and (x.ndim != 5 or x.shape[1:] != scene.state_shape):
+    full = tuple(scene.state_shape)
+    line = scene.kind == "trench" and x.ndim == 5 and x.shape[1:] == (*full[:2], 1, full[3])
+    if not (quadrant or line) and (x.ndim != 5 or x.shape[1:] != scene.state_shape):
         raise ValueError(
             f"states shape {x.shape}; expected (T, *{scene.state_shape}) for scene {scene.name!r}"
         )
     if scene.kind == "trench":  # the line's mean profile (module docstring), (T, 2, D, 1, W) repeated along y
-        x = np.broadcast_to(x.mean(axis=3, keepdims=True, dtype=np.float64).astype(np.float32), x.shape)
+        mean = x if line else x.mean(axis=3, keepdims=True, dtype=np.float64)
+        mean = mean.astype(np.float32)
+        x = np.broadcast_to(mean, (x.shape[0], *full))
     # no float64 copy of the whole stack: only the extracted lines/columns are promoted
     t_count = x.shape[0]
     nz = scene.nz

@@ -498,10 +498,9 @@ class Predictor:
 
         f = self.symmetric_fold
         if f is not None and f.kind == "section" and tuple(states.shape[-2:]) == f.plane:
-            # a trench's line profile: the cross-section's row across x, repeated along y (a view)
+            # a trench's line profile: the cross-section's row across x (``measured_profile_metrics``)
             half = states[..., :1, :]  # (T+1, 2, D, 1, c)
-            row = np.concatenate([half, half[..., ::-1][..., f.n % 2:]], axis=-1)  # (T+1, 2, D, 1, n)
-            states = np.broadcast_to(row, (*states.shape[:-2], f.n, f.n))
+            states = np.concatenate([half, half[..., ::-1][..., f.n % 2:]], axis=-1)  # (T+1, 2, D, 1, n)
         return measured_profile_metrics(states, self.scene if scene is None else scene)
 
     def warm_up(self, steps: int) -> None:

@@ -140,3 +140,26 @@ def test_openvino_matches_pytorch_on_the_section(tiny_scene):
     out = rollout(rt, x0, u)
     assert (out - ref).abs().max() <= 1e-4
     assert torch.equal(out[:, 1:], out[:, 1:, ..., :1, :].expand_as(out[:, 1:]))
+
+
+def test_predictor_keeps_a_trench_on_its_cross_section(tiny_section_checkpoint):
+    """``rollout(..., quadrant=True)`` of a section checkpoint returns the cross-section (its fold set) whose
+    metrics, read from the line profile, equal those of the full fields; unfolded, the same states."""
+    import numpy as np
+
+    from nemsim.inference import Predictor
+    from nemsim.scenes import TINY
+    from service.schemas import array_to_controls, default_controls_raw
+
+    pred = Predictor.from_checkpoint(tiny_section_checkpoint, backend="torch")
+    assert pred.scene.kind == "trench" and pred.symmetric_fold is not None
+    controls = array_to_controls(default_controls_raw())
+    folded = pred.rollout(controls, 10, quadrant=True)
+    full = pred.rollout(controls, 10)
+    assert folded.fold == pred.symmetric_fold and folded.states.shape == (11, 2, TINY.field_shape[0],
+                                                                           *pred.symmetric_fold.plane)
+    assert pred.state_shape(quadrant=True) == folded.states.shape[1:]
+    np.testing.assert_array_equal(pred.symmetric_fold.unfold(torch.from_numpy(folded.states)).numpy(),
+                                  full.states)
+    for name, values in full.metrics.items():
+        np.testing.assert_array_equal(folded.metrics[name], values, err_msg=name)
