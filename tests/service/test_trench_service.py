@@ -44,3 +44,26 @@ def test_a_rollout_is_a_trench_in_full_fields(trench_client, default_controls, d
     assert np.array_equal(decode_fields(again["fields"]).astype(np.float32), fields)
     mesh = trench_client.get(f"/rollouts/{got['id']}/mesh", params={"channel": "si"})
     assert mesh.status_code == 200 and len(mesh.content) > 100
+
+
+def test_mechanisms_design_and_simulations_take_the_trench(trench_client, default_controls):
+    """GET /mechanisms answers on the trench; a simulator job runs it (on its cross-section) to the end, and a
+    design job for it is accepted."""
+    import time
+
+    r = trench_client.get("/mechanisms")
+    assert r.status_code == 200, r.text
+    assert len(r.json()["result"]["interventions"]) == 8
+    wide = {"kind": "trench", "cd_nm": 48.0, "mask_nm": 64.0}
+    created = trench_client.post("/simulations", json={"controls": default_controls, "steps": 2,
+                                                       "geometry": wide})
+    assert created.status_code == 202, created.text
+    location = created.headers["location"]
+    deadline = time.monotonic() + 120
+    while (body := trench_client.get(location).json())["status"] not in ("done", "failed", "cancelled"):
+        assert time.monotonic() < deadline, body
+        time.sleep(0.2)
+    assert body["status"] == "done", body
+    design = trench_client.post("/design", json={"targets": {"etch_depth": 40}, "geometry": wide})
+    assert design.status_code == 202 and design.json()["geometry"] == wide
+    trench_client.delete(design.json()["location"])
