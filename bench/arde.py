@@ -275,12 +275,20 @@ def main(argv: list[str] | None = None) -> None:
     write_report(args.out, to_markdown(rep, command, cpu), {"command": command, "cpu": cpu, **rep})
 
 
-def write_report(out: Path | None, text: str, record: dict[str, Any]) -> None:
-    """Print a report's Markdown; with ``out`` also write it as OUT.md and its record as OUT.json."""
+def write_report(out: Path | None, text: str, record: dict[str, Any],
+                 stamp: tuple[str, str] | None = None) -> None:
+    """Print a report's Markdown; with ``out`` also write it as OUT.md and its record as OUT.json, both
+    stamped with ``stamp`` = (checkpoint path, checkpoint id) when given (``bench.stamp``)."""
     if out is not None:
+        from bench.stamp import stamp_json, stamp_markdown
+
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.with_suffix(".json").write_text(json.dumps(record, indent=1))
-        out.with_suffix(".md").write_text(text)
+        js, md = out.with_suffix(".json"), out.with_suffix(".md")
+        js.write_text(json.dumps(record, indent=1))
+        md.write_text(text)
+        if stamp is not None:
+            stamp_json(js, *stamp)
+            stamp_markdown(md, *stamp)
     sys.stdout.write(text)
 
 

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bench.arde import model_arde, model_markdown
+from bench.arde import model_arde, model_markdown, write_report
 from nemsim.controls import to_normalized
 from nemsim.data.hdf5 import open_trajectories
 from nemsim.evaluation.metrics import case_step_mse
@@ -186,7 +186,6 @@ def verdict(rep: dict[str, Any], tolerance: float = 0.25) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     from bench.machine import cpu_name
-    from bench.stamp import stamp_json, stamp_markdown
     from nemsim.inference.checkpoint import checkpoint_geometry, checkpoint_id, load_checkpoint
 
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -226,16 +225,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     files = [args.test, *([args.test_seed] if args.test_seed else []),
              *([args.default] if args.default else []), *args.train]
     rep["through"] = [through_count(p) for p in files]
-    text = to_markdown(rep)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        js, md = args.out.with_suffix(".json"), args.out.with_suffix(".md")
-        js.write_text(json.dumps(rep, indent=1))
-        md.write_text(text)
-        cid = rep["models"]["model"]["checkpoint_id"]
-        stamp_json(js, str(args.checkpoint), cid)
-        stamp_markdown(md, str(args.checkpoint), cid)
-    sys.stdout.write(text)
+    stamp = (str(args.checkpoint), rep["models"]["model"]["checkpoint_id"])
+    write_report(args.out, to_markdown(rep), rep, stamp)
     return 0
 
 

@@ -19,7 +19,6 @@ Run: ``python -m bench.trench_model --checkpoint CKPT --test A.h5 --test-seed B.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bench.arde import write_report
 from bench.geometry import TARGET_RATIO, field_errors
 from nemsim.controls import to_normalized
 from nemsim.data.hdf5 import open_trajectories
@@ -142,7 +142,6 @@ def verdict(rep: dict[str, Any]) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     from bench.machine import cpu_name
     from bench.serving import bench_service
-    from bench.stamp import stamp_json, stamp_markdown
     from nemsim.inference.checkpoint import checkpoint_geometry, checkpoint_id, load_checkpoint
 
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -168,15 +167,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "profile": profile_errors(loaded.model, args.test, args.test_seed)}
     if args.speed > 0:
         rep["speed"] = bench_service(args.checkpoint, n=args.speed, n_cached=20, sim_cases=args.sim_cases)
-    text = to_markdown(rep)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        js, md = args.out.with_suffix(".json"), args.out.with_suffix(".md")
-        js.write_text(json.dumps(rep, indent=1))
-        md.write_text(text)
-        stamp_json(js, str(args.checkpoint), rep["checkpoint_id"])
-        stamp_markdown(md, str(args.checkpoint), rep["checkpoint_id"])
-    sys.stdout.write(text)
+    write_report(args.out, to_markdown(rep), rep, (str(args.checkpoint), rep["checkpoint_id"]))
     return 0
 
 

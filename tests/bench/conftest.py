@@ -79,3 +79,26 @@ def x0(tiny_scene):
     from nemsim.sim import initial_state
 
     return initial_state(tiny_scene)
+
+
+@pytest.fixture(scope="session")
+def two_seed_files():
+    """two_seed_files(root, feature, cd, mask, *generate args) -> {"a": file, "b": file}: a 2-case design of
+    ``feature`` on tiny simulated with seeds 1 and 2."""
+    return _two_seed_files
+
+
+def _two_seed_files(root, feature: str, cd_nm: str, mask_nm: str, *extra: str) -> dict:
+    """A 2-case design of ``feature`` on tiny simulated with seeds 1 and 2 (``extra``: more generate
+    arguments, e.g. the simulated domain): {"a": file, "b": file}."""
+    from nemsim.cli import main
+
+    design = root / "design.csv"
+    assert main(["design", "--feature", feature, "--cd-nm", cd_nm, "--mask-nm", mask_nm, "--n", "2",
+                 "--seed", "5", "--out", str(design)]) == 0
+    files = {}
+    for name, seed in (("a", "1"), ("b", "2")):
+        files[name] = root / f"{feature}-{name}.h5"
+        assert main(["generate", "--scene", "tiny", "--controls", str(design), "--seed", seed, *extra,
+                     "--no-progress", "--out", str(files[name])]) == 0
+    return files

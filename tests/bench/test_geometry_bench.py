@@ -10,19 +10,12 @@ import pytest
 
 
 @pytest.fixture(scope="module")
-def hole_files(tmp_path_factory):
+def hole_files(tmp_path_factory, two_seed_files):
     """Two tiny hole files of one design (simulator seeds 1 and 2) and one at the default feature."""
     from nemsim.cli import main
 
     root = tmp_path_factory.mktemp("geometry")
-    design = root / "design.csv"
-    assert main(["design", "--feature", "hole", "--cd-nm", "24:48", "--mask-nm", "40:80", "--n", "2",
-                 "--seed", "5", "--out", str(design)]) == 0
-    files = {}
-    for name, seed in (("a", "1"), ("b", "2")):
-        files[name] = root / f"holes-{name}.h5"
-        assert main(["generate", "--scene", "tiny", "--controls", str(design), "--seed", seed,
-                     "--no-progress", "--out", str(files[name])]) == 0
+    files = two_seed_files(root, "hole", "24:48", "40:80")
     files["default"] = root / "default.h5"
     assert main(["generate", "--scene", "tiny", "--n", "1", "--no-progress", "--out",
                  str(files["default"])]) == 0

@@ -9,20 +9,10 @@ import pytest
 
 
 @pytest.fixture(scope="module")
-def trench_files(tmp_path_factory):
+def trench_files(tmp_path_factory, two_seed_files):
     """Two tiny trench files of one design on the cross-section (simulator seeds 1 and 2)."""
-    from nemsim.cli import main
-
     root = tmp_path_factory.mktemp("trench")
-    design = root / "design.csv"
-    assert main(["design", "--feature", "trench", "--cd-nm", "32:48", "--mask-nm", "48:80", "--n", "2",
-                 "--seed", "5", "--out", str(design)]) == 0
-    files = {}
-    for name, seed in (("a", "1"), ("b", "2")):
-        files[name] = root / f"trench-{name}.h5"
-        assert main(["generate", "--scene", "tiny", "--controls", str(design), "--seed", seed,
-                     "--sim-domain", "section", "--no-progress", "--out", str(files[name])]) == 0
-    return files
+    return two_seed_files(root, "trench", "32:48", "48:80", "--sim-domain", "section")
 
 
 def test_trench_report_on_tiny(tmp_path, trench_files, tiny_section_checkpoint):
