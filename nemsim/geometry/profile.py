@@ -129,13 +129,17 @@ def _first_crossing(values: np.ndarray, pos: np.ndarray) -> np.ndarray:
 
 
 def _interp_at(field: np.ndarray, axis: int, at: float) -> np.ndarray:
-    """field sampled at a (possibly half-integer) index along ``axis`` by linear interpolation."""
+    """field sampled at a (possibly half-integer) index along ``axis`` by linear interpolation (an axis of
+    size 1 is a field constant along it: a trench's line profile across y)."""
     lo = int(math.floor(at))
     w = at - lo
     axis = axis % field.ndim
 
     def plane(i: int) -> np.ndarray:  # a view (np.take would copy the whole, possibly strided, field first)
         return field[(slice(None),) * axis + (i,)]
+
+    if field.shape[axis] == 1:
+        return plane(0).astype(np.float64)
 
     a = plane(lo).astype(np.float64)
     if w < 1e-9:
@@ -246,10 +250,8 @@ def _measure(states: Any, scene: Scene) -> tuple[dict[str, np.ndarray], np.ndarr
         raise ValueError(
             f"states shape {x.shape}; expected (T, *{scene.state_shape}) for scene {scene.name!r}"
         )
-    if scene.kind == "trench":  # the line's mean profile (module docstring), (T, 2, D, 1, W) repeated along y
-        mean = x if line else x.mean(axis=3, keepdims=True, dtype=np.float64)
-        mean = mean.astype(np.float32)
-        x = np.broadcast_to(mean, (x.shape[0], *full))
+    if scene.kind == "trench":  # the line's mean profile (module docstring), (T, 2, D, 1, W)
+        x = np.asarray(x if line else x.mean(axis=3, keepdims=True, dtype=np.float64), dtype=np.float32)
     # no float64 copy of the whole stack: only the extracted lines/columns are promoted
     t_count = x.shape[0]
     nz = scene.nz
@@ -311,6 +313,10 @@ def _measure(states: Any, scene: Scene) -> tuple[dict[str, np.ndarray], np.ndarr
         top_q = top_q.reshape(t_count, *m_cols.shape[2:])  # (T, c, c)
         top_full = _reflect(np.swapaxes(_reflect(top_q, scene.nx + 2), 1, 2), scene.ny + 2)  # (T, W, H)
         m_top = np.swapaxes(top_full, 1, 2)[:, 1:-1, 1:-1][:, sel].mean(axis=1)  # (T,)
+    elif scene.kind == "trench":  # the line's columns (sel is the same in every row of y)
+        m_cols = mask[:, scene.si_top + 1 : nz + 1, 0, 1:-1][:, :, sel[0]]  # (T, rows, K) mask rows
+        m_cols = np.moveaxis(m_cols[:, ::-1], 1, -1)  # (T, K, rows) top to bottom
+        m_top = _first_crossing(m_cols, m_rows).mean(axis=1)  # (T,)
     else:
         m_cols = mask[:, scene.si_top + 1 : nz + 1, 1:-1, 1:-1][:, :, sel]  # (T, rows, K) mask rows
         m_cols = np.moveaxis(m_cols[:, ::-1], 1, -1)  # (T, K, rows) top to bottom

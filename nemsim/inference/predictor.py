@@ -499,8 +499,11 @@ class Predictor:
         f = self.symmetric_fold
         if f is not None and f.kind == "section" and tuple(states.shape[-2:]) == f.plane:
             # a trench's line profile: the cross-section's row across x (``measured_profile_metrics``)
-            half = states[..., :1, :]  # (T+1, 2, D, 1, c)
-            states = np.concatenate([half, half[..., ::-1][..., f.n % 2:]], axis=-1)  # (T+1, 2, D, 1, n)
+            c = states.shape[-1]
+            line = np.empty((*states.shape[:-2], 1, f.n), dtype=np.float32)  # (T+1, 2, D, 1, n)
+            line[..., :c] = states[..., :1, :]
+            line[..., c:] = states[..., :1, c - 1 - f.n % 2 :: -1][..., : f.n - c]  # mirrored across the axis
+            states = line
         return measured_profile_metrics(states, self.scene if scene is None else scene)
 
     def warm_up(self, steps: int) -> None:
