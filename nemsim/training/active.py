@@ -857,6 +857,9 @@ def run_learning(job: LearnJob, echo: Callable[[str], None] = log.info) -> list[
         path = round_dir(job.out, r) / "round.json"
         state = {"round": r, "checkpoint_in": str(ckpt), **_read_state(path)}
         loaded = load_checkpoint(ckpt)
+        if getattr(loaded.model.config, "domain", "full") == "section":
+            raise ValueError(f"{ckpt} is a trench's cross-section model; active learning simulates the "
+                             "checkpoint's own scene (a hole) and does not cover trenches")
         phases = [("selected", "choosing the batch"), ("simulated", "simulating"), ("trained", "fine-tuning")]
         ran: list[str] = []
         for status, doing in phases:

@@ -295,3 +295,17 @@ def test_cli_propose_writes_the_candidates_and_refuses_bad_counts(tmp_path, caps
         == 2
     )
     assert "at least one candidate" in capsys.readouterr().err
+
+
+def test_a_trench_model_is_refused_with_the_reason(tmp_path, tiny_section_checkpoint):
+    """Active learning simulates the checkpoint's own scene (a hole): a cross-section model is refused
+    before anything is selected or simulated."""
+    from nemsim.training.active import LearnConfig, LearnJob, round_dir, run_learning
+    from nemsim.training.config import TrainConfig
+
+    job = LearnJob(checkpoint=tiny_section_checkpoint, data=tmp_path / "unused.h5", out=tmp_path / "learn",
+                   train=TrainConfig(max_steps=1), splits=None, config=LearnConfig(rounds=1, batch=2),
+                   progress=False)
+    with pytest.raises(ValueError, match="does not cover trenches"):
+        run_learning(job)
+    assert not (round_dir(job.out, 1) / "candidates.csv").exists()
