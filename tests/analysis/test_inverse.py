@@ -220,3 +220,14 @@ def test_the_edge_weight_steers_the_search_inward_and_leaves_the_objective_alone
     assert e_inner < 0.05 and e_inner <= e_plain and e_plain > 0.5
     assert spec_from_dict(body).search.edge_weight == 0.25
     assert inner["objective"] == pytest.approx(objective(inner["predicted"], spec), abs=1e-4)
+
+
+def test_a_trench_model_searches_on_its_trench(tiny_section_checkpoint):
+    """A cross-section checkpoint's inverse context is its trench (kind, x0 constant along the line), and a
+    search on it answers with recipes."""
+    ctx = load_inverse_context(tiny_section_checkpoint)
+    assert ctx.scene.kind == "trench"
+    assert torch.equal(ctx.x0, ctx.x0[..., :1, :].expand_as(ctx.x0))
+    spec = spec_from_dict({"targets": {"etch_depth": 20.0}, "step": 4, "k": 1, "search": SMALL_SEARCH})
+    res = search(ctx, spec)
+    assert res["recipes"] and np.isfinite(res["recipes"][0]["predicted"]["etch_depth"])

@@ -89,20 +89,23 @@ def simulator_config(loaded: Any) -> SimConfig | None:
 
 
 def load_inverse_context(checkpoint: str | Path) -> InverseContext:
-    """Load a checkpoint, its initial state (its simulator configuration) and its calibration file."""
+    """Load a checkpoint, its initial state (its simulator configuration; a cross-section model's trench) and
+    its calibration file."""
     from nemsim.analysis.intervals import calibration_for
     from nemsim.inference.checkpoint import checkpoint_id, load_checkpoint
+    from nemsim.inference.predictor import served_scene
     from nemsim.sim import initial_state
 
     path = Path(checkpoint)
     if not path.is_file():
         raise ValueError(f"checkpoint {path} does not exist")
     loaded = load_checkpoint(path)
-    x0 = torch.from_numpy(np.asarray(initial_state(loaded.scene, simulator_config(loaded)), dtype=np.float32))
+    scene = served_scene(loaded)  # a trench model's trench
+    x0 = torch.from_numpy(np.asarray(initial_state(scene, simulator_config(loaded)), dtype=np.float32))
     cal = calibration_for(path)
     return InverseContext(
         model=loaded.model,
-        scene=loaded.scene,
+        scene=scene,
         x0=x0,
         calibration=cal,
         support=Support.from_record(cal.support if cal else None),
