@@ -80,13 +80,20 @@ def profile_errors(model: Any, test: Path, test_seed: Path) -> dict[str, Any]:
     return out
 
 
+def _trained(kind: str, r: dict[str, Any]) -> str:
+    """'trenches of CD 24-64 nm under 40-120 nm of mask'."""
+    plural = f"{kind}es" if kind.endswith("h") else f"{kind}s"
+    return (f"{plural} of CD {r['cd_nm'][0]:.0f}-{r['cd_nm'][1]:.0f} nm under {r['mask_nm'][0]:.0f}-"
+            f"{r['mask_nm'][1]:.0f} nm of mask")
+
+
 def to_markdown(rep: dict[str, Any]) -> str:
     f, p = rep["field"], rep["profile"]
     m = f["model"]
     lines = ["# The trench's cross-section model against the simulator", "",
              f"Command: `{rep['command']}`  ", f"CPU: {rep['cpu']}, one core", "",
-             f"Model `{rep['checkpoint']}` (id `{rep['checkpoint_id']}`), trained geometry "
-             f"{rep['geometry']}.", "",
+             f"Model `{rep['checkpoint']}` (id `{rep['checkpoint_id']}`), trained on "
+             + "; ".join(_trained(k, r) for k, r in rep["geometry"].items()) + ".", "",
              f"## Field error on {len(f['cases'])} held-out trenches", "",
              f"`{f['file']}` and `{f['seed_file']}`: one design (held-out recipe, width and mask), two "
              "seeds of the cross-section simulator. Avg RMSE of 100-step rollouts from x_0 against each "
