@@ -1,4 +1,4 @@
-"""The simulator's aspect-ratio-dependent etching (ARDE): hole depth against the opening's CD.
+"""The simulator's aspect-ratio-dependent etching (ARDE): hole (or trench) depth against the opening's CD.
 
 Holes of CD 24, 32, 40, 48 and 64 nm under 80 nm of mask (``nemsim.geometry.feature``) on the scene's grid,
 at three recipes (``recipes``): the centre of the control box, a high-ion-energy one (the three ion mean
@@ -9,6 +9,9 @@ domain (``SimConfig.domain``), the whole horizon. The etch depth (``nemsim.geome
 reported as the mean of the two seeds' slopes with their spread (half the difference: one run's slope is
 uncertain by about that). A hole that reached the bottom of the Si (depth >= the Si thickness less one
 voxel) is flagged: its depth is cut off there.
+
+``--feature trench``: trenches of the same widths instead, simulated on their cross-section (``--domain
+section``, the default for trenches).
 
 With ``--checkpoint CKPT`` the model's depths and slopes are added beside the simulator's (``model_arde``):
 the same holes rolled out from each one's x_0 (``initial_state`` of the per-case scene) at the same
@@ -60,6 +63,11 @@ LITERATURE = (
 )
 
 
+def plural(kind: str) -> str:
+    """'holes', 'trenches'."""
+    return f"{kind}es" if kind.endswith("h") else f"{kind}s"
+
+
 def verdict(rep: dict[str, Any]) -> str:
     """Whether the measured slopes follow the literature's sign, and where the relative lag is strongest."""
     t = str(rep["times_s"][-1])
@@ -77,7 +85,8 @@ def verdict(rep: dict[str, Any]) -> str:
     weakest = max(ratio, key=lambda k: ratio[k])
     follows = "follows" if signs else "does not clearly follow"
     return (f"Ours, at {float(t):g} s: {'; '.join(parts)}. Every slope is positive beyond twice its seed "
-            f"spread: narrower holes etch slower, so the simulator {follows} the reported ARDE sign. "
+            f"spread: narrower {plural(rep.get('feature', 'hole'))} etch slower, so the simulator {follows} "
+            "the reported ARDE sign. "
             if signs else f"Ours, at {float(t):g} s: {'; '.join(parts)}: not every slope is positive beyond "
             "twice its seed spread. ") + (
             f"The relative lag is strongest for {strongest} and weakest for {weakest}"
@@ -103,7 +112,7 @@ def _slope(cds: np.ndarray, depths: np.ndarray) -> float:
 
 def bench_arde(base: Scene, rules: RuleTensors, chosen: dict[str, np.ndarray],
                cds: tuple[float, ...] = CDS_NM, mask_nm: float = MASK_NM,
-               config: SimConfig | None = None) -> dict[str, Any]:
+               config: SimConfig | None = None, kind: str = "hole") -> dict[str, Any]:
     """Simulate every (recipe, CD, seed) (module docstring); returns the JSON report."""
     cfg = config or SimConfig(domain="quarter")
     tables = build_event_tables(rules, cfg.resolved(base))
@@ -112,7 +121,7 @@ def bench_arde(base: Scene, rules: RuleTensors, chosen: dict[str, np.ndarray],
     for i, (name, u) in enumerate(chosen.items()):
         runs: list[dict[str, Any]] = []
         for j, cd in enumerate(cds):
-            scene = Feature("hole", cd, mask_nm).apply(base)
+            scene = Feature(kind, cd, mask_nm).apply(base)  # type: ignore[arg-type]
             si_nm = scene.si_top * scene.voxel_nm
             for s in SEEDS:
                 c0 = time.process_time()
@@ -130,8 +139,8 @@ def bench_arde(base: Scene, rules: RuleTensors, chosen: dict[str, np.ndarray],
             slopes[str(t)] = {"per_seed": per_seed, "mean": float(np.mean(per_seed)),
                               "spread": float(abs(per_seed[0] - per_seed[1]) / 2.0)}
         out.append({"recipe": name, "controls": [float(v) for v in u], "runs": runs, "slope": slopes})
-    return {"scene": base.name, "mask_nm": mask_nm, "cds_nm": list(cds), "seeds": list(SEEDS),
-            "domain": cfg.domain, "times_s": list(TIMES_S), "recipes": out}
+    return {"scene": base.name, "feature": kind, "mask_nm": mask_nm, "cds_nm": list(cds),
+            "seeds": list(SEEDS), "domain": cfg.domain, "times_s": list(TIMES_S), "recipes": out}
 
 
 def model_arde(loaded: Any, base: Scene, rep: dict[str, Any],
@@ -155,7 +164,8 @@ def model_arde(loaded: Any, base: Scene, rep: dict[str, Any],
 
     cfg = config or SimConfig(domain=rep["domain"])
     cds = [float(c) for c in rep["cds_nm"]]
-    scenes = [Feature("hole", cd, float(rep["mask_nm"])).apply(base) for cd in cds]
+    kind = rep.get("feature", "hole")
+    scenes = [Feature(kind, cd, float(rep["mask_nm"])).apply(base) for cd in cds]
     x0 = torch.from_numpy(np.stack([initial_state(sc, cfg) for sc in scenes]))  # (B, 2, D, H, W)
     idx = {str(t): int(round(float(t) / base.snapshot_dt_s)) for t in rep["times_s"]}
     steps = max(idx.values())
@@ -175,10 +185,13 @@ def model_arde(loaded: Any, base: Scene, rep: dict[str, Any],
     return {"recipes": rows, "rollout_s": seconds}
 
 
-def same_holes(rep: dict[str, Any], scene: str, domain: str, chosen: dict[str, np.ndarray]) -> bool:
-    """Whether a cached report simulated this scene, domain, CDs, mask and recipes (names and controls)."""
+def same_holes(rep: dict[str, Any], scene: str, domain: str, chosen: dict[str, np.ndarray],
+               kind: str = "hole") -> bool:
+    """Whether a cached report simulated this scene, feature kind, domain, CDs, mask and recipes (names and
+    controls)."""
     try:
-        return (rep["scene"] == scene and rep["domain"] == domain and list(rep["cds_nm"]) == list(CDS_NM)
+        return (rep["scene"] == scene and rep.get("feature", "hole") == kind and rep["domain"] == domain
+                and list(rep["cds_nm"]) == list(CDS_NM)
                 and float(rep["mask_nm"]) == MASK_NM
                 and [r["recipe"] for r in rep["recipes"]] == list(chosen)
                 and all(np.allclose(r["controls"], chosen[r["recipe"]]) for r in rep["recipes"]))
@@ -190,8 +203,9 @@ def model_markdown(rep: dict[str, Any], model: dict[str, Any], tolerance: float 
     """The model's depths and slopes beside the simulator's (Markdown lines)."""
     cds = [str(float(c)) for c in rep["cds_nm"]]
     name, cid = model.get("checkpoint", "?"), model.get("checkpoint_id", "?")
-    lines = [f"Model `{name}` (id `{cid}`): the same holes rolled out from x_0; ratio = model slope / "
-             f"simulator slope (within +-{100 * tolerance:g} %: ok).", "",
+    kind = plural(rep.get("feature", "hole"))
+    lines = [f"Model `{name}` (id `{cid}`): the same {kind} rolled out from x_0; "
+             f"ratio = model slope / simulator slope (within +-{100 * tolerance:g} %: ok).", "",
              "| recipe | t (s) | " + " | ".join(f"CD {float(c):g}" for c in cds)
              + " | model slope | simulator slope | ratio |", "|---|---:|" + "---:|" * (len(cds) + 3)]
     sim = {r["recipe"]: r for r in rep["recipes"]}
@@ -208,11 +222,12 @@ def model_markdown(rep: dict[str, Any], model: dict[str, Any], tolerance: float 
 
 def to_markdown(rep: dict[str, Any], command: str, cpu: str) -> str:
     t_last = str(rep["times_s"][-1])
-    lines = [f"# ARDE: hole depth against CD on `{rep['scene']}`", "", f"Command: `{command}`  ",
+    kind = rep.get("feature", "hole")
+    lines = [f"# ARDE: {kind} depth against CD on `{rep['scene']}`", "", f"Command: `{command}`  ",
              f"CPU: {cpu}, one core", "",
-             f"Holes of CD {', '.join(f'{c:g}' for c in rep['cds_nm'])} nm under {rep['mask_nm']:g} nm of "
-             f"mask, {rep['domain']} domain, seeds {rep['seeds']} (bench/arde.py). Slope: least squares of "
-             "depth on CD per seed; mean of the seeds +- half their difference.", "",
+             f"{plural(kind).capitalize()} of CD {', '.join(f'{c:g}' for c in rep['cds_nm'])} nm under "
+             f"{rep['mask_nm']:g} nm of mask, {rep['domain']} domain, seeds {rep['seeds']} (bench/arde.py). "
+             "Slope: least squares of depth on CD per seed; mean of the seeds +- half their difference.", "",
              "| recipe | t (s) | " + " | ".join(f"CD {c:g}" for c in rep["cds_nm"]) + " | slope (nm/nm) |",
              "|---|---:|" + "---:|" * (len(rep["cds_nm"]) + 1)]
     for row in rep["recipes"]:
@@ -241,7 +256,10 @@ def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(prog="python -m bench.arde", description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="small")
-    ap.add_argument("--domain", default="quarter", choices=("full", "quarter"))
+    ap.add_argument("--feature", default="hole", choices=("hole", "trench"),
+                    help="holes (default) or trenches of the same widths")
+    ap.add_argument("--domain", default=None, choices=("full", "quarter", "section"),
+                    help="simulated domain (default: quarter for holes, section for trenches)")
     ap.add_argument("--recipes", default=",".join(recipes()), help="comma-separated names from recipes()")
     ap.add_argument("--out", type=Path, default=None, help="writes OUT.json and OUT.md")
     ap.add_argument("--checkpoint", type=Path, default=None,
@@ -256,15 +274,20 @@ def main(argv: list[str] | None = None) -> None:
     if unknown:
         ap.error(f"unknown recipes {unknown}; expected some of {sorted(all_recipes)}")
     chosen = {n: all_recipes[n] for n in args.recipes.split(",")}
+    args.domain = args.domain or ("section" if args.feature == "trench" else "quarter")
+    if (args.domain == "section") != (args.feature == "trench") and args.domain != "full":
+        ap.error(f"--domain {args.domain} does not simulate a {args.feature}")
     base = get_scene(args.scene)
     cache = args.sim_from or (args.out.with_suffix(".json")
                               if args.out is not None and args.checkpoint is not None else None)
     cached = json.loads(cache.read_text()) if cache is not None and cache.is_file() else None
-    if cached is not None and same_holes(cached, base.name, args.domain, chosen):
-        rep = {k: cached[k] for k in ("scene", "mask_nm", "cds_nm", "seeds", "domain", "times_s", "recipes")}
+    if cached is not None and same_holes(cached, base.name, args.domain, chosen, args.feature):
+        rep = {k: cached.get(k, "hole") for k in ("scene", "feature", "mask_nm", "cds_nm", "seeds", "domain",
+                                                   "times_s", "recipes")}
         sys.stderr.write(f"simulator results reused from {cache}\n")
     else:
-        rep = bench_arde(base, compile_rules(load_rules()), chosen, config=SimConfig(domain=args.domain))
+        rep = bench_arde(base, compile_rules(load_rules()), chosen, config=SimConfig(domain=args.domain),
+                         kind=args.feature)
     if args.checkpoint is not None:
         from nemsim.inference.checkpoint import checkpoint_id, load_checkpoint
 

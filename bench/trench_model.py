@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bench.arde import write_report
+from bench.arde import plural, write_report
 from bench.geometry import TARGET_RATIO, field_errors
 from nemsim.controls import to_normalized
 from nemsim.data.hdf5 import open_trajectories
@@ -82,8 +82,7 @@ def profile_errors(model: Any, test: Path, test_seed: Path) -> dict[str, Any]:
 
 def _trained(kind: str, r: dict[str, Any]) -> str:
     """'trenches of CD 24-64 nm under 40-120 nm of mask'."""
-    plural = f"{kind}es" if kind.endswith("h") else f"{kind}s"
-    return (f"{plural} of CD {r['cd_nm'][0]:.0f}-{r['cd_nm'][1]:.0f} nm under {r['mask_nm'][0]:.0f}-"
+    return (f"{plural(kind)} of CD {r['cd_nm'][0]:.0f}-{r['cd_nm'][1]:.0f} nm under {r['mask_nm'][0]:.0f}-"
             f"{r['mask_nm'][1]:.0f} nm of mask")
 
 

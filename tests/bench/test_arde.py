@@ -67,3 +67,19 @@ def test_other_holes_are_not_reused():
     assert not arde.same_holes(cached, "tiny", "quarter", chosen)
     assert not arde.same_holes(cached, "tiny", "full", {"centre": chosen["centre"] * 1.1})
     assert not arde.same_holes({"scene": "tiny"}, "tiny", "full", chosen)
+
+
+def test_trenches_on_their_cross_section_with_a_trench_model(tmp_path, tiny_section_checkpoint):
+    """--feature trench: trenches of the same widths simulated on their cross-section, the trench model's
+    slopes beside them; a domain that cannot hold a trench is refused."""
+    out = tmp_path / "arde"
+    arde.main(["--scene", "tiny", "--feature", "trench", "--recipes", "centre", "--checkpoint",
+               str(tiny_section_checkpoint), "--out", str(out)])
+    rep = json.loads(out.with_suffix(".json").read_text())
+    assert rep["feature"] == "trench" and rep["domain"] == "section"
+    assert len(rep["recipes"][0]["runs"]) == len(arde.CDS_NM) * len(arde.SEEDS)
+    assert np.isfinite(rep["model"]["recipes"][0]["slope"]["10.0"])
+    text = out.with_suffix(".md").read_text()
+    assert "# ARDE: trench depth" in text and "the same trenches rolled out" in text
+    with pytest.raises(SystemExit):
+        arde.main(["--scene", "tiny", "--feature", "trench", "--domain", "quarter", "--recipes", "centre"])
