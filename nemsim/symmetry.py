@@ -218,15 +218,12 @@ class FieldFold:
         return mirror_pad(q, pad, self.n) if self.kind == "quarter" else mirror_pad_x(q, pad, self.n)
 
     def finish(self, x: torch.Tensor) -> torch.Tensor:
-        """``finish_`` out of place (differentiable): a new tensor of x's shape."""
+        """A predicted folded field made exactly symmetric (differentiable, a new tensor): the quadrant's
+        diagonal mean, the section's row mean (in place on a rollout's buffer: ``symmetrize_diagonal_``,
+        ``rows_mean_``)."""
         if self.kind == "quarter":
             return symmetrize(x, "diagonal")
         return x.mean(dim=-2, keepdim=True).expand_as(x).contiguous()
-
-    def finish_(self, x: torch.Tensor) -> torch.Tensor:
-        """A predicted folded field made exactly symmetric, in place: the quadrant's diagonal mean, the
-        section's row mean."""
-        return symmetrize_diagonal_(x) if self.kind == "quarter" else rows_mean_(x)
 
 
 def model_fold(model: object) -> FieldFold | None:
@@ -241,9 +238,8 @@ def model_fold(model: object) -> FieldFold | None:
 def quarter_model_size(model: object) -> int | None:
     """The full lateral size n of the fields a quarter-domain model (``config.domain == "quarter"``, a NEMSim
     or a runtime exposing its config) rebuilds; None for a full-domain model."""
-    cfg = getattr(model, "config", None)
-    n = int(getattr(cfg, "full_size", 0) or 0)
-    return n if getattr(cfg, "domain", "full") == "quarter" and n else None
+    f = model_fold(model)
+    return f.n if f is not None and f.kind == "quarter" else None
 
 
 @numba.njit(cache=True, nogil=True)

@@ -11,7 +11,7 @@ from nemsim.evaluation.rollout import rollout
 from nemsim.geometry.feature import Feature
 from nemsim.inference.runtime import compile_model, openvino_available
 from nemsim.scenes import quadrant_size
-from nemsim.symmetry import SECTION_ROWS, FieldFold, mirror_pad_x, model_fold, section_mean
+from nemsim.symmetry import SECTION_ROWS, FieldFold, mirror_pad_x, model_fold, rows_mean_, section_mean
 
 torch.set_num_threads(1)
 
@@ -45,7 +45,8 @@ def test_section_maps_by_hand(n):
         assert torch.equal(mirror_pad_x(f.fold(t), pad, n), t[..., :SECTION_ROWS, : c + pad])
     q = f.fold(t).clone()
     q[..., 1, :] += 1.0
-    f.finish_(q)  # the rows' mean, in place
+    torch.testing.assert_close(f.finish(q), f.fold(t) + 0.25)  # the rows' mean
+    rows_mean_(q)  # the same, in place (a rollout's buffer)
     torch.testing.assert_close(q, f.fold(t) + 0.25)
     with pytest.raises(ValueError, match="quarter"):
         FieldFold("eighth", n)  # type: ignore[arg-type]
