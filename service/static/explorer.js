@@ -327,7 +327,7 @@ function metricsTable() {
   if (state.sim) cols.push(['simulator', state.sim]);
   let html = `<table><tr><th>at t = ${run.times_s[k].toFixed(1)} s (nm)</th>${cols.map(([n]) => `<th>${n}</th>`).join('')}</tr>`;
   for (const n of Object.keys(run.metrics)) html += `<tr><td>${n}</td>${cols.map(([, s]) => `<td>${nm1((s.metrics[n] || [])[Math.min(k, s.metrics[n].length - 1)])}</td>`).join('')}</tr>`;
-  $('final-metrics').innerHTML = `${html}</table><p class="hint">– : not defined yet (the hole has not reached the row it is measured on)</p>`;
+  $('final-metrics').innerHTML = `${html}</table><p class="hint">– : not defined yet (the etch has not reached the row it is measured on)</p>`;
 }
 
 // --- time -------------------------------------------------------------------------------------------

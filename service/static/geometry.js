@@ -16,7 +16,8 @@ export function caseScene(scene, g) {
 }
 
 const plural = (kind) => (kind.endsWith('h') ? `${kind}es` : `${kind}s`); // holes, trenches
-const span = (r) => (r[0] === r[1] ? `${r[0]} nm` : `${r[0]}–${r[1]} nm`);
+const end = (v) => Number(v.toFixed(2)); // a trained range's ends as recorded, to 0.01 nm
+const span = (r) => (r[0] === r[1] ? `${end(r[0])} nm` : `${end(r[0])}–${end(r[1])} nm`);
 
 /** Draw the cross-section sketch of features `gs` ([{g, colour, dash}]) on the scene's pitch. */
 function sketch(canvas, scene, gs) {

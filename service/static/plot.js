@@ -81,7 +81,7 @@ export function planeAxes(ctx, frame, P, title) {
   ctx.fillStyle = '#445'; ctx.font = FONT; ctx.beginPath();
   ctx.textAlign = 'center';
   for (const x of xt.ticks) { ctx.moveTo(P.X(x), r.y + r.h); ctx.lineTo(P.X(x), r.y + r.h + 3); ctx.fillText(xt.label(x), P.X(x), r.y + r.h + 13); }
-  const xlabel = ctx.measureText('x from hole axis (nm)').width <= r.w + 40 ? 'x from hole axis (nm)' : 'x (nm)';
+  const xlabel = ctx.measureText('x from the axis (nm)').width <= r.w + 40 ? 'x from the axis (nm)' : 'x (nm)';
   ctx.fillText(xlabel, r.x + r.w / 2, r.y + r.h + 26);
   ctx.textAlign = 'right';
   for (const d of dt.ticks) { ctx.moveTo(r.x - 3, P.Y(d)); ctx.lineTo(r.x, P.Y(d)); ctx.fillText(dt.label(d), r.x - 5, P.Y(d) + 4); }

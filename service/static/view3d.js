@@ -13,8 +13,8 @@ import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
 import { FONT, drawColourBar, ticksWithin } from '/static/plot.js';
 
 const LEGEND = {
-  plain: 'grey: mask · orange: Si · rulers: nm from the hole axis, depth below the initial Si top',
-  error: 'grey: mask (surrogate) · Si: the simulator\'s surface coloured by the surrogate\'s error (colour bar) · rulers: nm from the hole axis, depth below the initial Si top',
+  plain: 'grey: mask · orange: Si · rulers: nm from the feature axis, depth below the initial Si top',
+  error: 'grey: mask (surrogate) · Si: the simulator\'s surface coloured by the surrogate\'s error (colour bar) · rulers: nm from the feature axis, depth below the initial Si top',
 };
 
 export function createView(canvas, scene, els) {
