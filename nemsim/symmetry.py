@@ -142,14 +142,20 @@ def section_mean(x: torch.Tensor) -> torch.Tensor:
     return m.to(x.dtype).expand_as(x).contiguous()
 
 
+def section_line(q: torch.Tensor, n: int) -> torch.Tensor:
+    """The line profile (..., 1, n) of a cross-section q (..., r, c): its first row mirrored across the high W
+    face (the trench axis)."""
+    row = q[..., :1, :]  # (..., 1, c)
+    return torch.cat([row, row.flip(-1)[..., n % 2:]], dim=-1)
+
+
 def unfold_section(q: torch.Tensor, n: int, out: torch.Tensor | None = None) -> torch.Tensor:
     """The full field (..., n, n) of a cross-section q (..., r, c) (rows equal): its first row mirrored across
     the high W face (x) and repeated along H (y); written into ``out`` when given."""
     c = quadrant_size(n)
     if q.shape[-1] != c:
         raise ValueError(f"a cross-section of a field of size {n} is {c} wide, got {tuple(q.shape[-2:])}")
-    row = q[..., :1, :]  # (..., 1, c)
-    full = torch.cat([row, row.flip(-1)[..., n % 2:]], dim=-1).expand(*q.shape[:-2], n, n)
+    full = section_line(q, n).expand(*q.shape[:-2], n, n)
     if out is None:
         return full.contiguous()
     if tuple(out.shape) != tuple(full.shape):

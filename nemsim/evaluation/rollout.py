@@ -166,13 +166,11 @@ def rollout(
     return x
 
 
-def on_quadrant(x0: torch.Tensor, f: FieldFold | int, roll: Callable[[torch.Tensor], torch.Tensor],
+def on_quadrant(x0: torch.Tensor, f: FieldFold, roll: Callable[[torch.Tensor], torch.Tensor],
                 keep: bool = True, out: torch.Tensor | None = None) -> torch.Tensor:
-    """A folded rollout from full fields x0 (B, 2, D, n, n): ``roll`` runs on the folded part of x0's
-    symmetric mean (``f``: a ``FieldFold``, or n for a quarter) and returns (B, T+1, 2, D, h, w) (or the last
-    state with ``keep`` False); the result is unfolded to full fields (into ``out`` when given), x0 itself
-    first (module docstring)."""
-    f = f if isinstance(f, FieldFold) else FieldFold("quarter", int(f))
+    """A folded rollout from full fields x0 (B, 2, D, n, n): ``roll`` runs on the folded part (``f``) of
+    x0's symmetric mean and returns (B, T+1, 2, D, h, w) (or the last state with ``keep`` False); the result
+    is unfolded to full fields (into ``out`` when given), x0 itself first (module docstring)."""
     res = roll(f.fold(f.symmetrize(x0)).contiguous())
     if not keep:
         return f.unfold(res)

@@ -53,7 +53,7 @@ from nemsim.inference.checkpoint import (
 )
 from nemsim.inference.precision import machine, resolve_precision
 from nemsim.inference.runtime import BACKENDS, Runtime, compile_model, openvino_available
-from nemsim.symmetry import FieldFold, model_fold
+from nemsim.symmetry import FieldFold, model_fold, section_line
 
 log = logging.getLogger(__name__)
 
@@ -190,12 +190,16 @@ class Prediction:
     metrics_s: float
     warnings: tuple[str, ...] = ()
     non_finite_from: int | None = None  # the first step whose state is not finite (NaN/Inf), None: none
-    full_size: int | None = None  # set when ``states`` holds the folded part of fields of this lateral size
-    fold: FieldFold | None = None  # what ``states`` holds then (``nemsim.symmetry.FieldFold``)
+    fold: FieldFold | None = None  # set when ``states`` holds a folded part (``nemsim.symmetry.FieldFold``)
 
     @property
     def steps(self) -> int:
         return self.schedule.steps
+
+    @property
+    def full_size(self) -> int | None:
+        """The lateral size of the fields ``states`` is the folded part of (None: full fields)."""
+        return None if self.fold is None else self.fold.n
 
 
 def served_scene(loaded: LoadedModel) -> Any:
@@ -284,7 +288,6 @@ class Predictor:
         x0_t = torch.as_tensor(self.x0)
         symmetric = self._fold is not None and bool(torch.equal(x0_t, self._fold.symmetrize(x0_t)))
         self.symmetric_fold: FieldFold | None = self._fold if symmetric else None
-        self.symmetric_size: int | None = self._fold.n if self._fold is not None and symmetric else None
         self.initial_state_source = source
         expected = tuple(self.scene.state_shape)
         if self.x0.shape != expected:
@@ -440,8 +443,8 @@ class Predictor:
         Args:
             out: optional float32 buffer (>= T+1, *``state_shape(quadrant)``) the states are written into
                 (the returned ``states`` is then a view of it, valid while the caller does not reuse it).
-            quadrant: return the states' folded part (quadrant or cross-section; ``Prediction.full_size``
-                and ``fold`` set), when the rollouts are exactly symmetric (``symmetric_size``); otherwise
+            quadrant: return the states' folded part (quadrant or cross-section; ``Prediction.fold``
+                set), when the rollouts are exactly symmetric (``symmetric_size``); otherwise
                 the full fields, as without it.
             feature: the feature etched (None: the scene's own); ``case`` says what is refused.
         """
@@ -451,7 +454,6 @@ class Predictor:
         sched = self.schedule(controls, steps)
         T = sched.steps
         fold_ = self.symmetric_fold if quadrant else None
-        on_quadrant = fold_ is not None
         x0 = torch.from_numpy(case.x0)[None]  # (1, 2, D, H, W)
         if fold_ is not None:
             x0 = fold_.fold(x0).contiguous()  # the model's own domain: the rollout stays there
@@ -479,9 +481,13 @@ class Predictor:
             metrics_s=t2 - t1,
             warnings=tuple(warnings),
             non_finite_from=non_finite_from,
-            full_size=self.symmetric_size if on_quadrant else None,
             fold=fold_,
         )
+
+    @property
+    def symmetric_size(self) -> int | None:
+        """The lateral size of the fields every rollout is exactly symmetric in (None: not symmetric)."""
+        return None if self.symmetric_fold is None else self.symmetric_fold.n
 
     def state_shape(self, quadrant: bool = False) -> tuple[int, ...]:
         """(2, D, H, W) of a rollout's states, or (2, D, c, c) for ``rollout(..., quadrant=True)`` when the
@@ -498,12 +504,8 @@ class Predictor:
 
         f = self.symmetric_fold
         if f is not None and f.kind == "section" and tuple(states.shape[-2:]) == f.plane:
-            # a trench's line profile: the cross-section's row across x (``measured_profile_metrics``)
-            c = states.shape[-1]
-            line = np.empty((*states.shape[:-2], 1, f.n), dtype=np.float32)  # (T+1, 2, D, 1, n)
-            line[..., :c] = states[..., :1, :]
-            line[..., c:] = states[..., :1, c - 1 - f.n % 2 :: -1][..., : f.n - c]  # mirrored across the axis
-            states = line
+            # a trench's line profile (T+1, 2, D, 1, n), the cross-section's row across x
+            states = section_line(torch.from_numpy(states), f.n).numpy()
         return measured_profile_metrics(states, self.scene if scene is None else scene)
 
     def warm_up(self, steps: int) -> None:
