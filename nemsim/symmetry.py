@@ -24,10 +24,11 @@ of y and the low half of x (the axis on the high W face), ``unfold`` mirrors x a
 
 Choice: the quadrant, not the eighth. The eighth (a triangle) is not a box a 3-D convolution can run on;
 the diagonal mirror is kept by averaging the quadrant with its transpose (``symmetrize`` on a quadrant).
-Choice: a cross-section keeps 4 equal rows of y, not one, so it runs through the same 3-D network
-(two 2x poolings) unchanged: on a field constant along y every convolution (edge-padded), pooling and
-normalization gives a field constant along y, so the rows stay equal (``FieldFold.finish_`` averages them,
-exactly). It costs 4/c of a quadrant (4/14 on ``small``) where a 2-D network would cost 1/c.
+Choice: a cross-section keeps 2 equal rows of y, not one, so the same 3-D network runs on it with its
+parameters unchanged: y is periodic and every feature constant along it, so each 3x3x3 kernel acts as its
+sum over y on one row ("line mode", ``nemsim.model.layers``). The stem's stride takes the two rows to one,
+the decoder's voxel shuffle gives them back as its two y sub-voxels, and ``FieldFold.finish`` averages them,
+exactly. Every grid below the full one has a single row: the network costs what a 2-D one would.
 A scene with ``symmetry = "none"`` (an off-centre or asymmetric layout) keeps the full domain everywhere.
 """
 
@@ -43,7 +44,7 @@ import torch
 from nemsim.scenes import quadrant_size
 
 N_D4 = 8  # order of the square's symmetry group
-SECTION_ROWS = 4  # rows of y a cross-section keeps (a multiple of the encoder's two 2x poolings; docstring)
+SECTION_ROWS = 2  # rows of y a cross-section keeps (the stem's stride takes them to one; docstring)
 FOLDS = ("quarter", "section")  # the model domains a FieldFold maps to
 
 

@@ -20,7 +20,7 @@ Scene symmetry ("model only what a scene needs", ``nemsim.symmetry``): a ``Trans
 every state it yields over the scene's symmetries (``symmetrize``: the mean of a Monte Carlo state's 8
 images, a quieter target of the same mean evolution) and yield the fundamental domain's quadrant
 (``quarter``: what a quarter-domain model trains on), or a trench's cross-section (``section``: the mean
-over y and the x mirror, 4 rows of the low half of x; what a section-domain model trains on).
+over y and the x mirror, 2 rows of the low half of x; what a section-domain model trains on).
 
 ``MemoryTransitions`` holds the training items of one or more such datasets in memory instead (the input
 pipeline that keeps up with a GPU): each trajectory is read and inflated once on every core

@@ -218,9 +218,14 @@ class TrajectoryWriter:
             self.geometry = (str(kind), rows)
         gen_json = _dumps(generator)
         if self.path.exists():
-            self._f = open_h5(self.path, "r+")
+            # read-only first: a file holding every requested case finished is not written to, so it opens
+            # while other processes read it (a training on the same data)
+            self._f = open_h5(self.path, "r")
             try:
-                self._check_compatible(case_ids, controls_raw, schedule, gen_json, rules_sha256)
+                if not self._check_compatible(case_ids, controls_raw, schedule, gen_json, rules_sha256):
+                    self._f.close()
+                    self._f = open_h5(self.path, "r+")
+                    self._resume(case_ids, controls_raw, schedule)
             except Exception:
                 self._f.close()
                 raise
@@ -276,7 +281,9 @@ class TrajectoryWriter:
             f.attrs["geometry_columns"] = list(GEOMETRY_COLUMNS)
         f.flush()
 
-    def _check_compatible(self, case_ids, controls_raw, schedule, gen_json, rules_sha256) -> None:
+    def _check_compatible(self, case_ids, controls_raw, schedule, gen_json, rules_sha256) -> bool:
+        """Refuse (ValueError) a file this run cannot resume; True when it holds every requested case
+        finished (nothing to write)."""
         f = self._f
         where = f"cannot resume {self.path}"
         missing = [k for k in _REQUIRED_DATASETS if k not in f]
@@ -325,6 +332,17 @@ class TrajectoryWriter:
         if str(f.attrs["generator"]) != gen_json:
             raise ValueError(f"{where}: generator mismatch (file {f.attrs['generator']}, "
                              f"requested {gen_json})")
+        if len(case_ids) == m and bool(np.all(f["complete"][()])):  # nothing to write: no read-back
+            log.info("%s: all %d cases finished (`nemsim data check` reads them back)", self.path, m)
+            return True
+        return False
+
+    def _resume(self, case_ids, controls_raw, schedule) -> None:
+        """Before writing to a compatible file: its finished cases read back (a damaged one is refused) and
+        rows appended for requested cases it lacks."""
+        f = self._f
+        m = len(f["case_ids"])
+        where = f"cannot resume {self.path}"
         log.info("%s: reading back its finished cases before resuming", self.path)
         damaged = _damaged_cases(f, self.scene)
         if damaged:

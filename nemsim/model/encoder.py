@@ -70,7 +70,9 @@ class StateEncoder(nn.Module):
         """``extra`` (B, stem, D/2, H/2, W/2), optional: added to the stem's output (the transport input)."""
         B, C, D, H, W = x.shape
         f = self.cfg.downsample
-        assert D % f == 0 and H % f == 0 and W % f == 0, f"encoder input {(D, H, W)} not a multiple of {f}"
+        line = self.stem[0].line  # a cross-section's two rows (line mode, nemsim.model.layers): no H grid
+        assert D % f == 0 and W % f == 0 and (H % f == 0 or line), \
+            f"encoder input {(D, H, W)} not a multiple of {f}"
         h = self.stem(x)  # (B, stem, D/2, H/2, W/2)
         if extra is not None:
             h = h + extra.to(h.dtype)

@@ -8,6 +8,13 @@ autograd formula). PyTorch's dispatcher otherwise sends batch-1 3-D convolutions
 much slower im2col ``slow_conv3d`` path. 1x1x1 stride-1 kernels run as one matrix product (faster than
 oneDNN at our sizes). Other devices, dtypes, autocast and torch.compile use the standard path.
 
+Line mode (``line = True``, a trench's cross-section, ``NEMSim`` sets it on its 3x3x3 convolutions): the
+input is constant along H on a periodic H axis, so every tap of a kernel's H column sees the same row and the
+convolution is exactly the kernel summed over H, applied with no H padding (a (k, 1, k) kernel; stride
+unchanged, so two rows become one and one row stays one). The parameters and state dict are the 3-D
+kernel's: a line-mode model computes what the same 3-D model with periodic H padding computes on a field
+constant along H, at a third of the taps and on one row.
+
 Depth window (``nemsim.model.window``): while a ``WindowRun`` is attached (``_window``), 3x3x3 convolutions
 and GroupNorm compute on a suffix crop of the depth axis as if on the whole volume (the slice below the crop
 and the statistics below it come from the last full call). Unattached, nothing changes.
@@ -68,6 +75,7 @@ class Conv3d(nn.Conv3d):
 
     _packed: tuple | None = None  # (key, oneDNN-packed weight) for inference, see _prepacked
     _window = None  # a WindowRun while a depth-windowed call runs (nemsim.model.window)
+    line = False  # line mode: a field constant along H (module docstring)
 
     def __getstate__(self) -> dict:
         """Copies and pickles leave the packed weight behind (an opaque oneDNN tensor: deepcopy of a model
@@ -78,19 +86,26 @@ class Conv3d(nn.Conv3d):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self._window is not None and self.kernel_size == (3, 3, 3):
+            assert not self.line, "a depth window runs on full and quarter domains, not on a line"
             return window_conv(self, x, self._window, self._forward)
         return self._forward(x)
+
+    def _weight(self) -> torch.Tensor:
+        """The kernel applied: the module's, or in line mode its sum over H (module docstring)."""
+        return self.weight.sum(dim=3, keepdim=True) if self.line else self.weight
 
     def _forward(self, x: torch.Tensor, padding: tuple | None = None) -> torch.Tensor:
         """The convolution, with ``padding`` instead of the module's (the depth window's own padding)."""
         padding = self.padding if padding is None else tuple(padding)  # type: ignore[assignment]
+        if self.line:
+            padding = (padding[0], 0, padding[2])  # type: ignore[index]
         if self.padding_mode == "zeros" and isinstance(self.padding, tuple) and self.dilation == (1, 1, 1) \
                 and self.groups == 1:
             inference = _PREPACK and not torch.is_grad_enabled() and _onednn_ok(x)
             if inference and self.kernel_size != (1, 1, 1) and self.in_channels >= 8:
                 return self._prepacked(x, padding)  # type: ignore[arg-type]
-            return conv3d(x, self.weight, self.bias, self.stride, padding)  # type: ignore[arg-type]
-        assert padding == self.padding, f"padding {padding} on the standard path of {self}"
+            return conv3d(x, self._weight(), self.bias, self.stride, padding)  # type: ignore[arg-type]
+        assert padding == self.padding and not self.line, f"padding {padding} on the standard path of {self}"
         return super().forward(x)
 
     def _prepacked(self, x: torch.Tensor, padding: tuple) -> torch.Tensor:
@@ -100,11 +115,11 @@ class Conv3d(nn.Conv3d):
         is keyed by input shape and the weight's storage and version, so training updates or
         ``load_state_dict`` invalidate it."""
         w = self.weight
-        key = (tuple(x.shape), padding, w.data_ptr(), w._version)
+        key = (tuple(x.shape), padding, w.data_ptr(), w._version, self.line)
         packed = self._packed  # one read: another thread may replace it meanwhile
         if packed is None or packed[0] != key:
             packed = (key, torch.ops.mkldnn._reorder_convolution_weight(
-                w.detach(), list(padding), list(self.stride), [1, 1, 1], 1, list(x.shape)
+                self._weight().detach(), list(padding), list(self.stride), [1, 1, 1], 1, list(x.shape)
             ))
             self._packed = packed
         return torch.ops.mkldnn._convolution_pointwise(

@@ -34,9 +34,12 @@ its transpose (the diagonal mirror), so a prediction has all 8 symmetries exactl
 quadrant (``nemsim.evaluation.rollout`` folds x_0 and unfolds the trajectory); ``predict`` also accepts a
 full field.
 
-Cross-section (``domain = "section"``, a trench; ``nemsim.symmetry.FieldFold``): the same network on 4 equal
-rows of y and the low half of x, the trench axis on the high W face with its mirror halo; the rows of each
-prediction are averaged, so every state is exactly constant along the line.
+Cross-section (``domain = "section"``, a trench; ``nemsim.symmetry.FieldFold``): the same network on 2 equal
+rows of y and the low half of x, the trench axis on the high W face with its mirror halo. Its 3x3x3
+convolutions run in line mode (``nemsim.model.layers``): y is periodic and every feature constant along it,
+so each kernel acts as its sum over y, the stem takes the two rows to one and every later grid has one row.
+The decoder's voxel shuffle gives the two rows back (its two y sub-voxels), and they are averaged, so every
+state is exactly constant along the line. The state dict is the 3-D network's.
 
 Multi-step prediction (``steps_per_call`` = k, not in the paper; k = 1 is the paper's model): one call
 predicts x̂_{t+j} = clamp(x_t + r_j, -1, 1), j = 1..k, with cumulative residuals r_j from the decoder's
@@ -197,6 +200,10 @@ class NEMSim(nn.Module):
                           steps=cfg.steps_per_call, refine=cfg.decoder_refine)
         )
         self.multiple = self.encoder.cfg.downsample
+        if cfg.domain == "section":  # line mode (module docstring): every 3x3x3 kernel acts as its sum over y
+            for m in self.modules():
+                if isinstance(m, Conv3d) and m.kernel_size == (3, 3, 3):
+                    m.line = True
         # transport_input: Φ (4 channels at 1/2 resolution) added to the stem's output by a 1x1x1
         # convolution that starts at zero, so a warm-started model predicts exactly what it did before
         self.transport_in: Conv3d | None = None
@@ -219,9 +226,9 @@ class NEMSim(nn.Module):
         m = self.multiple
         if self.fold is not None:  # the halo across the axis (the section's rows need none: all equal)
             x = self.fold.pad(x, (-W) % m or m)
-            W = x.shape[-1]
-            H = x.shape[-2]
-        pd, ph, pw = (-D) % m, (-H) % m, (-W) % m
+            H, W = x.shape[-2:]
+        pd, pw = (-D) % m, (-W) % m
+        ph = 0 if self.fold is not None and self.fold.kind == "section" else (-H) % m  # a line: no H grid
         if pd == ph == pw == 0:
             return x
         return F.pad(x, (0, pw, 0, ph, 0, pd), mode="replicate")

@@ -147,7 +147,7 @@ PROFILE_LOSS_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss")
 
 def full_states(states: torch.Tensor, scene: Scene) -> torch.Tensor:
     """States (N, 2, D, H, W) of the full scene: a quarter-domain model's quadrants (N, 2, D, c, c) (or a
-    section-domain model's cross-sections (N, 2, D, 4, c)) are rebuilt by reflection
+    section-domain model's cross-sections (N, 2, D, 2, c)) are rebuilt by reflection
     (``nemsim.symmetry``, differentiable), full states pass through."""
     from nemsim.symmetry import unfold, unfold_section
 

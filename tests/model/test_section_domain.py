@@ -45,9 +45,9 @@ def test_section_maps_by_hand(n):
         assert torch.equal(mirror_pad_x(f.fold(t), pad, n), t[..., :SECTION_ROWS, : c + pad])
     q = f.fold(t).clone()
     q[..., 1, :] += 1.0
-    torch.testing.assert_close(f.finish(q), f.fold(t) + 0.25)  # the rows' mean
+    torch.testing.assert_close(f.finish(q), f.fold(t) + 1.0 / SECTION_ROWS)  # the rows' mean
     rows_mean_(q)  # the same, in place (a rollout's buffer)
-    torch.testing.assert_close(q, f.fold(t) + 0.25)
+    torch.testing.assert_close(q, f.fold(t) + 1.0 / SECTION_ROWS)
     with pytest.raises(ValueError, match="quarter"):
         FieldFold("eighth", n)  # type: ignore[arg-type]
 
@@ -119,6 +119,39 @@ def test_section_fused_finish_matches_the_pass_by_pass_path(tiny_scene, monkeypa
     assert torch.equal(fused[:, 1:], fused[:, 1:, ..., :1, :].expand_as(fused[:, 1:]))
 
 
+def test_line_mode_is_the_periodic_3d_network(tiny_scene, monkeypatch):
+    """Line mode (each 3x3x3 kernel summed over y, on two rows) computes exactly what the same network with
+    periodic y padding computes on the field repeated to 8 rows (float rounding): the state dict is the
+    3-D network's and the cross-section costs one row per grid."""
+    import torch.nn.functional as F
+
+    from nemsim.model.layers import Conv3d
+
+    model = _section_model(tiny_scene, k=2)
+    f = model_fold(model)
+    assert f is not None and f.plane[0] == SECTION_ROWS == 2
+    lines = [m for m in model.modules() if isinstance(m, Conv3d) and m.kernel_size == (3, 3, 3)]
+    assert lines and all(m.line for m in lines)
+    x = f.fold(section_mean(_trench_x0(tiny_scene))).contiguous()  # (2, 2, D, 2, c)
+    u = torch.rand(2, 14, generator=torch.Generator().manual_seed(4)) * 2 - 1
+    with torch.no_grad():
+        cache = model.precompute(u)
+        line = model.predict(x, cache)
+        assert line.shape == (2, 2, *x.shape[1:])
+
+        def periodic(self, x, padding=None):  # the 3-D convolution with y wrapped around
+            if self.kernel_size != (3, 3, 3):
+                return F.conv3d(x, self.weight, self.bias, self.stride, self.padding)
+            return F.conv3d(F.pad(x, (0, 0, 1, 1, 0, 0), mode="circular"), self.weight, self.bias,
+                            self.stride, (1, 0, 1))
+
+        monkeypatch.setattr(Conv3d, "_forward", periodic)
+        ref = model.predict(x.repeat(1, 1, 1, 4, 1), cache)  # 8 rows, the same field
+    assert ref.shape[-2] == 8
+    torch.testing.assert_close(line, ref[..., :2, :], atol=1e-5, rtol=0)
+    assert (line - x[:, None]).abs().max() > 1e-3  # the model moves the state
+
+
 def test_section_model_needs_a_square_grid():
     from nemsim.registry import build_model
     from nemsim.rules.compile import compile_rules
@@ -164,3 +197,31 @@ def test_predictor_keeps_a_trench_on_its_cross_section(tiny_section_checkpoint):
                                   full.states)
     for name, values in full.metrics.items():
         np.testing.assert_array_equal(folded.metrics[name], values, err_msg=name)
+
+
+def test_shipped_trench_model_etches_narrow_trenches_slower():
+    """The shipped cross-section checkpoint runs in line mode and answers like a trench etch: every state
+    constant along the line, the depth growing with time, and a narrower trench etching slower (ARDE: the
+    simulator's slope is +0.19 nm per nm of width at the centre recipe, benchmarks/small/arde_trench.md)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from nemsim.inference import Predictor
+    from nemsim.model.layers import Conv3d
+    from service.schemas import array_to_controls, default_controls_raw
+
+    path = Path(__file__).resolve().parents[2] / "checkpoints" / "nemsim-small-trench.pt"
+    pred = Predictor.from_checkpoint(path, backend="torch")
+    assert pred.symmetric_fold == FieldFold("section", pred.scene.field_shape[-1])
+    assert all(m.line for m in pred.model.modules() if isinstance(m, Conv3d) and m.kernel_size == (3, 3, 3))
+    controls = array_to_controls(default_controls_raw())
+    depth = {}
+    for cd in (28.0, 60.0):
+        out = pred.rollout(controls, 100, quadrant=True, feature=Feature("trench", cd, 80.0))
+        assert out.states.shape[-2] == SECTION_ROWS
+        assert np.array_equal(out.states, np.broadcast_to(out.states[..., :1, :], out.states.shape))
+        d = np.asarray(out.metrics["etch_depth"])
+        assert np.all(np.diff(d) > -0.5) and d[-1] > d[0] + 20.0  # etching, never refilling
+        depth[cd] = d[-1]
+    assert depth[28.0] < depth[60.0] - 1.0, depth
