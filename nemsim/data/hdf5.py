@@ -332,25 +332,28 @@ class TrajectoryWriter:
         if str(f.attrs["generator"]) != gen_json:
             raise ValueError(f"{where}: generator mismatch (file {f.attrs['generator']}, "
                              f"requested {gen_json})")
-        if len(case_ids) == m and bool(np.all(f["complete"][()])):  # nothing to write: no read-back
-            log.info("%s: all %d cases finished (`nemsim data check` reads them back)", self.path, m)
+        if len(case_ids) == m and bool(np.all(f["complete"][()])):  # nothing to write
+            self._refuse_damaged()  # a damaged file is never reported complete
             return True
         return False
+
+    def _refuse_damaged(self) -> None:
+        """Read the finished cases back; a damaged one is refused (ValueError)."""
+        log.info("%s: reading back its finished cases before resuming", self.path)
+        damaged = _damaged_cases(self._f, self.scene)
+        if damaged:
+            more = f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else ""
+            raise ValueError(
+                f"cannot resume {self.path}: the file is damaged: {damaged[0]}{more}; `nemsim data check "
+                f"{self.path}` reports it; move the file away and regenerate, or write the other cases to "
+                "another --out"
+            )
 
     def _resume(self, case_ids, controls_raw, schedule) -> None:
         """Before writing to a compatible file: its finished cases read back (a damaged one is refused) and
         rows appended for requested cases it lacks."""
-        f = self._f
-        m = len(f["case_ids"])
-        where = f"cannot resume {self.path}"
-        log.info("%s: reading back its finished cases before resuming", self.path)
-        damaged = _damaged_cases(f, self.scene)
-        if damaged:
-            more = f" (and {len(damaged) - 1} more)" if len(damaged) > 1 else ""
-            raise ValueError(
-                f"{where}: the file is damaged: {damaged[0]}{more}; `nemsim data check {self.path}` reports "
-                "it; move the file away and regenerate, or write the other cases to another --out"
-            )
+        m = len(self._f["case_ids"])
+        self._refuse_damaged()
         if len(case_ids) > m:
             self._grow(m, case_ids, controls_raw, schedule)
 

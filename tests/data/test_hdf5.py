@@ -172,26 +172,9 @@ def test_resume_refuses_a_damaged_file(make_file, tiny_scene, garbage):
         assert w.finished == {0}  # an intact file resumes
 
 
-def test_a_finished_file_resumes_without_reading_its_states_back(make_file, tiny_scene, monkeypatch, caplog):
-    """Reopening a file that holds every requested case finished writes nothing, so it skips the read-back
-    (the integrity check ``nemsim data check`` runs); a file with cases left reads them back first."""
-    import logging
-
-    from nemsim.data import hdf5
-
-    read = []
-    monkeypatch.setattr(hdf5, "_damaged_cases", lambda f, scene: read.append(1) or [])
-    with caplog.at_level(logging.INFO, logger="nemsim.data.hdf5"), _writer(make_file(), tiny_scene) as w:
-        assert w.finished == set(range(6))
-    assert not read and "all 6 cases finished" in caplog.text
-    with _writer(make_file(write=[0, 1], name="part.h5"), tiny_scene) as w:
-        assert w.finished == {0, 1}
-    assert read == [1]
-
-
 def test_a_finished_file_opens_while_another_process_reads_it(make_file, tiny_scene):
-    """A training reading the data does not stop a rerun of its recipe's generate step (nothing to write);
-    a file with cases left still needs the writer's lock."""
+    """A training reading the data does not stop a rerun of its recipe's generate step (nothing to write:
+    the file is read back under a reader's lock); a file with cases left still needs the writer's lock."""
     import subprocess
     import sys
 
