@@ -225,7 +225,7 @@ class TrajectoryWriter:
                 if not self._check_compatible(case_ids, controls_raw, schedule, gen_json, rules_sha256):
                     self._f.close()
                     self._f = open_h5(self.path, "r+")
-                    self._resume(case_ids, controls_raw, schedule)
+                self._resume(case_ids, controls_raw, schedule)
             except Exception:
                 self._f.close()
                 raise
@@ -332,13 +332,12 @@ class TrajectoryWriter:
         if str(f.attrs["generator"]) != gen_json:
             raise ValueError(f"{where}: generator mismatch (file {f.attrs['generator']}, "
                              f"requested {gen_json})")
-        if len(case_ids) == m and bool(np.all(f["complete"][()])):  # nothing to write
-            self._refuse_damaged()  # a damaged file is never reported complete
-            return True
-        return False
+        return len(case_ids) == m and bool(np.all(f["complete"][()]))  # nothing to write
 
-    def _refuse_damaged(self) -> None:
-        """Read the finished cases back; a damaged one is refused (ValueError)."""
+    def _resume(self, case_ids, controls_raw, schedule) -> None:
+        """The finished cases read back (a damaged file is refused, even with nothing left to write: it is
+        never reported complete), then rows appended for requested cases the file lacks."""
+        m = len(self._f["case_ids"])
         log.info("%s: reading back its finished cases before resuming", self.path)
         damaged = _damaged_cases(self._f, self.scene)
         if damaged:
@@ -348,12 +347,6 @@ class TrajectoryWriter:
                 f"{self.path}` reports it; move the file away and regenerate, or write the other cases to "
                 "another --out"
             )
-
-    def _resume(self, case_ids, controls_raw, schedule) -> None:
-        """Before writing to a compatible file: its finished cases read back (a damaged one is refused) and
-        rows appended for requested cases it lacks."""
-        m = len(self._f["case_ids"])
-        self._refuse_damaged()
         if len(case_ids) > m:
             self._grow(m, case_ids, controls_raw, schedule)
 
