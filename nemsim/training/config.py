@@ -17,7 +17,8 @@ eq:training_loss; the extra terms are 0 by default):
     Brandstetter, Worrall & Welling 2022) unless ``unroll_grad``; it trains the model on the states its own
     rollout visits, where one-step training drifts. ``step_loss_weights`` w_j (default uniform).
   * ``profile_loss_weight`` λ_p: m = the differentiable profile metrics (``nemsim.geometry.soft_profile``,
-    voxels). The field MSE weighs a one-voxel width error at the hole's bottom like noise in a few voxels.
+    voxels) of each call's last predicted state, a trench's at its own Si top (``training.loop``). The
+    field MSE weighs a one-voxel width error at the hole's bottom like noise in a few voxels.
   * ``pair_loss_weight`` λ_pair: ``pairs_per_step`` sweep pairs (``nemsim.data.dataset.PairDataset``: two
     recipes that differ in one control group, one seed) join every batch. A Latin hypercube moves every
     control at once, so a single case weighs a control's response no more than the Monte Carlo noise;

@@ -157,20 +157,56 @@ def full_states(states: torch.Tensor, scene: Scene) -> torch.Tensor:
     return unfold(states, n) if states.shape[-2] == states.shape[-1] else unfold_section(states, n)
 
 
-def _profile_voxels(states: torch.Tensor, scene: Scene) -> torch.Tensor:
-    """(4, N) soft profile metrics (``PROFILE_LOSS_METRICS``) in voxels of states (N, 2, D, H, W), full or
-    quadrant."""
-    from nemsim.geometry.soft_profile import soft_profile_metrics
+def _is_section(states: torch.Tensor, scene: Scene) -> bool:
+    """Whether states (N, 2, D, H, W) are a section-domain model's cross-sections (a trench's)."""
+    return states.shape[-1] != scene.state_shape[-1] and states.shape[-2] != states.shape[-1]
 
-    m = soft_profile_metrics(full_states(states, scene), scene)
-    return torch.stack([m[k] / scene.voxel_nm for k in PROFILE_LOSS_METRICS])
+
+def section_si_tops(q: torch.Tensor, scene: Scene) -> torch.Tensor:
+    """(N,) each trench's Si top (``Scene.si_top``: its own mask thickness) read from its cross-sections q
+    (N, 2, D, r, c): the Si voxels of the column at the pitch's edge (native x = 0), under the mask and never
+    etched, clamped to the tops a feature may have (``nemsim.geometry.feature``)."""
+    from nemsim.geometry.feature import MIN_SI_FRACTION
+
+    si = q[:, 1, 1 : scene.nz + 1, 0, 1]  # (N, nz): the edge column (rows are equal)
+    lo = math.ceil(MIN_SI_FRACTION * scene.si_top)
+    return (si < 0).sum(dim=1).clamp(lo, scene.resist_top - 1)
+
+
+def _profile_voxels(states: torch.Tensor, scene: Scene, tops: torch.Tensor | None = None) -> torch.Tensor:
+    """(4, N) soft profile metrics (``PROFILE_LOSS_METRICS``) in voxels of states (N, 2, D, H, W), full,
+    quadrant or cross-section. A trench's cross-sections are measured as trenches, each at its own Si top
+    (``tops`` (N,), default ``section_si_tops`` of the states): a trench's mask, so its top row, is a case's
+    own, while the data file's scene holds one feature (whose opening sets the mask-loss columns: depth and
+    widths are read on the axis and do not depend on it). They are grouped by top and each group unfolded
+    as a view (its line repeated along y), so the cost stays that of the cross-sections."""
+    from nemsim.geometry.feature import Feature
+    from nemsim.geometry.soft_profile import soft_profile_metrics
+    from nemsim.symmetry import section_line
+
+    if not _is_section(states, scene):
+        m = soft_profile_metrics(full_states(states, scene), scene)
+        return torch.stack([m[k] / scene.voxel_nm for k in PROFILE_LOSS_METRICS])
+    tops = section_si_tops(states, scene) if tops is None else tops
+    n = scene.state_shape[-1]
+    cd = 2.0 * scene.opening_radius_vox * scene.voxel_nm
+    parts, order = [], []
+    for top in tops.unique().tolist():
+        idx = torch.nonzero(tops == top).squeeze(1)
+        group = section_line(states.index_select(0, idx), n)  # (g, 2, D, 1, n)
+        case = Feature("trench", cd, (scene.resist_top - top) * scene.voxel_nm).apply(scene)
+        m = soft_profile_metrics(group.expand(*group.shape[:-2], n, n), case)
+        parts.append(torch.stack([m[k] / scene.voxel_nm for k in PROFILE_LOSS_METRICS]))
+        order.append(idx)
+    return torch.cat(parts, dim=1)[:, torch.argsort(torch.cat(order))]
 
 
 def profile_loss(pred: torch.Tensor, target: torch.Tensor, scene: Scene) -> torch.Tensor:
     """Mean squared error in voxels^2 of the soft profile metrics (``PROFILE_LOSS_METRICS``) of pred (N, 2, D,
-    H, W) against target (N, 2, D, H, W) (full states or a quarter-domain model's quadrants), float32; the
-    training config's ``profile_loss_weight`` term."""
-    return torch.mean((_profile_voxels(pred, scene) - _profile_voxels(target, scene)) ** 2)
+    H, W) against target (N, 2, D, H, W) (full states, or a quarter- or section-domain model's fields; a
+    trench's measured at the target's Si top), float32; the training config's ``profile_loss_weight`` term."""
+    tops = section_si_tops(target, scene) if _is_section(target, scene) else None
+    return torch.mean((_profile_voxels(pred, scene, tops) - _profile_voxels(target, scene, tops)) ** 2)
 
 
 def pair_loss(pred: torch.Tensor, target: torch.Tensor, n_pairs: int) -> torch.Tensor:
@@ -230,7 +266,9 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
     predicted state (None = uniform), normalized to sum 1. Call c predicts x_{t+ck+1..t+ck+k} under the
     controls of its first transition u_{t+ck} (as the rollout does with constant controls). Returns the mean
     over calls of Σ_j w_j MSE_j. With k = 1 this is ``pushforward_loss`` (model called as model(x, u)).
-    ``profile`` = (lambda, scene) adds lambda times ``profile_loss`` over every predicted state of each call.
+    ``profile`` = (lambda, scene) adds lambda times ``profile_loss`` of each call's last predicted state (the
+    state the next call starts from; over a sample's random start it meets every time of the rollout, at a
+    k-th of the cost of every state).
     ``pairs``: the batch ends with sweep pairs, and their difference terms (``PairTerms.loss``) over every
     predicted state are added to each call.
     ``detach`` False (``TrainConfig.unroll_grad``): call c starts from call c-1's last state itself, and
@@ -251,8 +289,7 @@ def multistep_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torch.
         per_state = torch.mean((pred - y[:, c * k:(c + 1) * k]) ** 2, dim=(0, 2, 3, 4, 5))  # (k,)
         total = total + torch.sum(w * per_state)
         if profile is not None and profile[0] > 0:
-            target = y[:, c * k:(c + 1) * k]
-            total = total + profile[0] * profile_loss(pred.flatten(0, 1), target.flatten(0, 1), profile[1])
+            total = total + profile[0] * profile_loss(pred[:, -1], y[:, (c + 1) * k - 1], profile[1])
         if pairs is not None:
             total = total + pairs.loss(pred, y[:, c * k:(c + 1) * k])
         state = pred[:, -1].detach() if detach else pred[:, -1]

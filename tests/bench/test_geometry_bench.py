@@ -52,6 +52,8 @@ def test_geometry_report_on_tiny(tmp_path, hole_files, tiny_checkpoint):
         row = field[name]
         assert row["avg_rmse"] == pytest.approx((row["seed_a"]["avg_rmse"] + row["seed_b"]["avg_rmse"]) / 2)
         assert row["ratio_to_floor"] == pytest.approx(row["avg_rmse"] / field["floor"]["avg_rmse"])
+        lo, hi = row["ratio_interval_90"]
+        assert lo <= row["ratio_to_floor"] <= hi or lo == hi
         assert len(row["per_case"]) == 2
         assert np.isfinite(rep["arde"][name]["recipes"][0]["slope"]["10.0"])
         assert rep["default"][name]["avg_rmse"] > 0

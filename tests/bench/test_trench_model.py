@@ -28,6 +28,8 @@ def test_trench_report_on_tiny(tmp_path, trench_files, tiny_section_checkpoint):
     model = field["model"]
     assert model["ratio_to_floor"] == pytest.approx(model["avg_rmse"] / field["floor"]["avg_rmse"])
     depth = rep["profile"]["etch_depth"]
+    lo, hi = depth["ratio_interval_90"]
+    assert lo <= hi
     assert depth["cases"] == 2 and depth["floor_nm"] > 0
     assert depth["model_nm"] == pytest.approx(0.5 * (depth["vs_seed_a_nm"] + depth["vs_seed_b_nm"]))
     speed = rep["speed"]
@@ -47,3 +49,24 @@ def test_a_hole_model_is_refused(tmp_path, trench_files, tiny_checkpoint, capsys
         trench_model.main(["--checkpoint", str(tiny_checkpoint), "--test", str(trench_files["a"]),
                            "--test-seed", str(trench_files["b"])])
     assert "not a cross-section (trench) model" in capsys.readouterr().err
+
+
+
+def test_ratio_interval_brackets_the_ratio():
+    import numpy as np
+
+    from bench.geometry import ratio_interval
+
+    rng = np.random.default_rng(1)
+    sa, sb = rng.normal(size=50), rng.normal(size=50)
+
+    def ratio_of(m):
+        def rms(d):
+            return np.sqrt(np.mean(d**2))
+        return lambda i: 0.5 * (rms(m[i] - sa[i]) + rms(m[i] - sb[i])) / rms(sa[i] - sb[i])
+
+    # a model equal to seed A: its error is half the floor on every resample
+    assert ratio_interval(ratio_of(sa.copy()), 50) == pytest.approx((0.5, 0.5))
+    m = 0.5 * (sa + sb) + rng.normal(scale=0.8, size=50)
+    lo, hi = ratio_interval(ratio_of(m), 50)
+    assert lo < ratio_of(m)(np.arange(50)) < hi and hi - lo > 0.05

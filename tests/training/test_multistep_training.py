@@ -268,6 +268,50 @@ def test_profile_loss_is_the_soft_metric_error_in_voxels(tiny_scene, make_hole):
     assert p.grad is not None and p.grad.abs().sum() > 0  # gradients reach the voxels next to the surface
 
 
+def test_profile_loss_measures_each_trench_at_its_own_si_top(tiny_scene):
+    from nemsim.geometry.feature import Feature
+    from nemsim.geometry.soft_profile import soft_profile_metrics
+    from nemsim.sim.process import initial_state
+    from nemsim.symmetry import FieldFold
+    from nemsim.training.loop import (
+        PROFILE_LOSS_METRICS,
+        _profile_voxels,
+        full_states,
+        profile_loss,
+        section_si_tops,
+    )
+
+    fold = FieldFold("section", tiny_scene.state_shape[-1])
+    cd = 2.0 * tiny_scene.opening_radius_vox * tiny_scene.voxel_nm
+    cases = [Feature("trench", cd, mask).apply(tiny_scene) for mask in (80.0, 48.0, 112.0)]
+    q = torch.stack([fold.fold(torch.from_numpy(initial_state(c)).float()) for c in cases])  # (3, 2, D, 2, c)
+    full = full_states(q, tiny_scene)
+    assert [c.si_top for c in cases] == [20, 24, 16]
+    assert section_si_tops(q, tiny_scene).tolist() == [20, 24, 16]
+    got = _profile_voxels(q, tiny_scene)  # (4, 3): each column its own case's, in the input's order
+    for i, c in enumerate(cases):
+        m = soft_profile_metrics(full[i:i + 1], c)
+        want_i = [float(m[k]) / c.voxel_nm for k in PROFILE_LOSS_METRICS]
+        assert got[:, i].tolist() == pytest.approx(want_i, abs=1e-5)
+    # a 2-voxel deeper trench below each case's own Si top: the depth term alone, (2^2) / 4 = 1 voxel^2
+    deeper = []
+    for c in cases:
+        st = initial_state(c)
+        axis = int(round(c.opening_centre[0])) + 1
+        st[1, c.si_top - 1 : c.si_top + 1, :, axis - 1 : axis + 2] = 1.0  # 2 Si rows of the axis opened
+        deeper.append(fold.fold(torch.from_numpy(st).float()))
+    d = torch.stack(deeper)
+    assert profile_loss(q, q, tiny_scene).item() == 0.0
+    want = sum(float(((soft_profile_metrics(full_states(d, tiny_scene)[i:i + 1], c)[k]
+                       - soft_profile_metrics(full[i:i + 1], c)[k]) / c.voxel_nm) ** 2)
+               for i, c in enumerate(cases) for k in PROFILE_LOSS_METRICS) / (4 * len(cases))
+    assert profile_loss(d, q, tiny_scene).item() == pytest.approx(want, rel=1e-5)
+    depth = [float(soft_profile_metrics(full_states(d, tiny_scene)[i:i + 1], c)["etch_depth"]
+                   - soft_profile_metrics(full[i:i + 1], c)["etch_depth"]) / c.voxel_nm
+             for i, c in enumerate(cases)]
+    assert depth == pytest.approx([2.0, 2.0, 2.0], abs=0.05)  # measured at each case's own top
+
+
 def test_profile_loss_weight_adds_lambda_times_the_profile_term(tiny_scene, make_hole):
     from nemsim.training.loop import profile_loss
 
