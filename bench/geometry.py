@@ -77,6 +77,15 @@ def through_count(path: Path) -> dict[str, Any]:
     return {"file": str(path), "cases": int(len(rows)), "through": len(hit), "through_cases": hit}
 
 
+def _field_ratio(per_seed: list[np.ndarray], floor: np.ndarray) -> Callable[[np.ndarray], float]:
+    """The field ratio (``field_errors``) of the cases idx, from per-case per-step MSEs (n, T) against each
+    seed and between the seeds, as ``ratio_interval`` resamples them."""
+    def ratio(idx: np.ndarray) -> float:
+        model = float(np.mean([_avg_final(m[idx])["avg_rmse"] for m in per_seed]))
+        return model / _avg_final(floor[idx])["avg_rmse"]
+    return ratio
+
+
 def field_errors(models: dict[str, Any], test: Path, test_seed: Path | None) -> dict[str, Any]:
     """Per model: Avg / Final RMSE against each simulation of the test design, their mean, the ratio to the
     seed-to-seed floor and its 90 % bootstrap interval over the cases, and per-case Avg RMSE (module
@@ -120,9 +129,7 @@ def field_errors(models: dict[str, Any], test: Path, test_seed: Path | None) -> 
             if "floor" in out:
                 row["ratio_to_floor"] = row["avg_rmse"] / out["floor"]["avg_rmse"]
                 per_seed = [np.stack(v) for v in mse[name].values()]  # each (n, T)
-                row["ratio_interval_90"] = ratio_interval(
-                    lambda i, m=per_seed: float(np.mean([_avg_final(x[i])["avg_rmse"] for x in m]))
-                    / _avg_final(fl[i])["avg_rmse"], len(rows))
+                row["ratio_interval_90"] = ratio_interval(_field_ratio(per_seed, fl), len(rows))
             out[name] = row
     finally:
         a.close()
