@@ -145,6 +145,11 @@ def pushforward_loss(model: nn.Module, x: torch.Tensor, u: torch.Tensor, y: torc
 PROFILE_LOSS_METRICS = ("etch_depth", "top_width", "bottom_width", "mask_loss")
 
 
+def _is_section(states: torch.Tensor, scene: Scene) -> bool:
+    """Whether states (N, 2, D, H, W) are a section-domain model's cross-sections (a trench's)."""
+    return states.shape[-1] != scene.state_shape[-1] and states.shape[-2] != states.shape[-1]
+
+
 def full_states(states: torch.Tensor, scene: Scene) -> torch.Tensor:
     """States (N, 2, D, H, W) of the full scene: a quarter-domain model's quadrants (N, 2, D, c, c) (or a
     section-domain model's cross-sections (N, 2, D, 2, c)) are rebuilt by reflection
@@ -152,14 +157,9 @@ def full_states(states: torch.Tensor, scene: Scene) -> torch.Tensor:
     from nemsim.symmetry import unfold, unfold_section
 
     n = scene.state_shape[-1]
-    if states.shape[-1] == n:
-        return states
-    return unfold(states, n) if states.shape[-2] == states.shape[-1] else unfold_section(states, n)
-
-
-def _is_section(states: torch.Tensor, scene: Scene) -> bool:
-    """Whether states (N, 2, D, H, W) are a section-domain model's cross-sections (a trench's)."""
-    return states.shape[-1] != scene.state_shape[-1] and states.shape[-2] != states.shape[-1]
+    if _is_section(states, scene):
+        return unfold_section(states, n)
+    return states if states.shape[-1] == n else unfold(states, n)
 
 
 def section_si_tops(q: torch.Tensor, scene: Scene) -> torch.Tensor:
